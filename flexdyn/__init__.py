@@ -1,0 +1,69 @@
+"""flexdyn: differentiable dynamics of planar chains of rigid and flexible links.
+
+Enables 64-bit floats on import (simulation and identification need double
+precision); set `FLEXDYN_NO_X64=1` before importing to leave JAX's setting alone.
+"""
+
+import os as _os
+
+import jax as _jax
+
+if not _os.environ.get("FLEXDYN_NO_X64"):
+    _jax.config.update("jax_enable_x64", True)
+
+from . import modes as modes, rigs as rigs
+from .chain import (
+    AssembledChain as AssembledChain,
+    Chain as Chain,
+    LinkMatrices as LinkMatrices,
+    accelerations as accelerations,
+    assemble as assemble,
+    dissipation as dissipation,
+    end_point as end_point,
+    input_matrix as input_matrix,
+    inverse_dynamics as inverse_dynamics,
+    kinetic_energy as kinetic_energy,
+    mass_matrix as mass_matrix,
+    potential_energy as potential_energy,
+    root_curvatures as root_curvatures,
+    tip_deflections as tip_deflections,
+    tip_load as tip_load,
+    total_energy as total_energy,
+    velocity_terms as velocity_terms,
+)
+from .inputs import (
+    AbstractInput as AbstractInput,
+    BangBang as BangBang,
+    FunctionInput as FunctionInput,
+    PDTracking as PDTracking,
+    QuinticReference as QuinticReference,
+    SampledTorque as SampledTorque,
+    ZeroTorque as ZeroTorque,
+)
+from .linear import (
+    LinearModel as LinearModel,
+    Modes as Modes,
+    damped_modes as damped_modes,
+    linearize as linearize,
+    modal_analysis as modal_analysis,
+    stiffness_matrix as stiffness_matrix,
+)
+from .parts import (
+    ElasticJoint as ElasticJoint,
+    FlexibleLink as FlexibleLink,
+    Hub as Hub,
+    Payload as Payload,
+    RigidJoint as RigidJoint,
+    RigidLink as RigidLink,
+)
+from .simulate import (
+    ChainVectorField as ChainVectorField,
+    Outputs as Outputs,
+    Trajectory as Trajectory,
+    initial_state as initial_state,
+    observe as observe,
+    simulate as simulate,
+)
+from .solvers import RK4 as RK4
+
+__version__ = "0.1.0"

@@ -1,0 +1,467 @@
+r"""A planar serial chain of rigid and flexible links: kinematics, energies and the
+equations of motion.
+
+Design note (how the equations are formed, and why they are exact)
+==================================================================
+
+**Coordinates.** Joint i contributes, in this order, the rotor angle `alpha_i`
+(elastic joints only, referred to the link side), the link angle `theta_i`
+(relative to the tip frame of link i-1, or to the base x axis for i = 1) and the
+modal coordinates `q_i1..q_im` of link i (flexible links only, metres; see
+`flexdyn.modes`). The state is `y = [Q, Q_dot]`.
+
+**Kinematics** (papers 002/004 eq. 1-5, with the elastic rotation kept as an
+angle). Link i has a body frame at its joint with origin `o_i` and absolute
+angle `phi_i = psi_{i-1} + theta_i`, `psi_0 = 0`. A material point at distance
+`x` along the undeformed link is at
+
+    r_i(x) = o_i + R(phi_i) [x, v_i(x)]^T,     v_i(x) = sum_j phi_ij(x) q_ij,
+
+(no axial shortening; small elastic deflection). The next joint is at
+`o_{i+1} = r_i(l_i)` and the tip frame turns with the tip slope,
+`psi_i = phi_i + v_i'(l_i)`. Papers 002/004 write the last step with the
+linearised rotation `E_i = [[1, -v'], [v', 1]]`; we add the slope to the angle,
+which is the same to first order and keeps `R` orthogonal. Large rigid
+rotations are exact; no small-angle assumption is made anywhere.
+
+**Kinetic energy.** With `w = [u, omega, q_dot]` (origin velocity `u = R^T
+o_dot` in the body frame, `omega = phi_dot`) the link's kinetic energy is, exactly
+for the kinematics above,
+
+    T_i = 1/2 m |u|^2 - u_x omega (a.q) + u_y (omega c1 + a.q_dot)
+          + 1/2 omega^2 (c2 + q^T Mq q) + omega (b.q_dot) + 1/2 q_dot^T Mq q_dot
+
+with the constant shape integrals `m = int rho`, `c1 = int rho x`, `c2 = int rho
+x^2`, `a_j = int rho phi_j`, `b_j = int rho x phi_j`, `Mq_jk = int rho phi_j phi_k`
+(Gauss-Legendre quadrature, exact to double precision). The `omega^2 q^T Mq q`
+term is paper 000's `S1 b^2 theta_ddot` term (eq. 10); nothing quadratic in the
+deflection is dropped. A rigid link is the same expression with no modes,
+`c1 = m com`, `c2 = I_c + m com^2`. Hubs add `1/2 m_h |o_dot_i|^2 + 1/2 J_h
+phi_dot_i^2`, the payload `1/2 M_p |o_dot_{n+1}|^2 + 1/2 I_p psi_dot_n^2`, rotors
+`1/2 I_r (psi_dot_{i-1} + G s_dot_i)^2` (`s = alpha` or `theta`; with
+`spong_approximation`, `1/2 G^2 I_r s_dot^2` as in paper 004 eq. 7).
+
+**Potential energy.** Bending `1/2 q^T K q`, `K_jk = EI int phi_j'' phi_k''`
+(paper 004 eq. 19-20), joint springs `1/2 k_s (alpha - theta)^2` (eq. 21), and
+gravity `-g . sum(mass-weighted positions)`, with `int rho r_i = m o_i + R(phi_i)
+[c1, a.q]` exactly; `g` is any vector in the plane (vertical-plane pendulums of
+paper 000, horizontal arms of papers 002/004 with `g = 0`).
+
+**Equations of motion.** Lagrange's equations
+
+    M(Q) Q_ddot + (d/dQ (M(Q) Q_dot)) Q_dot - dT/dQ = F - dV/dQ - dR/dQ_dot
+
+are formed by automatic differentiation of the scalar `T(Q, Q_dot)`: `M` is its
+Hessian in `Q_dot`, the velocity terms are a forward-mode derivative of
+`dT/dQ_dot` along `Q_dot` minus a gradient. No Christoffel symbol is typed by
+hand, so the velocity terms are exactly those of `T` (this is what the
+energy-conservation tests check). `R` is the Rayleigh dissipation (joint
+viscous damping, modal damping `D`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._checks import as_float_array, checked
+from .modes import GAUSS_W, GAUSS_X, evaluate_shapes, mode_shapes
+from .parts import ElasticJoint, FlexibleLink, Hub, Payload, RigidJoint, RigidLink
+
+Link = RigidLink | FlexibleLink
+Joint = RigidJoint | ElasticJoint
+
+
+class Chain(eqx.Module):
+    """A planar serial chain: the model every rig of the papers is a case of.
+
+    **Arguments:**
+    - `links`: tuple of `RigidLink` / `FlexibleLink`, from the base outwards.
+    - `joints`: tuple of `RigidJoint` / `ElasticJoint`; joint i drives link i.
+    - `hubs`: tuple of `Hub`, one per joint (default: massless).
+    - `payload`: `Payload` at the tip of the last link (default: none).
+    - `gravity`: gravitational acceleration in the base frame, m/s^2, shape (2,)
+      (default `(0, 0)`: a horizontal-plane arm; a vertical pendulum has `(0, -9.81)`).
+    """
+
+    links: tuple[Link, ...]
+    joints: tuple[Joint, ...]
+    hubs: tuple[Hub, ...]
+    payload: Payload
+    gravity: Float[Array, "2"]
+
+    def __init__(self, links, joints=None, hubs=None, payload=None, gravity=(0.0, 0.0)):
+        links = tuple(links)
+        n = len(links)
+        if n == 0:
+            raise ValueError("Chain.links: expected at least one link")
+        joints = tuple(RigidJoint() for _ in range(n)) if joints is None else tuple(joints)
+        hubs = tuple(Hub() for _ in range(n)) if hubs is None else tuple(hubs)
+        for name, parts, kinds in (
+            ("links", links, (RigidLink, FlexibleLink)),
+            ("joints", joints, (RigidJoint, ElasticJoint)),
+            ("hubs", hubs, (Hub,)),
+        ):
+            if len(parts) != n:
+                raise ValueError(f"Chain.{name}: expected {n} entries (one per link), got {len(parts)}")
+            for k, part in enumerate(parts):
+                if not isinstance(part, kinds):
+                    expected = " or ".join(t.__name__ for t in kinds)
+                    raise ValueError(f"Chain.{name}[{k}]: expected {expected}, got {type(part).__name__}")
+        self.links, self.joints, self.hubs = links, joints, hubs
+        self.payload = Payload() if payload is None else payload
+        if not isinstance(self.payload, Payload):
+            raise ValueError(f"Chain.payload: expected Payload, got {type(self.payload).__name__}")
+        self.gravity = as_float_array(gravity)
+        if tuple(np.shape(self.gravity)) != (2,):
+            raise ValueError(f"Chain.gravity: expected shape (2,) [m/s^2], got {np.shape(self.gravity)}")
+
+    # -- structure (static) --------------------------------------------------
+    @property
+    def n_links(self) -> int:
+        return len(self.links)
+
+    @property
+    def layout(self) -> Layout:
+        return layout(self)
+
+    @property
+    def n_dof(self) -> int:
+        return self.layout.n_dof
+
+    def coordinate_names(self) -> list[str]:
+        """Names of the generalised coordinates, e.g. `['theta1', 'q1_1', 'q1_2', ...]`."""
+        return list(self.layout.names)
+
+
+class Layout(NamedTuple):
+    """Static index map of the generalised coordinates."""
+
+    rotor: tuple[int | None, ...]  # index of alpha_i, or None for a rigid joint
+    theta: tuple[int, ...]
+    modal: tuple[tuple[int, ...], ...]
+    actuated: tuple[int, ...]  # coordinate each joint torque acts on
+    names: tuple[str, ...]
+
+    @property
+    def n_dof(self) -> int:
+        return len(self.names)
+
+
+def layout(chain: Chain) -> Layout:
+    rotor, theta, modal, actuated, names = [], [], [], [], []
+    k = 0
+    for i, (link, joint) in enumerate(zip(chain.links, chain.joints), start=1):
+        if joint.elastic:
+            rotor.append(k)
+            actuated.append(k)
+            names.append(f"alpha{i}")
+            k += 1
+        else:
+            rotor.append(None)
+            actuated.append(k)
+        theta.append(k)
+        names.append(f"theta{i}")
+        k += 1
+        idx = tuple(range(k, k + link.n_modes))
+        modal.append(idx)
+        names.extend(f"q{i}_{j}" for j in range(1, link.n_modes + 1))
+        k += link.n_modes
+    return Layout(tuple(rotor), tuple(theta), tuple(modal), tuple(actuated), tuple(names))
+
+
+# ---------------------------------------------------------------------------
+# Assembly: mode shapes and shape integrals, computed once per parameter set.
+# ---------------------------------------------------------------------------
+
+
+class LinkMatrices(eqx.Module):
+    """Constant shape integrals of one link (SI units). A rigid link has no modes.
+
+    `mass = int rho dx`, `c1 = int rho x dx`, `c2 = int rho x^2 dx` (about the joint),
+    `a = int rho phi dx`, `b = int rho x phi dx`, `modal_mass = int rho phi phi^T dx`,
+    `stiffness = EI int phi'' phi''^T dx`, `damping` (modal), `tip_shape = phi(l)`,
+    `tip_slope = phi'(l)` [1/m], `root_curvature = phi''(0)` [1/m^2], `lam = beta l`,
+    `coef` (shape coefficients, `flexdyn.modes`), `frequency` = clamped-mass
+    natural frequencies [rad/s].
+    """
+
+    length: Array
+    mass: Array
+    c1: Array
+    c2: Array
+    a: Array
+    b: Array
+    modal_mass: Array
+    stiffness: Array
+    damping: Array
+    tip_shape: Array
+    tip_slope: Array
+    root_curvature: Array
+    lam: Array
+    coef: Array
+    frequency: Array
+    tip_load: Array  # (M, S, J) used for the clamped-mass shapes
+
+
+class AssembledChain(eqx.Module):
+    """A `Chain` with its mode shapes solved and shape integrals evaluated."""
+
+    chain: Chain
+    links: tuple[LinkMatrices, ...]
+
+    @property
+    def layout(self) -> Layout:
+        return layout(self.chain)
+
+
+def _rigid_moments(link):
+    """(mass, first moment, second moment) about the joint of the undeformed link."""
+    if isinstance(link, RigidLink):
+        m = checked(link.mass, "RigidLink", "mass", positive=True)
+        return m, m * link.com, link.inertia + m * link.com**2
+    m = checked(link.rho, "FlexibleLink", "rho", positive=True) * link.length
+    return m, m * link.length / 2.0, m * link.length**2 / 3.0
+
+
+def tip_load(chain: Chain, i: int):
+    """Mass M, first moment S and inertia J (about the tip of link i) of everything
+    distal to link i, in the straight configuration with the distal joints locked:
+    paper 004 eq. (47)-(48) (`M_E`, `M_DE`, `I_E`), computed for any chain."""
+    M = S = J = jnp.zeros(())
+    x = jnp.zeros(())
+    for k in range(i + 1, chain.n_links):
+        hub, joint, link = chain.hubs[k], chain.joints[k], chain.links[k]
+        rotor = jnp.zeros(()) if joint.spong_approximation else joint.rotor_inertia
+        M, S, J = M + hub.mass, S + hub.mass * x, J + hub.inertia + rotor + hub.mass * x**2
+        m, c1, c2 = _rigid_moments(link)
+        M, S, J = M + m, S + m * x + c1, J + c2 + 2.0 * x * c1 + m * x**2
+        x = x + link.length
+    p = chain.payload
+    return M + p.mass, S + p.mass * x, J + p.inertia + p.mass * x**2
+
+
+def _assemble_link(chain: Chain, i: int) -> LinkMatrices:
+    link = chain.links[i]
+    length = checked(link.length, type(link).__name__, "length", positive=True)
+    mass, c1, c2 = _rigid_moments(link)
+    M, S, J = tip_load(chain, i)
+    empty = jnp.zeros((0,))
+    if isinstance(link, RigidLink):
+        return LinkMatrices(length, mass, c1, c2, empty, empty, jnp.zeros((0, 0)), jnp.zeros((0, 0)),
+                            jnp.zeros((0, 0)), empty, empty, empty, empty, jnp.zeros((0, 4)), empty,
+                            jnp.stack([M, S, J]))
+    rho = link.rho
+    EI = checked(link.EI, "FlexibleLink", "EI", positive=True)
+    n = link.n_modes
+    lam, coef = mode_shapes(n, M / (rho * length), S / (rho * length**2), J / (rho * length**3))
+    xi = jnp.asarray(GAUSS_X)
+    w = jnp.asarray(GAUSS_W) * length  # weights for dx
+    phi = evaluate_shapes(lam, coef, xi)  # (G, n)
+    phi2 = evaluate_shapes(lam, coef, xi, 2) / length**2
+    x = xi * length
+    a = rho * (w @ phi)
+    b = rho * ((w * x) @ phi)
+    modal_mass = rho * (phi.T * w) @ phi
+    stiffness = EI * (phi2.T * w) @ phi2
+    one, zero = jnp.ones((1,)), jnp.zeros((1,))
+    tip_shape = evaluate_shapes(lam, coef, one)[0]
+    tip_slope = evaluate_shapes(lam, coef, one, 1)[0] / length
+    root_curvature = evaluate_shapes(lam, coef, zero, 2)[0] / length**2
+    frequency = lam**2 / length**2 * jnp.sqrt(EI / rho)
+    generalised_mass = (jnp.diag(modal_mass) + M * tip_shape**2 + 2.0 * S * tip_shape * tip_slope
+                        + J * tip_slope**2)
+    k_diag = jnp.diag(stiffness)
+    d = (2.0 * link.damping_ratio * jnp.sqrt(k_diag * generalised_mass)
+         + link.sqrt_stiffness_damping * jnp.sqrt(k_diag))
+    return LinkMatrices(length, mass, c1, c2, a, b, modal_mass, stiffness, jnp.diag(d), tip_shape,
+                        tip_slope, root_curvature, lam, coef, frequency, jnp.stack([M, S, J]))
+
+
+def assemble(chain: Chain | AssembledChain) -> AssembledChain:
+    """Solve the clamped-mass mode shapes of every flexible link and evaluate the shape
+    integrals. Pure and differentiable; call it inside `jit` with the chain as input."""
+    if isinstance(chain, AssembledChain):
+        return chain
+    return AssembledChain(chain, tuple(_assemble_link(chain, i) for i in range(chain.n_links)))
+
+
+# ---------------------------------------------------------------------------
+# Kinematics and energies
+# ---------------------------------------------------------------------------
+
+
+def _rot(angle):
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return jnp.array([[c, -s], [s, c]])
+
+
+class Frames(NamedTuple):
+    """Positions and absolute angles along the chain (base frame)."""
+
+    origin: tuple  # o_i, joint positions, (2,) each
+    angle: tuple  # phi_i, absolute angle of link i's root frame
+    tip_angle: tuple  # psi_i = phi_i + v_i'(l_i)
+    rotor_carrier: tuple  # absolute angle of the frame carrying rotor i (psi_{i-1})
+    end: Array  # o_{n+1}, position of the tip of the last link
+
+
+def frames(asm: AssembledChain, Q) -> Frames:
+    lay = asm.layout
+    o = jnp.zeros(2)
+    psi = jnp.zeros(())
+    origins, angles, tips, carriers = [], [], [], []
+    for i, lm in enumerate(asm.links):
+        phi = psi + Q[lay.theta[i]]
+        q = _modal(lay, Q, i)
+        origins.append(o)
+        angles.append(phi)
+        carriers.append(psi)
+        tip_local = jnp.stack([lm.length, jnp.dot(lm.tip_shape, q)])
+        o = o + _rot(phi) @ tip_local
+        psi = phi + jnp.dot(lm.tip_slope, q)
+        tips.append(psi)
+    return Frames(tuple(origins), tuple(angles), tuple(tips), tuple(carriers), o)
+
+
+def _modal(lay: Layout, Q, i):
+    idx = lay.modal[i]
+    return Q[idx[0] : idx[-1] + 1] if idx else jnp.zeros((0,), Q.dtype)
+
+
+def kinetic_energy(asm: AssembledChain, Q, Qd):
+    """Total kinetic energy T(Q, Q_dot), J (formula in the module docstring)."""
+    lay, chain = asm.layout, asm.chain
+    f, fd = jax.jvp(lambda Q_: frames(asm, Q_), (Q,), (Qd,))
+    T = jnp.zeros(())
+    for i, lm in enumerate(asm.links):
+        q, qd = _modal(lay, Q, i), _modal(lay, Qd, i)
+        omega = fd.angle[i]
+        u = _rot(f.angle[i]).T @ fd.origin[i]
+        T = T + 0.5 * lm.mass * (u @ u)
+        T = T + 0.5 * omega**2 * (lm.c2 + q @ lm.modal_mass @ q) + u[1] * omega * lm.c1
+        T = T - u[0] * omega * (lm.a @ q) + u[1] * (lm.a @ qd) + omega * (lm.b @ qd)
+        T = T + 0.5 * qd @ lm.modal_mass @ qd
+        hub, joint = chain.hubs[i], chain.joints[i]
+        T = T + 0.5 * hub.mass * (fd.origin[i] @ fd.origin[i]) + 0.5 * hub.inertia * omega**2
+        s_dot = Qd[lay.actuated[i]]
+        if joint.spong_approximation:
+            T = T + 0.5 * joint.rotor_inertia * (joint.gear_ratio * s_dot) ** 2
+        else:
+            T = T + 0.5 * joint.rotor_inertia * (fd.rotor_carrier[i] + joint.gear_ratio * s_dot) ** 2
+    p = chain.payload
+    T = T + 0.5 * p.mass * (fd.end @ fd.end) + 0.5 * p.inertia * fd.tip_angle[-1] ** 2
+    return T
+
+
+def potential_energy(asm: AssembledChain, Q):
+    """Gravity + bending + joint-spring potential energy V(Q), J. Zero at Q = 0 for the
+    elastic parts; the gravity datum is the base joint."""
+    lay, chain = asm.layout, asm.chain
+    f = frames(asm, Q)
+    weighted = jnp.zeros(2)  # sum of mass-weighted positions, kg m
+    V = jnp.zeros(())
+    for i, lm in enumerate(asm.links):
+        q = _modal(lay, Q, i)
+        weighted = weighted + lm.mass * f.origin[i] + _rot(f.angle[i]) @ jnp.stack([lm.c1, lm.a @ q])
+        weighted = weighted + chain.hubs[i].mass * f.origin[i]
+        V = V + 0.5 * q @ lm.stiffness @ q
+        joint = chain.joints[i]
+        if joint.elastic:
+            V = V + 0.5 * joint.stiffness * (Q[lay.rotor[i]] - Q[lay.theta[i]]) ** 2
+    weighted = weighted + chain.payload.mass * f.end
+    return V - chain.gravity @ weighted
+
+
+def dissipation(asm: AssembledChain, Qd):
+    """Rayleigh dissipation function R(Q_dot), W: joint and modal viscous damping."""
+    lay, chain = asm.layout, asm.chain
+    R = jnp.zeros(())
+    for i, lm in enumerate(asm.links):
+        joint = chain.joints[i]
+        R = R + 0.5 * joint.damping * Qd[lay.actuated[i]] ** 2
+        if joint.elastic:
+            R = R + 0.5 * joint.spring_damping * (Qd[lay.rotor[i]] - Qd[lay.theta[i]]) ** 2
+        qd = _modal(lay, Qd, i)
+        R = R + 0.5 * qd @ lm.damping @ qd
+    return R
+
+
+def total_energy(asm: AssembledChain, Q, Qd):
+    return kinetic_energy(asm, Q, Qd) + potential_energy(asm, Q)
+
+
+# ---------------------------------------------------------------------------
+# Equations of motion
+# ---------------------------------------------------------------------------
+
+
+def mass_matrix(asm: AssembledChain | Chain, Q) -> Float[Array, "n n"]:
+    """Generalised mass matrix M(Q) = d^2 T / dQ_dot^2."""
+    asm = assemble(asm)
+    zero = jnp.zeros_like(Q)
+    return jax.jacfwd(jax.grad(kinetic_energy, argnums=2), argnums=2)(asm, Q, zero)
+
+
+def velocity_terms(asm: AssembledChain | Chain, Q, Qd) -> Float[Array, " n"]:
+    """Coriolis/centrifugal vector h = (d/dQ (M Q_dot)) Q_dot - dT/dQ."""
+    asm = assemble(asm)
+    momentum = lambda Q_: jax.grad(kinetic_energy, argnums=2)(asm, Q_, Qd)  # noqa: E731
+    _, mdot_qd = jax.jvp(momentum, (Q,), (Qd,))
+    return mdot_qd - jax.grad(kinetic_energy, argnums=1)(asm, Q, Qd)
+
+
+def input_matrix(asm: AssembledChain | Chain) -> Float[Array, "n n_joints"]:
+    """B such that the generalised force of joint torques tau [N m] is B tau."""
+    lay = assemble(asm).layout if isinstance(asm, AssembledChain) else layout(asm)
+    B = np.zeros((lay.n_dof, len(lay.actuated)))
+    for j, k in enumerate(lay.actuated):
+        B[k, j] = 1.0
+    return jnp.asarray(B)
+
+
+def generalised_forces(asm: AssembledChain, Q, Qd, torque):
+    """F - dV/dQ - dR/dQ_dot for joint torques `torque` [N m]."""
+    return (input_matrix(asm) @ torque - jax.grad(potential_energy, argnums=1)(asm, Q)
+            - jax.grad(dissipation, argnums=1)(asm, Qd))
+
+
+def accelerations(asm: AssembledChain | Chain, Q, Qd, torque) -> Float[Array, " n"]:
+    """Forward dynamics: Q_ddot = M^-1 (F - dV/dQ - dR/dQ_dot - h)."""
+    asm = assemble(asm)
+    M = mass_matrix(asm, Q)
+    rhs = generalised_forces(asm, Q, Qd, torque) - velocity_terms(asm, Q, Qd)
+    return jsl.cho_solve(jsl.cho_factor(M), rhs)
+
+
+def inverse_dynamics(asm: AssembledChain | Chain, Q, Qd, Qdd):
+    """Generalised force that produces `Qdd`: M Qdd + h + dV/dQ + dR/dQ_dot."""
+    asm = assemble(asm)
+    return (mass_matrix(asm, Q) @ Qdd + velocity_terms(asm, Q, Qd)
+            + jax.grad(potential_energy, argnums=1)(asm, Q) + jax.grad(dissipation, argnums=1)(asm, Qd))
+
+
+def end_point(asm: AssembledChain, Q):
+    """Position of the tip of the last link (where the payload sits), m."""
+    return frames(asm, Q).end
+
+
+def tip_deflections(asm: AssembledChain, Q):
+    """Elastic tip deflection v_i(l_i) of every link, m (0 for rigid links)."""
+    lay = asm.layout
+    return jnp.stack([lm.tip_shape @ _modal(lay, Q, i) if lay.modal[i] else jnp.zeros(())
+                      for i, lm in enumerate(asm.links)])
+
+
+def root_curvatures(asm: AssembledChain, Q):
+    """Bending curvature v_i''(0) at each link root, 1/m (what root strain gauges read:
+    strain = curvature * half thickness)."""
+    lay = asm.layout
+    return jnp.stack([lm.root_curvature @ _modal(lay, Q, i) if lay.modal[i] else jnp.zeros(())
+                      for i, lm in enumerate(asm.links)])

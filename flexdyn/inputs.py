@@ -1,0 +1,190 @@
+"""Joint-torque inputs: open-loop signals and simple state feedback.
+
+An input is an `eqx.Module` called as `input(t, y) -> torque` with `t` in s, `y`
+the state `[Q, Q_dot]` and `torque` in N m, one entry per joint (the torque
+acts on the rotor coordinate of an elastic joint, on the link angle of a rigid
+one). Open-loop inputs ignore `y`. Inputs with discontinuities list them in
+`jump_times()` so adaptive solvers step onto them exactly.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._checks import as_float_array
+
+
+class AbstractInput(eqx.Module):
+    """Base class of joint-torque inputs."""
+
+    @abc.abstractmethod
+    def __call__(self, t, y) -> Float[Array, " n_joints"]:
+        raise NotImplementedError
+
+    def jump_times(self):
+        """Times (s) where the input is discontinuous, or None."""
+        return None
+
+
+class ZeroTorque(AbstractInput):
+    """No applied torque (free motion)."""
+
+    n_joints: int = eqx.field(static=True)
+
+    def __call__(self, t, y):
+        return jnp.zeros(self.n_joints, dtype=jnp.result_type(float))
+
+
+class BangBang(AbstractInput):
+    """Bang-bang torque of papers 002 and 004: `+amplitude` on `[start, start + width)`,
+    `-amplitude` on `[start + width, start + 2 width)`, zero otherwise.
+
+    **Arguments:** `amplitude` (N m, per joint), `width` (s, duration of each
+    pulse: 1 s in paper 002, 0.5 s in paper 004), `start` (s).
+    """
+
+    amplitude: Float[Array, " n_joints"]
+    width: Float[Array, ""]
+    start: Float[Array, ""]
+
+    def __init__(self, amplitude, width, start=0.0):
+        self.amplitude = jnp.atleast_1d(as_float_array(amplitude))
+        self.width = as_float_array(width)
+        self.start = as_float_array(start)
+        if np.ndim(self.width) != 0 or (not isinstance(self.width, jax.core.Tracer) and float(self.width) <= 0):
+            raise ValueError(f"BangBang.width: expected a duration > 0 s, got {width!r}")
+
+    def __call__(self, t, y=None):
+        s = t - self.start
+        sign = jnp.where((s >= 0) & (s < self.width), 1.0, jnp.where((s >= self.width) & (s < 2 * self.width), -1.0, 0.0))
+        return sign * self.amplitude
+
+    def jump_times(self):
+        return jnp.stack([self.start, self.start + self.width, self.start + 2 * self.width])
+
+
+class SampledTorque(AbstractInput):
+    """Torque interpolated from samples, e.g. the torque column of a measured log.
+
+    **Arguments:**
+    - `times`: sample times, s, strictly increasing, shape (T,). Non-uniform
+      spacing is fine.
+    - `values`: torques, N m, shape (T,) or (T, n_joints).
+    - `hold`: `"linear"` (piecewise linear) or `"zoh"` (zero-order hold: each
+      sample held until the next, as a digital controller applies it).
+
+    Outside `[times[0], times[-1]]` the end values are held.
+    """
+
+    times: Float[Array, " T"]
+    values: Float[Array, "T n_joints"]
+    hold: str = eqx.field(static=True)
+
+    def __init__(self, times, values, hold: str = "linear"):
+        times = as_float_array(times)
+        values = as_float_array(values)
+        if values.ndim == 1:
+            values = values[:, None]
+        if times.ndim != 1 or times.shape[0] < 2 or values.ndim != 2 or values.shape[0] != times.shape[0]:
+            raise ValueError(
+                f"SampledTorque: expected times (T,) with T >= 2 and values (T,) or (T, n_joints), "
+                f"got {times.shape} and {values.shape}"
+            )
+        if hold not in ("linear", "zoh"):
+            raise ValueError(f"SampledTorque.hold: expected 'linear' or 'zoh', got {hold!r}")
+        if not isinstance(times, jax.core.Tracer):
+            t = np.asarray(times)
+            if np.any(np.diff(t) <= 0) or not np.all(np.isfinite(t)):
+                k = int(np.argmax(~(np.diff(t) > 0)))
+                raise ValueError(
+                    f"SampledTorque.times: expected finite, strictly increasing times; "
+                    f"sample {k + 1} (t = {t[k + 1]!r} s) does not follow t = {t[k]!r} s"
+                )
+        if not isinstance(values, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(values))):
+            raise ValueError("SampledTorque.values: expected finite torques, found NaN or inf")
+        self.times, self.values, self.hold = times, values, hold
+
+    def __call__(self, t, y=None):
+        if self.hold == "linear":
+            return jnp.stack([jnp.interp(t, self.times, v) for v in self.values.T])
+        k = jnp.clip(jnp.searchsorted(self.times, t, side="right") - 1, 0, self.times.shape[0] - 1)
+        return self.values[k]
+
+    def jump_times(self):
+        return self.times if self.hold == "zoh" else None
+
+
+class QuinticReference(eqx.Module):
+    """Rest-to-rest quintic reference of paper 004 eq. (71):
+
+        theta_d(t) = theta_0 + (6 s^5 - 15 s^4 + 10 s^3) (theta_f - theta_0),  s = t / t_d,
+
+    held at `theta_f` for `t > t_d`. Paper 004: `theta_0 = (0, 0)`, `theta_f = (pi/2,
+    pi/6)`, `t_d = 2 s`. Gives position, velocity and acceleration (rad, rad/s, rad/s^2).
+    """
+
+    start: Float[Array, " n"]
+    end: Float[Array, " n"]
+    duration: Float[Array, ""]
+
+    def __init__(self, start, end, duration):
+        self.start = jnp.atleast_1d(as_float_array(start))
+        self.end = jnp.atleast_1d(as_float_array(end))
+        self.duration = as_float_array(duration)
+
+    def _s(self, t):
+        return jnp.clip(t / self.duration, 0.0, 1.0)
+
+    def position(self, t):
+        s = self._s(t)
+        return self.start + (6 * s**5 - 15 * s**4 + 10 * s**3) * (self.end - self.start)
+
+    def velocity(self, t):
+        s = self._s(t)
+        return (30 * s**4 - 60 * s**3 + 30 * s**2) * (self.end - self.start) / self.duration
+
+    def acceleration(self, t):
+        s = self._s(t)
+        return (120 * s**3 - 180 * s**2 + 60 * s) * (self.end - self.start) / self.duration**2
+
+
+class PDTracking(AbstractInput):
+    """Joint PD tracking of a reference: `tau = Kp (r - s) + Kd (r_dot - s_dot) + tau_ff`,
+    with `s` the actuated coordinate of each joint (rotor angle of an elastic joint).
+
+    **Arguments:** `reference` (has `position(t)`, `velocity(t)`), `kp` (N m/rad),
+    `kd` (N m s/rad), `actuated` (indices of the actuated coordinates in Q, static:
+    `chain.layout.actuated`), `n_dof` (static).
+    """
+
+    reference: QuinticReference
+    kp: Float[Array, " n"]
+    kd: Float[Array, " n"]
+    actuated: tuple[int, ...] = eqx.field(static=True)
+    n_dof: int = eqx.field(static=True)
+
+    def __call__(self, t, y):
+        idx = jnp.asarray(self.actuated)
+        s, s_dot = y[idx], y[self.n_dof + idx]
+        return self.kp * (self.reference.position(t) - s) + self.kd * (self.reference.velocity(t) - s_dot)
+
+
+class FunctionInput(AbstractInput):
+    """Wraps a plain callable `fn(t) -> torque` (or `fn(t, y)` with `state_feedback=True`).
+
+    The callable must be traceable by JAX; arrays it closes over are constants, not
+    parameters (use a Module subclass of `AbstractInput` for trainable inputs).
+    """
+
+    fn: Callable
+    state_feedback: bool = eqx.field(static=True, default=False)
+
+    def __call__(self, t, y):
+        return jnp.atleast_1d(self.fn(t, y) if self.state_feedback else self.fn(t))

@@ -1,0 +1,211 @@
+"""The physical parts of a planar chain: links, joints, hubs and the payload.
+
+Every part is an `eqx.Module` whose array fields are its physical parameters (SI
+units, float64 when x64 is on) and whose integer/boolean fields are structure
+(held static by `eqx.filter_jit`). Concrete values are validated when a part
+is built; the message names the part and the parameter.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._checks import as_float_array, check_parameter
+
+Scalar = Float[Array, ""]
+
+
+class RigidLink(eqx.Module):
+    """A rigid link of the chain.
+
+    **Arguments:**
+    - `length`: distance from its joint to the next joint (or the payload), m.
+    - `mass`: kg.
+    - `com`: distance of the centre of mass from the joint along the link axis, m
+      (default `length / 2`, a uniform rod).
+    - `inertia`: rotary inertia about the centre of mass, kg m^2 (default
+      `mass * length^2 / 12`, a uniform slender rod).
+    """
+
+    length: Scalar
+    mass: Scalar
+    com: Scalar
+    inertia: Scalar
+
+    def __init__(self, length, mass, com=None, inertia=None):
+        self.length = as_float_array(length)
+        self.mass = as_float_array(mass)
+        self.com = 0.5 * self.length if com is None else as_float_array(com)
+        self.inertia = self.mass * self.length**2 / 12.0 if inertia is None else as_float_array(inertia)
+
+    def __check_init__(self):
+        check_parameter("RigidLink", "length", self.length, positive=True, shape=())
+        check_parameter("RigidLink", "mass", self.mass, positive=True, shape=())
+        check_parameter("RigidLink", "inertia", self.inertia, shape=())
+        check_parameter("RigidLink", "com", self.com, shape=())
+
+    @property
+    def n_modes(self) -> int:
+        return 0
+
+
+class FlexibleLink(eqx.Module):
+    """A uniform Euler-Bernoulli link discretised by `n_modes` clamped-mass assumed modes.
+
+    **Arguments:**
+    - `length`: l, m.
+    - `rho`: mass per unit length, kg/m (papers' `rho`).
+    - `EI`: flexural rigidity, N m^2.
+    - `n_modes`: number of assumed modes (structure, static).
+    - `damping_ratio`: modal damping ratio per mode (dimensionless), applied as
+      `d_j = 2 zeta_j omega_j m_j` with the clamped-mass frequency and generalised
+      mass of mode j (so a clamped link decays with exactly this ratio).
+    - `sqrt_stiffness_damping`: coefficient `c` of paper 002's structural damping
+      `D_j = c sqrt(K_j)` (paper: `c = 0.1`), in sqrt(kg), with our normalisation of
+      the shapes (unit mean square, `q` in metres; see `flexdyn.modes`).
+    """
+
+    length: Scalar
+    rho: Scalar
+    EI: Scalar
+    damping_ratio: Float[Array, " n_modes"]
+    sqrt_stiffness_damping: Scalar
+    n_modes: int = eqx.field(static=True)
+
+    def __init__(self, length, rho, EI, n_modes: int = 2, damping_ratio=0.0, sqrt_stiffness_damping=0.0):
+        if not isinstance(n_modes, int) or n_modes < 1:
+            raise ValueError(f"FlexibleLink.n_modes: expected an integer >= 1, got {n_modes!r}")
+        self.n_modes = n_modes
+        self.length = as_float_array(length)
+        self.rho = as_float_array(rho)
+        self.EI = as_float_array(EI)
+        self.damping_ratio = jnp.broadcast_to(as_float_array(damping_ratio), (n_modes,))
+        self.sqrt_stiffness_damping = as_float_array(sqrt_stiffness_damping)
+
+    def __check_init__(self):
+        check_parameter("FlexibleLink", "length", self.length, positive=True, shape=())
+        check_parameter("FlexibleLink", "rho", self.rho, positive=True, shape=())
+        check_parameter("FlexibleLink", "EI", self.EI, positive=True, shape=())
+        check_parameter("FlexibleLink", "damping_ratio", self.damping_ratio, shape=(self.n_modes,))
+        check_parameter("FlexibleLink", "sqrt_stiffness_damping", self.sqrt_stiffness_damping, shape=())
+
+    @property
+    def mass(self):
+        return self.rho * self.length
+
+
+class RigidJoint(eqx.Module):
+    """A revolute joint whose link angle is driven directly (no elasticity).
+
+    **Arguments:**
+    - `damping`: viscous damping on the joint rate, N m s/rad.
+    - `rotor_inertia`: inertia of the motor rotor, kg m^2 (motor side).
+    - `gear_ratio`: motor angle / joint angle.
+    - `spong_approximation`: if True the rotor's kinetic energy is `1/2 G^2 I_r
+      theta_dot^2` (its carrier's rotation neglected, as paper 004 eq. 7 does);
+      otherwise the exact `1/2 I_r (Omega_carrier + G theta_dot)^2`.
+    """
+
+    damping: Scalar
+    rotor_inertia: Scalar
+    gear_ratio: Scalar
+    spong_approximation: bool = eqx.field(static=True)
+
+    def __init__(self, damping=0.0, rotor_inertia=0.0, gear_ratio=1.0, spong_approximation: bool = False):
+        self.damping = as_float_array(damping)
+        self.rotor_inertia = as_float_array(rotor_inertia)
+        self.gear_ratio = as_float_array(gear_ratio)
+        self.spong_approximation = bool(spong_approximation)
+
+    def __check_init__(self):
+        check_parameter("RigidJoint", "damping", self.damping, shape=())
+        check_parameter("RigidJoint", "rotor_inertia", self.rotor_inertia, shape=())
+        check_parameter("RigidJoint", "gear_ratio", self.gear_ratio, positive=True, shape=())
+
+    @property
+    def elastic(self) -> bool:
+        return False
+
+
+class ElasticJoint(eqx.Module):
+    """An elastic (geared) joint, paper 004 eq. (7), (21), (43): rotor angle `alpha`
+    and link angle `theta` are separate coordinates joined by a torsional spring.
+
+    The input torque acts on the rotor coordinate. `alpha` is the rotor angle
+    referred to the link side (motor angle / G).
+
+    **Arguments:**
+    - `stiffness`: k_s, N m/rad.
+    - `rotor_inertia`: I_r, kg m^2 (motor side; reflected inertia `G^2 I_r`).
+    - `gear_ratio`: G.
+    - `damping`: viscous damping on the rotor rate (bearing, motor), N m s/rad.
+    - `spring_damping`: viscous damping across the spring, on `alpha_dot - theta_dot`, N m s/rad.
+    - `spong_approximation`: as for `RigidJoint`.
+    """
+
+    stiffness: Scalar
+    rotor_inertia: Scalar
+    gear_ratio: Scalar
+    damping: Scalar
+    spring_damping: Scalar
+    spong_approximation: bool = eqx.field(static=True)
+
+    def __init__(self, stiffness, rotor_inertia, gear_ratio=1.0, damping=0.0, spring_damping=0.0,
+                 spong_approximation: bool = False):
+        self.stiffness = as_float_array(stiffness)
+        self.rotor_inertia = as_float_array(rotor_inertia)
+        self.gear_ratio = as_float_array(gear_ratio)
+        self.damping = as_float_array(damping)
+        self.spring_damping = as_float_array(spring_damping)
+        self.spong_approximation = bool(spong_approximation)
+
+    def __check_init__(self):
+        check_parameter("ElasticJoint", "stiffness", self.stiffness, positive=True, shape=())
+        check_parameter("ElasticJoint", "rotor_inertia", self.rotor_inertia, positive=True, shape=())
+        check_parameter("ElasticJoint", "gear_ratio", self.gear_ratio, positive=True, shape=())
+        check_parameter("ElasticJoint", "damping", self.damping, shape=())
+        check_parameter("ElasticJoint", "spring_damping", self.spring_damping, shape=())
+
+    @property
+    def elastic(self) -> bool:
+        return True
+
+
+class Hub(eqx.Module):
+    """The hub at a joint: a point mass at the joint (for joint 2 and beyond it is
+    carried at the tip of the previous link, e.g. paper 002's centre motor `M_h2`)
+    and a rotary inertia turning with the root of the link it drives.
+
+    **Arguments:** `mass` (kg), `inertia` (kg m^2).
+    """
+
+    mass: Scalar
+    inertia: Scalar
+
+    def __init__(self, mass=0.0, inertia=0.0):
+        self.mass = as_float_array(mass)
+        self.inertia = as_float_array(inertia)
+
+    def __check_init__(self):
+        check_parameter("Hub", "mass", self.mass, shape=())
+        check_parameter("Hub", "inertia", self.inertia, shape=())
+
+
+class Payload(eqx.Module):
+    """A rigid payload at the tip of the last link, turning with the tip's slope.
+
+    **Arguments:** `mass` (kg), `inertia` (kg m^2, about its centre of mass at the tip).
+    """
+
+    mass: Scalar
+    inertia: Scalar
+
+    def __init__(self, mass=0.0, inertia=0.0):
+        self.mass = as_float_array(mass)
+        self.inertia = as_float_array(inertia)
+
+    def __check_init__(self):
+        check_parameter("Payload", "mass", self.mass, shape=())
+        check_parameter("Payload", "inertia", self.inertia, shape=())
