@@ -89,65 +89,74 @@ def _clamped_combinations(lam):
     return jnp.array([[-1.0, 1.0, 1.0, 0.0], [-e, -e, 0.0, 1.0]])
 
 
-def _tip_matrix(lam, mu, sigma, iota):
-    """The 2x2 tip-boundary matrix G(lam) acting on (c, d).
+def _tip_rows(lam, mu, sigma, iota, xp):
+    """Entries `(shear_c, shear_d, moment_c, moment_d)` of the 2x2 tip-boundary matrix
+    G(lam) acting on (c, d), elementwise (works with NumPy or jax.numpy as `xp`).
 
-    `mu = M / (rho l)`, `sigma = S / (rho l^2)`, `iota = J / (rho l^3)`.
+    `mu = M / (rho l)`, `sigma = S / (rho l^2)`, `iota = J / (rho l^3)`. At `xi = 1` the
+    clamped combinations `g1 = -cos + sin + exp(-lam xi)` and
+    `g2 = -e cos - e sin + exp(lam (xi - 1))` (`e = exp(-lam)`) and their scaled
+    derivatives `g^(k) / lam^k` are written out explicitly.
     """
-    comb = _clamped_combinations(lam)  # (2, 4)
-    one = jnp.ones(())
-    g = [_basis(lam, one, k) @ comb.T for k in range(4)]  # each (2,)
-    shear = g[3] + lam * mu * g[0] + lam**2 * sigma * g[1]
-    moment = g[2] - lam**2 * sigma * g[0] - lam**3 * iota * g[1]
-    shear = shear / (1.0 + lam * mu + lam**2 * jnp.abs(sigma))
-    moment = moment / (1.0 + lam**2 * jnp.abs(sigma) + lam**3 * iota)
-    return jnp.stack([shear, moment])
+    c, s, e = xp.cos(lam), xp.sin(lam), xp.exp(-lam)
+    g1 = (-c + s + e, s + c - e, c - s + e, -s - c - e)
+    g2 = (1.0 - e * (c + s), 1.0 + e * (s - c), 1.0 + e * (c + s), 1.0 + e * (c - s))
+    shear_scale = 1.0 + lam * mu + lam**2 * xp.abs(sigma)
+    moment_scale = 1.0 + lam**2 * xp.abs(sigma) + lam**3 * iota
+
+    def shear(g):
+        return (g[3] + lam * mu * g[0] + lam**2 * sigma * g[1]) / shear_scale
+
+    def moment(g):
+        return (g[2] - lam**2 * sigma * g[0] - lam**3 * iota * g[1]) / moment_scale
+
+    return shear(g1), shear(g2), moment(g1), moment(g2)
 
 
-def frequency_function(lam, mu, sigma, iota):
-    """Scaled clamped-mass frequency equation F(lam); its zeros are the `beta*l`.
-
-    Without tip load, `F(lam) = -2 (1 + cos lam cosh lam) / (...)` up to a positive
-    factor, the cantilever equation.
-    """
-    g = _tip_matrix(lam, mu, sigma, iota)
-    return g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]
+def frequency_function(lam, mu, sigma, iota, xp=jnp):
+    """Scaled clamped-mass frequency equation F(lam) = det G(lam); its zeros are the
+    `beta*l`. Without tip load `F = -2 (1 + cos lam cosh lam) / cosh-like scale`, the
+    cantilever equation (a positive row scaling does not move the roots)."""
+    s1, s2, m1, m2 = _tip_rows(lam, mu, sigma, iota, xp)
+    return s1 * m2 - s2 * m1
 
 
 def _scan_grid(n_modes: int) -> np.ndarray:
     top = (n_modes + 0.5) * np.pi
-    return np.concatenate(
-        [np.geomspace(1e-3, 0.5, 200, endpoint=False), np.arange(0.5, top, 0.004)]
-    )
+    return np.concatenate([np.geomspace(1e-3, 0.5, 200, endpoint=False), np.arange(0.5, top, 0.004)])
 
 
-def _bracketed_roots(n_modes, mu, sigma, iota):
-    grid = jnp.asarray(_scan_grid(n_modes))
-    f = jax.vmap(frequency_function, in_axes=(0, None, None, None))(grid, mu, sigma, iota)
-    change = jnp.sign(f[:-1]) * jnp.sign(f[1:]) <= 0
-    (idx,) = jnp.nonzero(change, size=n_modes, fill_value=grid.shape[0] - 2)
-    lo, hi = grid[idx], grid[idx + 1]
-    flo = f[idx]
+def _host_roots(n_modes: int, mu, sigma, iota) -> np.ndarray:
+    """First `n_modes` roots by a sign scan on a fixed grid and bisection, in NumPy on the
+    host (called through `jax.pure_callback`; cheap to compile, vectorised over any batch
+    of tip loads). A missing root is returned as NaN."""
+    mu, sigma, iota = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (mu, sigma, iota)))
+    batch = mu.shape
+    mu, sigma, iota = (v.reshape(-1, 1) for v in (mu, sigma, iota))
+    grid = _scan_grid(n_modes)
+    out = np.full((mu.shape[0], n_modes), np.nan)
+    for k in range(0, mu.shape[0], 128):
+        sl = slice(k, k + 128)
+        m, s, j = mu[sl], sigma[sl], iota[sl]
+        f = frequency_function(grid[None, :], m, s, j, xp=np)
+        change = np.sign(f[:, :-1]) * np.sign(f[:, 1:]) <= 0
+        for row in range(f.shape[0]):
+            idx = np.flatnonzero(change[row])[:n_modes]
+            if idx.size < n_modes or not np.all(np.isfinite(f[row])):
+                continue
+            lo, hi = grid[idx], grid[idx + 1]
+            flo = f[row, idx]
+            args = (m[row, 0], s[row, 0], j[row, 0])
+            for _ in range(60):
+                mid = 0.5 * (lo + hi)
+                fmid = frequency_function(mid, *args, xp=np)
+                left = np.sign(fmid) * np.sign(flo) <= 0
+                lo, hi, flo = np.where(left, lo, mid), np.where(left, mid, hi), np.where(left, flo, fmid)
+            out[k + row] = 0.5 * (lo + hi)
+    return out.reshape(batch + (n_modes,))
 
-    def bisect(_, carry):
-        lo, hi, flo = carry
-        mid = 0.5 * (lo + hi)
-        fmid = jax.vmap(frequency_function, in_axes=(0, None, None, None))(mid, mu, sigma, iota)
-        left = jnp.sign(fmid) * jnp.sign(flo) <= 0
-        return (
-            jnp.where(left, lo, mid),
-            jnp.where(left, mid, hi),
-            jnp.where(left, flo, fmid),
-        )
 
-    lo, hi, _ = jax.lax.fori_loop(0, 48, bisect, (lo, hi, flo))
-    found = jnp.sum(change) >= n_modes
-    return 0.5 * (lo + hi), found
-
-
-def clamped_mass_roots(
-    n_modes: int, mu, sigma=0.0, iota=0.0
-) -> Float[Array, " n_modes"]:
+def clamped_mass_roots(n_modes: int, mu, sigma=0.0, iota=0.0) -> Float[Array, " n_modes"]:
     """First `n_modes` roots `lam = beta*l` of the clamped-mass frequency equation.
 
     **Arguments:**
@@ -155,34 +164,40 @@ def clamped_mass_roots(
     - `sigma`: tip first moment / (link mass * l), `S / (rho l^2)`.
     - `iota`: tip rotary inertia about the tip point / (link mass * l^2), `J / (rho l^3)`.
 
-    Differentiable in `mu, sigma, iota` (implicit-function theorem).
+    The roots are bracketed and bisected on the host (`jax.pure_callback`, so this
+    works under `jit` and `vmap`), then polished by Newton steps in JAX. The last
+    Newton step carries the derivative `d lam / d p = -F_p / F_lam` (implicit-function
+    theorem), so the roots are differentiable in `mu, sigma, iota`.
     """
     if not 1 <= n_modes <= MAX_MODES:
         raise ValueError(f"n_modes must be between 1 and {MAX_MODES}, got {n_modes}")
     mu, sigma, iota = (jnp.asarray(v, dtype=float) for v in (mu, sigma, iota))
-    lam0, found = _bracketed_roots(
-        n_modes, *(jax.lax.stop_gradient(v) for v in (mu, sigma, iota))
+    frozen = [jax.lax.stop_gradient(v) for v in (mu, sigma, iota)]
+    shape = jax.ShapeDtypeStruct(jnp.broadcast_shapes(mu.shape, sigma.shape, iota.shape) + (n_modes,), mu.dtype)
+    lam0 = jax.pure_callback(
+        lambda m, s, j: _host_roots(n_modes, m, s, j).astype(shape.dtype), shape, *frozen,
+        vmap_method="expand_dims",
     )
-    lam0 = jax.lax.stop_gradient(lam0)
     lam0 = eqx.error_if(
         lam0,
-        ~found,
+        ~jnp.all(jnp.isfinite(lam0)),
         "clamped-mass frequency equation: fewer roots than modes were found "
-        "(tip-load ratios are not finite or not physical)",
+        "(tip-load ratios not finite or not physical)",
     )
-
-    fval = jax.vmap(frequency_function, in_axes=(0, None, None, None))(lam0, mu, sigma, iota)
-    frozen = [jax.lax.stop_gradient(v) for v in (mu, sigma, iota)]
-    fprime = jax.vmap(jax.grad(frequency_function), in_axes=(0, None, None, None))(lam0, *frozen)
-    # Newton step: value ~ lam0 (already converged), derivative -F_p / F_lam.
-    return lam0 - fval / fprime
+    fun = jax.vmap(frequency_function, in_axes=(0, None, None, None))
+    dfun = jax.vmap(jax.grad(frequency_function), in_axes=(0, None, None, None))
+    for _ in range(2):  # polish the bisection result to full precision
+        lam0 = lam0 - fun(lam0, *frozen) / dfun(lam0, *frozen)
+    lam0 = jax.lax.stop_gradient(lam0)
+    # Newton step on the converged root: value ~ lam0, derivative -F_p / F_lam.
+    return lam0 - fun(lam0, mu, sigma, iota) / dfun(lam0, *frozen)
 
 
 def _shape_coefficients(lam, mu, sigma, iota):
     """Coefficients (a, b, c, d) of the un-normalised shape for one root."""
-    g = _tip_matrix(lam, mu, sigma, iota)
-    use_first = jnp.sum(g[0] ** 2) >= jnp.sum(g[1] ** 2)
-    row = jnp.where(use_first, g[0], g[1])
+    s1, s2, m1, m2 = _tip_rows(lam, mu, sigma, iota, jnp)
+    use_first = s1**2 + s2**2 >= m1**2 + m2**2
+    row = jnp.where(use_first, jnp.stack([s1, s2]), jnp.stack([m1, m2]))
     cd = jnp.array([row[1], -row[0]])
     return cd @ _clamped_combinations(lam)
 
