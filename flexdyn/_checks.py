@@ -28,9 +28,7 @@ def check_parameter(owner: str, name: str, value, *, positive: bool = False, sha
     """Raise `ValueError` if a concrete parameter is not finite, has the wrong shape,
     or (with `positive`) is not > 0 (`>= 0` otherwise). Tracers are left to `checked`."""
     if shape is not None and tuple(np.shape(value)) != tuple(shape):
-        raise ValueError(
-            f"{owner}.{name}: expected shape {tuple(shape)}, got {tuple(np.shape(value))}"
-        )
+        raise ValueError(f"{owner}.{name}: expected shape {tuple(shape)}, got {tuple(np.shape(value))}")
     if not _is_concrete(value):
         return
     arr = np.asarray(value, dtype=float)

@@ -63,7 +63,9 @@ class BangBang(AbstractInput):
 
     def __call__(self, t, y=None):
         s = t - self.start
-        sign = jnp.where((s >= 0) & (s < self.width), 1.0, jnp.where((s >= self.width) & (s < 2 * self.width), -1.0, 0.0))
+        first = (s >= 0) & (s < self.width)
+        second = (s >= self.width) & (s < 2 * self.width)
+        sign = jnp.where(first, 1.0, jnp.where(second, -1.0, 0.0))
         return sign * self.amplitude
 
     def jump_times(self):

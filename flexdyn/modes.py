@@ -175,7 +175,9 @@ def clamped_mass_roots(n_modes: int, mu, sigma=0.0, iota=0.0) -> Float[Array, " 
     frozen = [jax.lax.stop_gradient(v) for v in (mu, sigma, iota)]
     shape = jax.ShapeDtypeStruct(jnp.broadcast_shapes(mu.shape, sigma.shape, iota.shape) + (n_modes,), mu.dtype)
     lam0 = jax.pure_callback(
-        lambda m, s, j: _host_roots(n_modes, m, s, j).astype(shape.dtype), shape, *frozen,
+        lambda m, s, j: _host_roots(n_modes, m, s, j).astype(shape.dtype),
+        shape,
+        *frozen,
         vmap_method="expand_dims",
     )
     lam0 = eqx.error_if(

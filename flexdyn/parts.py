@@ -152,8 +152,15 @@ class ElasticJoint(eqx.Module):
     spring_damping: Scalar
     spong_approximation: bool = eqx.field(static=True)
 
-    def __init__(self, stiffness, rotor_inertia, gear_ratio=1.0, damping=0.0, spring_damping=0.0,
-                 spong_approximation: bool = False):
+    def __init__(
+        self,
+        stiffness,
+        rotor_inertia,
+        gear_ratio=1.0,
+        damping=0.0,
+        spring_damping=0.0,
+        spong_approximation: bool = False,
+    ):
         self.stiffness = as_float_array(stiffness)
         self.rotor_inertia = as_float_array(rotor_inertia)
         self.gear_ratio = as_float_array(gear_ratio)

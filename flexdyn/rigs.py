@@ -56,8 +56,9 @@ def rigid_pendulum(joint_damping=1.9e-3, payload_mass=0.020, hub_inertia=2e-5) -
     )
 
 
-def flexible_pendulum(n_modes=1, mass=None, joint_damping=1.9e-3, damping_ratio=0.0, hub_inertia=2e-5,
-                      payload_mass=0.0) -> Chain:
+def flexible_pendulum(
+    n_modes=1, mass=None, joint_damping=1.9e-3, damping_ratio=0.0, hub_inertia=2e-5, payload_mass=0.0
+) -> Chain:
     """Paper 000's flexible pendulum (Table 1, eq. 10): spring-steel strip 0.30 x 0.025
     x 0.002 m, hinged at a hub of 2e-5 kg m^2, vertical plane, `n_modes` assumed
     modes (the paper uses one).
@@ -94,8 +95,15 @@ def two_link_flexible_arm(payload_mass=0.0, payload_inertia=0.0, n_modes=2, stru
     )
 
 
-def flexible_link_joint_arm(rigid_joints=False, joint_stiffness=100.0, n_modes=2, structural_damping=0.1,
-                            payload_mass=0.1, payload_inertia=0.005, hub2_mass=0.0) -> Chain:
+def flexible_link_joint_arm(
+    rigid_joints=False,
+    joint_stiffness=100.0,
+    n_modes=2,
+    structural_damping=0.1,
+    payload_mass=0.1,
+    payload_inertia=0.005,
+    hub2_mass=0.0,
+) -> Chain:
     """Paper 004's two-link arm with flexible links and flexible joints (Table 1):
     l = 0.5 m, rho = 0.2 kg/m, EI = 1.0 N m^2, rotor and hub inertia I_r = 0.02 kg m^2,
     gear ratio 1, joint stiffness k_s = 100 N m/rad, payload 0.1 kg and 0.005 kg m^2,
@@ -105,8 +113,9 @@ def flexible_link_joint_arm(rigid_joints=False, joint_stiffness=100.0, n_modes=2
     if rigid_joints:
         joints = [RigidJoint(rotor_inertia=0.02, spong_approximation=True) for _ in range(2)]
     else:
-        joints = [ElasticJoint(stiffness=joint_stiffness, rotor_inertia=0.02, spong_approximation=True)
-                  for _ in range(2)]
+        joints = [
+            ElasticJoint(stiffness=joint_stiffness, rotor_inertia=0.02, spong_approximation=True) for _ in range(2)
+        ]
     return Chain(
         links=[link, link],
         joints=joints,

@@ -64,8 +64,9 @@ class Trajectory(eqx.Module):
         return self.Q[..., self.names.index(name)]
 
 
-def initial_state(chain: Chain, joint_angles, joint_rates=None, modal=None, modal_rates=None,
-                  rotor_angles=None, rotor_rates=None) -> Float[Array, " 2n"]:
+def initial_state(
+    chain: Chain, joint_angles, joint_rates=None, modal=None, modal_rates=None, rotor_angles=None, rotor_rates=None
+) -> Float[Array, " 2n"]:
     """Build `y0 = [Q, Q_dot]` from named parts (rad, rad/s, m, m/s).
 
     Rotor angles/rates of elastic joints default to the link angles/rates (unloaded
@@ -128,8 +129,10 @@ def simulate(
     n = asm.layout.n_dof
     y0 = jnp.asarray(y0, dtype=float)
     if y0.shape != (2 * n,):
-        raise ValueError(f"simulate: y0 expected shape ({2 * n},) = [Q, Q_dot] for coordinates "
-                         f"{list(asm.layout.names)}, got {y0.shape}")
+        raise ValueError(
+            f"simulate: y0 expected shape ({2 * n},) = [Q, Q_dot] for coordinates "
+            f"{list(asm.layout.names)}, got {y0.shape}"
+        )
     ts = jnp.asarray(ts, dtype=float)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"simulate: ts expected a 1-D array of at least 2 times, got shape {ts.shape}")
@@ -231,10 +234,19 @@ def observe(chain: Chain | AssembledChain, traj: Trajectory, torque: AbstractInp
         act = jnp.asarray(lay.actuated)
         modal_idx = jnp.asarray([k for m in lay.modal for k in m], dtype=int)
         return dict(
-            joint_angle=theta, joint_rate=theta_d, rotor_angle=Q[act], rotor_rate=Qd[act],
-            joint_deflection=Q[act] - theta, modal=Q[modal_idx], modal_rate=Qd[modal_idx],
-            tip_deflection=tip_deflections(asm, Q), root_curvature=root_curvatures(asm, Q),
-            end_point=pos(Q), end_point_acceleration=acc, energy=total_energy(asm, Q, Qd), torque=tau,
+            joint_angle=theta,
+            joint_rate=theta_d,
+            rotor_angle=Q[act],
+            rotor_rate=Qd[act],
+            joint_deflection=Q[act] - theta,
+            modal=Q[modal_idx],
+            modal_rate=Qd[modal_idx],
+            tip_deflection=tip_deflections(asm, Q),
+            root_curvature=root_curvatures(asm, Q),
+            end_point=pos(Q),
+            end_point_acceleration=acc,
+            energy=total_energy(asm, Q, Qd),
+            torque=tau,
         )
 
     out = jax.vmap(one)(traj.ts, traj.Q, traj.Qd)
