@@ -27,8 +27,20 @@ from .chain import (
     tip_deflections,
     total_energy,
 )
-from .inputs import AbstractInput, ZeroTorque
+from .inputs import AbstractInput, FunctionInput, ZeroTorque
 from .solvers import RK4
+
+
+def as_input(torque, n_joints: int) -> AbstractInput:
+    """`None` -> no torque; an `AbstractInput` as is; any other callable `fn(t)` is wrapped
+    in `FunctionInput`."""
+    if torque is None:
+        return ZeroTorque(n_joints)
+    if isinstance(torque, AbstractInput):
+        return torque
+    if callable(torque):
+        return FunctionInput(torque)
+    raise ValueError(f"torque: expected None, an AbstractInput or a callable fn(t) -> (n_joints,) N m, got {torque!r}")
 
 
 class ChainVectorField(eqx.Module):
@@ -117,7 +129,8 @@ def simulate(
     - `chain`: the model (a `Chain`; assembled inside, so its parameters are traced).
     - `y0`: initial state `[Q, Q_dot]` (see `initial_state`).
     - `ts`: output times, s, increasing; integration runs from `ts[0]` to `ts[-1]`.
-    - `torque`: joint-torque input (default: none).
+    - `torque`: joint-torque input, N m (default: none): an `AbstractInput`
+      (`BangBang`, `SampledTorque`, `PDTracking`, ...) or any callable `fn(t)`.
     - `solver`: a diffrax solver (default `Tsit5()` adaptive, `RK4()` with `dt`).
     - `dt`: fixed step, s (e.g. `1e-3` as papers 002/004); adaptive if None.
     - `rtol`, `atol`: adaptive tolerances.
@@ -136,7 +149,7 @@ def simulate(
     ts = jnp.asarray(ts, dtype=float)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"simulate: ts expected a 1-D array of at least 2 times, got shape {ts.shape}")
-    torque = ZeroTorque(asm.chain.n_links) if torque is None else torque
+    torque = as_input(torque, asm.chain.n_links)
     field = ChainVectorField(asm, torque)
     if dt is None:
         solver = diffrax.Tsit5() if solver is None else solver
@@ -220,7 +233,7 @@ def observe(chain: Chain | AssembledChain, traj: Trajectory, torque: AbstractInp
     """Evaluate all `Outputs` along a trajectory (the same `torque` as the simulation)."""
     asm = assemble(chain)
     lay = asm.layout
-    torque = ZeroTorque(asm.chain.n_links) if torque is None else torque
+    torque = as_input(torque, asm.chain.n_links)
 
     def one(t, Q, Qd):
         tau = torque(t, jnp.concatenate([Q, Qd]))
