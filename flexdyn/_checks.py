@@ -24,9 +24,9 @@ def _is_concrete(value) -> bool:
     return not isinstance(value, jax.core.Tracer)
 
 
-def check_parameter(owner: str, name: str, value, *, positive: bool = False, shape=None):
+def check_parameter(owner: str, name: str, value, *, positive: bool = False, signed: bool = False, shape=None):
     """Raise `ValueError` if a concrete parameter is not finite, has the wrong shape,
-    or (with `positive`) is not > 0 (`>= 0` otherwise). Tracers are left to `checked`."""
+    or (with `positive`) is not > 0 (`>= 0` unless `signed`). Tracers are left to `checked`."""
     if shape is not None and tuple(np.shape(value)) != tuple(shape):
         raise ValueError(f"{owner}.{name}: expected shape {tuple(shape)}, got {tuple(np.shape(value))}")
     if not _is_concrete(value):
@@ -36,7 +36,7 @@ def check_parameter(owner: str, name: str, value, *, positive: bool = False, sha
         raise ValueError(f"{owner}.{name}: expected a finite number, got {value!r}")
     if positive and np.any(arr <= 0):
         raise ValueError(f"{owner}.{name}: expected a value > 0, got {value!r}")
-    if not positive and np.any(arr < 0):
+    if not positive and not signed and np.any(arr < 0):
         raise ValueError(f"{owner}.{name}: expected a value >= 0, got {value!r}")
 
 

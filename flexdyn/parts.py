@@ -23,8 +23,8 @@ class RigidLink(eqx.Module):
     **Arguments:**
     - `length`: distance from its joint to the next joint (or the payload), m.
     - `mass`: kg.
-    - `com`: distance of the centre of mass from the joint along the link axis, m
-      (default `length / 2`, a uniform rod).
+    - `com`: position of the centre of mass along the link axis from the joint, m
+      (default `length / 2`, a uniform rod; negative for a counterweighted link).
     - `inertia`: rotary inertia about the centre of mass, kg m^2 (default
       `mass * length^2 / 12`, a uniform slender rod).
     """
@@ -44,7 +44,7 @@ class RigidLink(eqx.Module):
         check_parameter("RigidLink", "length", self.length, positive=True, shape=())
         check_parameter("RigidLink", "mass", self.mass, positive=True, shape=())
         check_parameter("RigidLink", "inertia", self.inertia, shape=())
-        check_parameter("RigidLink", "com", self.com, shape=())
+        check_parameter("RigidLink", "com", self.com, signed=True, shape=())
 
     @property
     def n_modes(self) -> int:
