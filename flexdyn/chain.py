@@ -487,22 +487,25 @@ def inverse_dynamics(asm: AssembledChain | Chain, Q, Qd, Qdd):
     return M @ Qdd + h + jax.grad(potential_energy, argnums=1)(asm, Q) + jax.grad(dissipation, argnums=1)(asm, Qd)
 
 
-def end_point(asm: AssembledChain, Q):
+def end_point(asm: AssembledChain | Chain, Q):
     """Position of the tip of the last link (where the payload sits), m."""
+    asm = assemble(asm)
     return frames(asm, Q).end
 
 
-def tip_deflections(asm: AssembledChain, Q):
+def tip_deflections(asm: AssembledChain | Chain, Q):
     """Elastic tip deflection v_i(l_i) of every link, m (0 for rigid links)."""
+    asm = assemble(asm)
     lay = asm.layout
     return jnp.stack(
         [lm.tip_shape @ _modal(lay, Q, i) if lay.modal[i] else jnp.zeros(()) for i, lm in enumerate(asm.links)]
     )
 
 
-def root_curvatures(asm: AssembledChain, Q):
+def root_curvatures(asm: AssembledChain | Chain, Q):
     """Bending curvature v_i''(0) at each link root, 1/m (what root strain gauges read:
     strain = curvature * half thickness)."""
+    asm = assemble(asm)
     lay = asm.layout
     return jnp.stack(
         [lm.root_curvature @ _modal(lay, Q, i) if lay.modal[i] else jnp.zeros(()) for i, lm in enumerate(asm.links)]

@@ -48,10 +48,12 @@ def _parse_args(argv):
         description="Simulate flexdyn's example rigs (paper 004 arm, paper 000 flexible pendulum) "
         "and write plots and a summary.",
     )
-    parser.add_argument("--out", default="flexdyn-output", type=Path,
-                        help="output folder, created if needed (default: flexdyn-output/)")
-    parser.add_argument("--force", action="store_true",
-                        help="write into --out even if it holds other files (they are left untouched)")
+    parser.add_argument(
+        "--out", default="flexdyn-output", type=Path, help="output folder, created if needed (default: flexdyn-output/)"
+    )
+    parser.add_argument(
+        "--force", action="store_true", help="write into --out even if it holds other files (they are left untouched)"
+    )
     return parser.parse_args(argv)
 
 
@@ -64,9 +66,11 @@ def _check_output_folder(out: Path, force: bool) -> str | None:
     foreign = sorted(p.name for p in out.iterdir() if p.name not in OUTPUT_FILES)
     if foreign:
         shown = ", ".join(foreign[:5]) + (f", ... ({len(foreign)} in all)" if len(foreign) > 5 else "")
-        return (f"refusing to write into {out}/: it holds files this program did not write ({shown}). "
-                f"Choose another folder with --out, or pass --force to write our {len(OUTPUT_FILES)} files "
-                "there anyway (other files are left untouched).")
+        return (
+            f"refusing to write into {out}/: it holds files this program did not write ({shown}). "
+            f"Choose another folder with --out, or pass --force to write our {len(OUTPUT_FILES)} files "
+            "there anyway (other files are left untouched)."
+        )
     return None
 
 
@@ -130,8 +134,16 @@ def _run_arm(rigid_joints: bool) -> RigResult:
     Q0 = np.zeros(chain.n_dof)  # straight arm at rest (any configuration is an equilibrium, g = 0)
     freqs, share = _to_numpy(_modal_table_data(chain, Q0))
     name = "paper 004 arm, " + ("flexible links, rigid joints" if rigid_joints else "flexible links and joints")
-    return RigResult(name, tuple(chain.coordinate_names()), outputs, int(traj.num_steps),
-                     time.perf_counter() - start, Q0, freqs, share)
+    return RigResult(
+        name,
+        tuple(chain.coordinate_names()),
+        outputs,
+        int(traj.num_steps),
+        time.perf_counter() - start,
+        Q0,
+        freqs,
+        share,
+    )
 
 
 def _run_pendulum() -> RigResult:
@@ -149,8 +161,16 @@ def _run_pendulum() -> RigResult:
     Q0 = np.zeros(chain.n_dof)
     Q0[chain.layout.theta[0]] = -np.pi / 2  # hanging equilibrium
     freqs, share = _to_numpy(_modal_table_data(chain, Q0))
-    return RigResult("paper 000 flexible pendulum (2 modes, 1 % modal damping)", tuple(chain.coordinate_names()),
-                     outputs, int(traj.num_steps), time.perf_counter() - start, Q0, freqs, share)
+    return RigResult(
+        "paper 000 flexible pendulum (2 modes, 1 % modal damping)",
+        tuple(chain.coordinate_names()),
+        outputs,
+        int(traj.num_steps),
+        time.perf_counter() - start,
+        Q0,
+        freqs,
+        share,
+    )
 
 
 def _tip_spectrum(ts, deflection):
@@ -207,8 +227,9 @@ def _plot_arm(fj: RigResult, rj: RigResult, out: Path):
     a.legend()
     for i, a in enumerate((ax[0, 1], ax[1, 0])):
         a.plot(t, fj.outputs.joint_angle[:, i], **_FJ_STYLE)
-        a.plot(t, fj.outputs.rotor_angle[:, i], color="tab:green", lw=1.0, ls=":",
-               label="rotor angle (flexible joints)")
+        a.plot(
+            t, fj.outputs.rotor_angle[:, i], color="tab:green", lw=1.0, ls=":", label="rotor angle (flexible joints)"
+        )
         a.plot(t, rj.outputs.joint_angle[:, i], **_RJ_STYLE)
         a.set(title=f"({'bc'[i]}) link-{i + 1} angle", xlabel="t [s]", ylabel=f"theta{i + 1} [rad]")
         a.legend(fontsize="small")
@@ -257,8 +278,13 @@ def _plot_pendulum(p: RigResult, freq, amp, peak_hz, out: Path):
     flexural = [f for f in p.frequencies if f > 5.0]
     for k, f in enumerate(flexural):
         a.axvline(f, color="tab:red", lw=0.8, ls="--", label="modal analysis (hanging)" if k == 0 else None)
-    a.annotate(f"{peak_hz:.1f} Hz", xy=(peak_hz, 1e3 * amp[np.argmin(np.abs(freq - peak_hz))]),
-               xytext=(10, 0), textcoords="offset points", va="center")
+    a.annotate(
+        f"{peak_hz:.1f} Hz",
+        xy=(peak_hz, 1e3 * amp[np.argmin(np.abs(freq - peak_hz))]),
+        xytext=(10, 0),
+        textcoords="offset points",
+        va="center",
+    )
     a.set(title="tip-deflection spectrum (Hann)", xlabel="frequency [Hz]", ylabel="amplitude [mm]")
     a.legend(fontsize="small")
     fig.savefig(out / "pendulum.png", dpi=110)
@@ -272,8 +298,7 @@ def _plot_pendulum(p: RigResult, freq, amp, peak_hz, out: Path):
 def _modal_table(r: RigResult) -> list[str]:
     import numpy as np
 
-    lines = ["| mode | natural frequency [Hz] | main coordinates (share of M_kk v_k^2) |",
-             "| ---: | ---: | --- |"]
+    lines = ["| mode | natural frequency [Hz] | main coordinates (share of M_kk v_k^2) |", "| ---: | ---: | --- |"]
     for k, f in enumerate(r.frequencies):
         share = r.energy_share[:, k]
         order = np.argsort(-share)
@@ -293,15 +318,22 @@ def _summary(fj, rj, p, pend, timings, total) -> str:
     def last_second_rms(x):
         return float(np.sqrt(np.mean(x[fj.outputs.ts >= ARM_DURATION - 1.0] ** 2, axis=0)).max())
 
-    L = ["# flexdyn example run", "",
-         f"flexdyn {fd.__version__}, jax {jax.__version__}, diffrax {diffrax.__version__}, "
-         f"Python {platform.python_version()}, {os.cpu_count()} CPU cores. "
-         f"Wall time {total:.1f} s (compilation included; see the timings at the end).", "",
-         "## Paper 004 arm: flexible links with flexible vs. rigid joints", "",
-         f"`fd.rigs.flexible_link_joint_arm()`, bang-bang torque {BANG_BANG_AMPLITUDE} N m on both joints "
-         f"(+ on [0, {BANG_BANG_WIDTH}) s, - on [{BANG_BANG_WIDTH}, {2 * BANG_BANG_WIDTH}) s), fixed-step RK4 at "
-         f"{ARM_DT * 1e3:g} ms for {ARM_DURATION:g} s, horizontal plane, starting straight at rest.", "",
-         "| quantity | flexible joints | rigid joints |", "| --- | ---: | ---: |"]
+    L = [
+        "# flexdyn example run",
+        "",
+        f"flexdyn {fd.__version__}, jax {jax.__version__}, diffrax {diffrax.__version__}, "
+        f"Python {platform.python_version()}, {os.cpu_count()} CPU cores. "
+        f"Wall time {total:.1f} s (compilation included; see the timings at the end).",
+        "",
+        "## Paper 004 arm: flexible links with flexible vs. rigid joints",
+        "",
+        f"`fd.rigs.flexible_link_joint_arm()`, bang-bang torque {BANG_BANG_AMPLITUDE} N m on both joints "
+        f"(+ on [0, {BANG_BANG_WIDTH}) s, - on [{BANG_BANG_WIDTH}, {2 * BANG_BANG_WIDTH}) s), fixed-step RK4 at "
+        f"{ARM_DT * 1e3:g} ms for {ARM_DURATION:g} s, horizontal plane, starting straight at rest.",
+        "",
+        "| quantity | flexible joints | rigid joints |",
+        "| --- | ---: | ---: |",
+    ]
     rows = [
         ("solver steps", lambda r: f"{r.num_steps}"),
         ("wall time incl. compile [s]", lambda r: f"{r.seconds:.1f}"),
@@ -309,32 +341,49 @@ def _summary(fj, rj, p, pend, timings, total) -> str:
         ("theta2 at 5 s [rad]", lambda r: f"{r.outputs.joint_angle[-1, 1]:.4f}"),
         ("max abs link-1 tip deflection [mm]", lambda r: f"{1e3 * np.abs(r.outputs.tip_deflection[:, 0]).max():.2f}"),
         ("max abs link-2 tip deflection [mm]", lambda r: f"{1e3 * np.abs(r.outputs.tip_deflection[:, 1]).max():.2f}"),
-        ("RMS tip deflection over the last 1 s, worse link [mm]",
-         lambda r: f"{1e3 * last_second_rms(r.outputs.tip_deflection):.3f}"),
-        ("max abs joint deflection alpha - theta [mrad]",
-         lambda r: f"{1e3 * np.abs(r.outputs.joint_deflection).max():.2f}"),
+        (
+            "RMS tip deflection over the last 1 s, worse link [mm]",
+            lambda r: f"{1e3 * last_second_rms(r.outputs.tip_deflection):.3f}",
+        ),
+        (
+            "max abs joint deflection alpha - theta [mrad]",
+            lambda r: f"{1e3 * np.abs(r.outputs.joint_deflection).max():.2f}",
+        ),
     ]
     L += [f"| {label} | {fmt(fj)} | {fmt(rj)} |" for label, fmt in rows]
-    L += ["", "Figures: `arm_angles.png` (paper 004 Figs. 4(a)-(c), 6(b)), `arm_modes.png` (Figs. 4(d), "
-          "5(a)-(c)), `arm_tip_deflections.png` (Figs. 5(d), 6(a)).", ""]
+    L += [
+        "",
+        "Figures: `arm_angles.png` (paper 004 Figs. 4(a)-(c), 6(b)), `arm_modes.png` (Figs. 4(d), "
+        "5(a)-(c)), `arm_tip_deflections.png` (Figs. 5(d), 6(a)).",
+        "",
+    ]
 
-    L += ["## Paper 000 flexible pendulum released from horizontal", "",
-          "`fd.rigs.flexible_pendulum(n_modes=2, damping_ratio=0.01)` (strip's own mass 0.118 kg; see "
-          "`flexdyn/rigs.py`), `theta0 = 0`, adaptive Tsit5 (rtol 1e-8, atol 1e-10) for "
-          f"{PENDULUM_DURATION:g} s, output every {PENDULUM_SAMPLE * 1e3:g} ms.", "",
-          f"- solver steps: {p.num_steps}; wall time incl. compile {p.seconds:.1f} s",
-          f"- swing frequency (mean of upward crossings of -90 deg): {pend['swing_hz']:.3f} Hz "
-          f"(small-amplitude linear value {pend['pendulum_mode_hz']:.3f} Hz)",
-          f"- max abs tip deflection: {1e3 * np.abs(p.outputs.tip_deflection[:, 0]).max():.3f} mm",
-          f"- flexural peak of the tip-deflection spectrum: {pend['peak_hz']:.1f} Hz (resolution "
-          f"{pend['resolution_hz']:.2f} Hz); first flexural natural frequency at the hanging equilibrium "
-          f"{pend['flexural_hz']:.2f} Hz. The paper's measured 35-37 Hz corresponds to its printed 0.60 kg "
-          "link mass (`flexible_pendulum(mass=0.60)`), see `flexdyn/rigs.py`.",
-          "", "Figure: `pendulum.png`.", ""]
+    L += [
+        "## Paper 000 flexible pendulum released from horizontal",
+        "",
+        "`fd.rigs.flexible_pendulum(n_modes=2, damping_ratio=0.01)` (strip's own mass 0.118 kg; see "
+        "`flexdyn/rigs.py`), `theta0 = 0`, adaptive Tsit5 (rtol 1e-8, atol 1e-10) for "
+        f"{PENDULUM_DURATION:g} s, output every {PENDULUM_SAMPLE * 1e3:g} ms.",
+        "",
+        f"- solver steps: {p.num_steps}; wall time incl. compile {p.seconds:.1f} s",
+        f"- swing frequency (mean of upward crossings of -90 deg): {pend['swing_hz']:.3f} Hz "
+        f"(small-amplitude linear value {pend['pendulum_mode_hz']:.3f} Hz)",
+        f"- max abs tip deflection: {1e3 * np.abs(p.outputs.tip_deflection[:, 0]).max():.3f} mm",
+        f"- flexural peak of the tip-deflection spectrum: {pend['peak_hz']:.1f} Hz (resolution "
+        f"{pend['resolution_hz']:.2f} Hz); first flexural natural frequency at the hanging equilibrium "
+        f"{pend['flexural_hz']:.2f} Hz. The paper's measured 35-37 Hz corresponds to its printed 0.60 kg "
+        "link mass (`flexible_pendulum(mass=0.60)`), see `flexdyn/rigs.py`.",
+        "",
+        "Figure: `pendulum.png`.",
+        "",
+    ]
 
     L += ["## Modal analysis (`fd.modal_analysis`, undamped)", ""]
-    for r, where in ((fj, "straight arm at rest"), (rj, "straight arm at rest"),
-                     (p, "hanging equilibrium, theta = -90 deg")):
+    for r, where in (
+        (fj, "straight arm at rest"),
+        (rj, "straight arm at rest"),
+        (p, "hanging equilibrium, theta = -90 deg"),
+    ):
         L += [f"### {r.name}", "", f"About the {where}; coordinates {', '.join(r.coordinate_names)}.", ""]
         L += _modal_table(r) + [""]
     L += ["## Timings [s] (wall clock unless said, compilation included)", "", "| step | seconds |", "| --- | ---: |"]
@@ -355,14 +404,19 @@ def main(argv=None) -> int:
 
     import flexdyn as fd  # noqa: F401  (enables float64 before any computation)
 
-    print("flexdyn-example: simulating paper 004's arm (flexible and rigid joints) and paper 000's "
-          "flexible pendulum; the first run compiles, about a minute on a laptop ...", flush=True)
+    print(
+        "flexdyn-example: simulating paper 004's arm (flexible and rigid joints) and paper 000's "
+        "flexible pendulum; the first run compiles, about a minute on a laptop ...",
+        flush=True,
+    )
     # The three rigs have different structures, so each compiles its own programs; XLA compiles
     # outside the GIL, so two threads overlap one rig's compilation with another's tracing.
     with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:
-        jobs = {"arm, flexible joints": pool.submit(_run_arm, False),
-                "arm, rigid joints": pool.submit(_run_arm, True),
-                "pendulum": pool.submit(_run_pendulum)}
+        jobs = {
+            "arm, flexible joints": pool.submit(_run_arm, False),
+            "arm, rigid joints": pool.submit(_run_arm, True),
+            "pendulum": pool.submit(_run_pendulum),
+        }
         results = {k: job.result() for k, job in jobs.items()}
     fj, rj, p = results["arm, flexible joints"], results["arm, rigid joints"], results["pendulum"]
     t_sim = time.perf_counter() - start
@@ -372,9 +426,13 @@ def main(argv=None) -> int:
     peak_hz = float(freq[band][np.argmax(amp[band])])
     flexural = [float(f) for f in p.frequencies if f > 5.0]
     pendulum_mode = [float(f) for f in p.frequencies if RIGID_MODE_HZ < f <= 5.0]
-    pend = dict(peak_hz=peak_hz, resolution_hz=float(freq[1]), flexural_hz=flexural[0],
-                pendulum_mode_hz=pendulum_mode[0] if pendulum_mode else float("nan"),
-                swing_hz=_swing_frequency(p.outputs.ts, p.outputs.joint_angle[:, 0], -np.pi / 2))
+    pend = dict(
+        peak_hz=peak_hz,
+        resolution_hz=float(freq[1]),
+        flexural_hz=flexural[0],
+        pendulum_mode_hz=pendulum_mode[0] if pendulum_mode else float("nan"),
+        swing_hz=_swing_frequency(p.outputs.ts, p.outputs.joint_angle[:, 0], -np.pi / 2),
+    )
 
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
@@ -382,8 +440,9 @@ def main(argv=None) -> int:
     _plot_pendulum(p, freq, amp, peak_hz, out)
     t_plot = time.perf_counter() - t0
 
-    timings = {f"{k}: simulate + observe + modal analysis (two threads, overlapping)": r.seconds
-               for k, r in results.items()}
+    timings = {
+        f"{k}: simulate + observe + modal analysis (two threads, overlapping)": r.seconds for k, r in results.items()
+    }
     timings["all three rigs, elapsed"] = t_sim
     timings["plots"] = t_plot
     total = time.perf_counter() - start

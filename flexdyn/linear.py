@@ -60,6 +60,7 @@ def _output_map(asm: AssembledChain):
     return jnp.stack(rows), tuple(names)
 
 
+@eqx.filter_jit
 def linearize(chain: Chain | AssembledChain, y0=None, torque0=None) -> LinearModel:
     """Linearise the chain about the state `y0 = [Q, Q_dot]` (default: all zero) and
     torques `torque0` (default zero)."""
@@ -97,6 +98,7 @@ class Modes(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
 
 
+@eqx.filter_jit
 def stiffness_matrix(chain: Chain | AssembledChain, Q0) -> Float[Array, "n n"]:
     """Tangent stiffness `K = -d(F - dV/dQ)/dQ` at rest (bending, joint springs, gravity)."""
     asm = assemble(chain)
@@ -106,6 +108,7 @@ def stiffness_matrix(chain: Chain | AssembledChain, Q0) -> Float[Array, "n n"]:
     return -jax.jacfwd(lambda Q: generalised_forces(asm, Q, zero_qd, zero_tau))(jnp.asarray(Q0, dtype=float))
 
 
+@eqx.filter_jit
 def modal_analysis(chain: Chain | AssembledChain, Q0=None) -> Modes:
     """Undamped natural frequencies and mode shapes about the configuration `Q0`
     (default zero; it should be an equilibrium). Pure JAX: jit- and grad-able."""

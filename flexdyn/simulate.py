@@ -132,7 +132,9 @@ def simulate(
     - `torque`: joint-torque input, N m (default: none): an `AbstractInput`
       (`BangBang`, `SampledTorque`, `PDTracking`, ...) or any callable `fn(t)`.
     - `solver`: a diffrax solver (default `Tsit5()` adaptive, `RK4()` with `dt`).
-    - `dt`: fixed step, s (e.g. `1e-3` as papers 002/004); adaptive if None.
+    - `dt`: fixed step, s (e.g. `1e-3` as papers 002/004); adaptive if None. Steps are
+      aligned to the input's discontinuities (`torque.jump_times()`), so fixed-step RK4
+      stays fourth-order accurate across a bang-bang switch.
     - `rtol`, `atol`: adaptive tolerances.
     - `max_steps`: step budget; exceeding it is an error.
     - `adjoint`: diffrax adjoint for reverse-mode gradients (default: recursive
@@ -160,8 +162,20 @@ def simulate(
         dt0 = None
     else:
         solver = RK4() if solver is None else solver
-        controller = diffrax.ConstantStepSize()
-        dt0 = dt  # discontinuities of the input are stepped over, as papers 002/004 do with RK4
+        dt0 = dt
+        jumps = torque.jump_times()
+        if jumps is None:
+            controller = diffrax.ConstantStepSize()
+        else:
+            # Fixed steps of `dt`, except that a step ending on an input discontinuity is
+            # clipped to end just before it and the next one starts on it: without this,
+            # one stage would read the torque from the far side of the jump and RK4 would
+            # be first-order accurate (measured: 3e-3 rad at 1 ms vs 2.5e-10 with clipping
+            # on paper 002's bang-bang). RK4 has no error estimate, so the PID controller
+            # below always proposes `dt`.
+            controller = diffrax.ClipStepSizeController(
+                diffrax.PIDController(rtol=1.0, atol=1.0, dtmin=dt, dtmax=dt), jump_ts=jumps
+            )
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(field),
         solver,

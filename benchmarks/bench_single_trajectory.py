@@ -1,0 +1,186 @@
+"""Benchmark: one 5 s simulation of paper 004's arm.
+
+`fd.rigs.flexible_link_joint_arm()` (two flexible links, two elastic joints, 8 coordinates),
+bang-bang torque 0.2 N m with 0.5 s pulses on both joints, from rest, t = 0 to 5 s, output
+at t = 5 s only. Runs:
+
+- flexdyn, fixed-step RK4 at 1 ms (papers 002/004),
+- flexdyn, adaptive Tsit5 at rtol 1e-8 (atol 1e-10),
+- peer: `scipy.integrate.solve_ivp(method="DOP853")`, same rtol/atol, integrating the SAME
+  equations by calling flexdyn's jitted right-hand side (`fd.ChainVectorField`) wrapped as a
+  NumPy function. This peer therefore measures SciPy's solver loop and per-call overhead with
+  our right-hand side, not an independent implementation; a hand-written NumPy implementation
+  of the equations is a later issue. Like flexdyn's adaptive run (which steps onto the input's
+  jumps), it integrates piecewise between the bang-bang switching times.
+
+Each run is timed cold (first call in the process, compilation included) and warm (median of
+`--repeats` calls, `block_until_ready`). The error is the largest absolute difference of the
+coordinates `Q` (rad and m) at t = 5 s from a reference (diffrax Dopri8, rtol 1e-12,
+atol 1e-14). Ratios are warm times relative to flexdyn's adaptive Tsit5 run.
+
+Usage: `python benchmarks/bench_single_trajectory.py [--repeats N] [--json results.json]`
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import diffrax  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from _common import environment, format_environment, format_table, median_time, timed, write_json  # noqa: E402
+
+import flexdyn as fd  # noqa: E402  (enables float64)
+
+T_END = 5.0  # s
+RTOL, ATOL = 1e-8, 1e-10
+REF_RTOL, REF_ATOL = 1e-12, 1e-14
+
+
+def problem():
+    chain = fd.rigs.flexible_link_joint_arm()
+    torque = fd.BangBang([0.2, 0.2], 0.5)
+    y0 = fd.initial_state(chain, joint_angles=[0.0, 0.0])
+    ts = jnp.array([0.0, T_END])
+    return chain, torque, y0, ts
+
+
+def flexdyn_runs(chain, torque, y0, ts, repeats):
+    """The two flexdyn runs and the reference; returns (rows, reference state at T_END)."""
+
+    def run(**kwargs):
+        def call():
+            traj = fd.simulate(chain, y0, ts, torque, **kwargs)
+            return jax.block_until_ready(traj)
+
+        return call
+
+    ref_traj, ref_cold = timed(run(solver=diffrax.Dopri8(), rtol=REF_RTOL, atol=REF_ATOL, max_steps=10**6))
+    ref_Q = np.asarray(ref_traj.Q[-1])
+    rows = []
+    for name, kwargs in (
+        ("flexdyn RK4, fixed dt = 1 ms", dict(dt=1e-3)),
+        (f"flexdyn Tsit5, adaptive rtol {RTOL:g}", dict(rtol=RTOL, atol=ATOL)),
+    ):
+        call = run(**kwargs)
+        traj, cold = timed(call)
+        warm = median_time(call, repeats)
+        rows.append(
+            dict(
+                run=name,
+                cold_s=cold,
+                warm_s=warm,
+                steps=int(traj.num_steps),
+                rhs_evals=int(traj.num_steps) * (4 if "RK4" in name else 6),
+                error_Q=float(np.max(np.abs(np.asarray(traj.Q[-1]) - ref_Q))),
+            )
+        )
+    rows.append(
+        dict(
+            run=f"reference: flexdyn Dopri8, rtol {REF_RTOL:g}",
+            cold_s=ref_cold,
+            steps=int(ref_traj.num_steps),
+            error_Q=0.0,
+        )
+    )
+    return rows, ref_Q
+
+
+def scipy_peer(chain, torque, y0, repeats, ref_Q):
+    """solve_ivp(DOP853) on flexdyn's jitted right-hand side, piecewise between the input's jumps."""
+    from scipy.integrate import solve_ivp
+
+    field = fd.ChainVectorField(fd.assemble(chain), torque)
+    rhs_jit = jax.jit(lambda t, y: field(t, y, None))
+
+    def rhs(t, y):
+        return np.asarray(rhs_jit(t, y))
+
+    breaks = [0.0] + [float(t) for t in np.asarray(torque.jump_times()) if 0.0 < t < T_END] + [T_END]
+    n = chain.n_dof
+
+    def call():
+        y, steps, nfev = np.asarray(y0), 0, 0
+        for a, b in zip(breaks[:-1], breaks[1:]):
+            sol = solve_ivp(rhs, (a, b), y, method="DOP853", rtol=RTOL, atol=ATOL)
+            if not sol.success:
+                raise RuntimeError(f"solve_ivp failed on [{a}, {b}]: {sol.message}")
+            y, steps, nfev = sol.y[:, -1], steps + sol.t.size - 1, nfev + sol.nfev
+        return y, steps, nfev
+
+    (y_end, steps, nfev), cold = timed(call)
+    warm = median_time(call, repeats)
+    y_probe = np.asarray(y0) + 1e-3
+    per_eval = median_time(lambda: rhs(0.1, y_probe), 200)
+    return dict(
+        run=f"peer: scipy solve_ivp DOP853, rtol {RTOL:g} (our jitted RHS)",
+        cold_s=cold,
+        warm_s=warm,
+        steps=steps,
+        rhs_evals=nfev,
+        error_Q=float(np.max(np.abs(y_end[:n] - ref_Q))),
+        rhs_call_us=1e6 * per_eval,
+    )
+
+
+COLUMNS = [
+    ("run", "run", ""),
+    ("cold_s", "cold [s]", ".3f"),
+    ("warm_s", "warm [s]", ".4f"),
+    ("ratio", "warm / Tsit5", ".2f"),
+    ("steps", "steps", "d"),
+    ("rhs_evals", "RHS evals", "d"),
+    ("error_Q", "max abs error of Q(5 s)", ".2e"),
+]
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=5, help="warm runs per case (median reported)")
+    parser.add_argument("--json", default=None, help="also write the results as JSON to this path")
+    args = parser.parse_args(argv)
+
+    env = environment()
+    chain, torque, y0, ts = problem()
+    rows, ref_Q = flexdyn_runs(chain, torque, y0, ts, args.repeats)
+    peer = scipy_peer(chain, torque, y0, args.repeats, ref_Q)
+    rows.insert(2, peer)
+    tsit5 = next(r for r in rows if r["run"].startswith("flexdyn Tsit5"))
+    for r in rows:
+        if r.get("warm_s") is not None:
+            r["ratio"] = r["warm_s"] / tsit5["warm_s"]
+
+    print("bench_single_trajectory: paper 004 arm (8 coordinates), bang-bang 0.2 N m / 0.5 s, 0 -> 5 s")
+    print(format_environment(env))
+    print()
+    print(format_table(rows, COLUMNS))
+    print()
+    print(
+        f"Peer: one call of our jitted right-hand side from NumPy costs {peer['rhs_call_us']:.0f} us "
+        "(dispatch + conversion included). The peer measures SciPy's solver overhead with flexdyn's "
+        "right-hand side; a hand-written NumPy implementation of the equations is a later issue."
+    )
+    print(
+        "Error: max over coordinates of |Q(5 s) - Q_ref(5 s)| (rad, m); reference diffrax Dopri8 at rtol "
+        f"{REF_RTOL:g}, atol {REF_ATOL:g}. RHS evals for flexdyn are steps x stages (accepted steps only)."
+    )
+    write_json(
+        args.json,
+        {
+            "benchmark": "single_trajectory",
+            "environment": env,
+            "repeats": args.repeats,
+            "columns": [c[0] for c in COLUMNS],
+            "results": rows,
+        },
+    )
+    return rows
+
+
+if __name__ == "__main__":
+    main()
