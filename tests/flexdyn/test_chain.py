@@ -11,12 +11,12 @@ import math
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+import oracles
 import pytest
 from scipy.interpolate import CubicSpline
 from scipy.optimize import brentq
 
 import flexdyn as fd
-import oracles
 
 G = 9.81
 _mass_matrix = eqx.filter_jit(fd.mass_matrix)
@@ -124,8 +124,11 @@ def test_clamped_link_frequencies(payload):
     (tip mass M and rotary inertia J). A single 3-mode FlexibleLink on a hub of 1e9 kg m^2
     (clamped root); the 3 nonzero natural frequencies of modal_analysis agree to 1e-6 rel."""
     M, J = payload
-    chain = fd.Chain([fd.FlexibleLink(BEAM_L, BEAM_RHO, BEAM_EI, n_modes=3)], hubs=[fd.Hub(inertia=1e9)],
-                     payload=fd.Payload(mass=M, inertia=J))
+    chain = fd.Chain(
+        [fd.FlexibleLink(BEAM_L, BEAM_RHO, BEAM_EI, n_modes=3)],
+        hubs=[fd.Hub(inertia=1e9)],
+        payload=fd.Payload(mass=M, inertia=J),
+    )
     f = _frequencies(chain)
     if M == 0.0 and J == 0.0:
         lam = oracles.cantilever_roots(3)
@@ -154,8 +157,11 @@ def test_hub_beam_convergence(hub_ratio, tip):
     exact = oracles.hub_beam_frequencies(3, BEAM_EI, BEAM_RHO, BEAM_L, J_h, M, J) / (2 * math.pi)
     errors = []
     for n in range(1, 7):
-        chain = fd.Chain([fd.FlexibleLink(BEAM_L, BEAM_RHO, BEAM_EI, n_modes=n)], hubs=[fd.Hub(inertia=J_h)],
-                         payload=fd.Payload(mass=M, inertia=J))
+        chain = fd.Chain(
+            [fd.FlexibleLink(BEAM_L, BEAM_RHO, BEAM_EI, n_modes=n)],
+            hubs=[fd.Hub(inertia=J_h)],
+            payload=fd.Payload(mass=M, inertia=J),
+        )
         f = _frequencies(chain)
         assert f[0] < 1e-6 * f[1], f"n={n}: rigid-body mode not at zero: {f[0]}"
         k = min(n, 3)
@@ -180,8 +186,14 @@ def _random_rigid_case(rng, n):
     links = []
     for _ in range(n):
         length = rng.uniform(0.2, 1.0)
-        links.append(dict(length=length, mass=rng.uniform(0.1, 2.0), com=rng.uniform(0.0, 1.2) * length,
-                          inertia=rng.uniform(1e-3, 0.1)))
+        links.append(
+            dict(
+                length=length,
+                mass=rng.uniform(0.1, 2.0),
+                com=rng.uniform(0.0, 1.2) * length,
+                inertia=rng.uniform(1e-3, 0.1),
+            )
+        )
     a = rng.uniform(0, 2 * math.pi)
     return dict(
         links=links,
@@ -199,8 +211,15 @@ def _flexdyn_rigid_chain(case):
     n = len(case["links"])
     return fd.Chain(
         links=[fd.RigidLink(lk["length"], lk["mass"], com=lk["com"], inertia=lk["inertia"]) for lk in case["links"]],
-        joints=[fd.RigidJoint(damping=case["joint_damping"][i], rotor_inertia=case["armature"][i], gear_ratio=1.0,
-                              spong_approximation=True) for i in range(n)],
+        joints=[
+            fd.RigidJoint(
+                damping=case["joint_damping"][i],
+                rotor_inertia=case["armature"][i],
+                gear_ratio=1.0,
+                spong_approximation=True,
+            )
+            for i in range(n)
+        ],
         hubs=[fd.Hub(mass=case["hub_masses"][i], inertia=case["hub_inertias"][i]) for i in range(n)],
         payload=fd.Payload(mass=case["payload_mass"], inertia=case["payload_inertia"]),
         gravity=case["gravity"],
@@ -282,8 +301,9 @@ def test_stiff_joint_limit_bang_bang():
     errs = []
     for k in (1e2, 1e3, 1e4):
         th, tip = outputs(fd.rigs.flexible_link_joint_arm(joint_stiffness=k))
-        errs.append(max(np.max(np.abs(th - th_r)) / np.max(np.abs(th_r)),
-                        np.max(np.abs(tip - tip_r)) / np.max(np.abs(tip_r))))
+        errs.append(
+            max(np.max(np.abs(th - th_r)) / np.max(np.abs(th_r)), np.max(np.abs(tip - tip_r)) / np.max(np.abs(tip_r)))
+        )
     ratios = np.array(errs[:-1]) / np.array(errs[1:])
     assert np.all((ratios > 7) & (ratios < 13)), f"errors {errs}, ratios {ratios}"
     assert errs[-1] < 1e-3, errs
@@ -345,11 +365,11 @@ def test_paper_000_side_by_side():
         assert abs(f6[1] / f_flex - 1) <= 1e-2, (label, f6[1], f_flex)
         assert f1[1] > f6[1], "1-mode Ritz value must lie above the 6-mode one"
         rows.append((f"flex. pendulum joint, {label}, 1 mode [Hz]", f1[0], f_joint, "1.1"))
-        rows.append((f"1st flexural, {label}, 1 mode, hanging [Hz]", f1[1], f_flex,
-                     "-" if mass is None else "35-37"))
+        rows.append((f"1st flexural, {label}, 1 mode, hanging [Hz]", f1[1], f_flex, "-" if mass is None else "35-37"))
         rows.append((f"1st flexural, {label}, 6 modes, hanging [Hz]", f6[1], f_flex, "-" if mass is None else "35-37"))
-        rows.append((f"1st flexural, {label}, 6 modes, g = 0 [Hz]", f6_free[1], f_flex,
-                     "-" if mass is None else "35-37"))
+        rows.append(
+            (f"1st flexural, {label}, 6 modes, g = 0 [Hz]", f6_free[1], f_flex, "-" if mass is None else "35-37")
+        )
         if mass is not None:
             assert 35.0 <= f_flex <= 37.0, f_flex
 

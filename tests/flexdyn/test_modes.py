@@ -16,11 +16,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import oracles
 import pytest
 from scipy.optimize import brentq
 
 import flexdyn as fd
-import oracles
 from flexdyn.modes import clamped_mass_roots, evaluate_shapes, mode_shapes
 
 # One compiled root finder per n (n is static); avoids eager op-by-op dispatch.
@@ -93,8 +93,9 @@ def test_cantilever_roots():
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=0)
 
 
-@pytest.mark.parametrize("mu, iota", [(0.1, 0.0), (1.0, 0.0), (5.0, 0.0), (0.0, 0.05), (0.5, 0.1),
-                                      (2.0, 1.0), (0.2, 0.01)])
+@pytest.mark.parametrize(
+    "mu, iota", [(0.1, 0.0), (1.0, 0.0), (5.0, 0.0), (0.0, 0.05), (0.5, 0.1), (2.0, 1.0), (0.2, 0.01)]
+)
 def test_clamped_mass_roots_against_paper_002_eq23(mu, iota):
     """Oracle: oracles.clamped_mass_roots (paper 002 eq. 23, tip mass + rotary inertia,
     sigma = 0). First 5 roots, 1e-9 rel."""
@@ -107,8 +108,9 @@ def test_offset_determinant_reduces_to_paper_eq23():
     """Self-check of the test's own offset-mass determinant: with sigma = 0 its roots equal
     oracles.clamped_mass_roots (1e-11 rel), so its derivation shares the paper's conventions."""
     for mu, iota in [(0.0, 0.0), (1.0, 0.0), (0.5, 0.1), (2.0, 1.0)]:
-        np.testing.assert_allclose(_offset_mass_roots(N, mu, 0.0, iota),
-                                   oracles.clamped_mass_roots(N, mu, iota), rtol=1e-11, atol=0)
+        np.testing.assert_allclose(
+            _offset_mass_roots(N, mu, 0.0, iota), oracles.clamped_mass_roots(N, mu, iota), rtol=1e-11, atol=0
+        )
 
 
 @pytest.mark.parametrize("mu, sigma, iota", OFFSET_CASES)
@@ -203,8 +205,12 @@ def test_mass_orthogonality_with_tip_body(mu, sigma, iota):
     lam, coef = _shapes(N, mu, sigma, iota)
     phi = np.asarray(_evaluate(lam, coef, jnp.asarray(_GL_X), 0))
     d0, d1, _, _ = (d[0] for d in _derivs(lam, coef, np.array([1.0])))
-    G = (phi.T * _GL_W) @ phi + mu * np.outer(d0, d0) + sigma * (np.outer(d0, d1) + np.outer(d1, d0)) \
+    G = (
+        (phi.T * _GL_W) @ phi
+        + mu * np.outer(d0, d0)
+        + sigma * (np.outer(d0, d1) + np.outer(d1, d0))
         + iota * np.outer(d1, d1)
+    )
     off = G - np.diag(np.diag(G))
     assert np.max(np.abs(off)) < 1e-11, f"max off-diagonal {np.max(np.abs(off)):.2e}"
 

@@ -1,6 +1,6 @@
 """Self-check of tests/oracles.py against textbook numbers and independent models.
 
-Run:  .venv/bin/python tests/_check_oracles.py
+Run:  .venv/bin/python tests/check_oracles.py  (also run by tests/test_oracles.py)
 """
 
 import math
@@ -40,25 +40,50 @@ check("T/T0(90deg) = 1.18034060", r90, 1.18034060, 1e-8)
 # independent: T = 4 sqrt(I/mgl) * int_0^{pi/2} dphi / sqrt(1 - k^2 sin^2 phi)
 for amp in (0.3, 1.0, 2.5, 3.0):
     k = math.sin(amp / 2)
-    Kq = quad(lambda p: 1 / math.sqrt(1 - k * k * math.sin(p) ** 2), 0, math.pi / 2, epsabs=1e-15, epsrel=1e-13, limit=200)[0]
-    check(f"pendulum exact amp={amp} vs quadrature", O.pendulum_period_exact(I, mgl, amp), 4 * math.sqrt(I / mgl) * Kq, 1e-12)
+    Kq = quad(
+        lambda p: 1 / math.sqrt(1 - k * k * math.sin(p) ** 2), 0, math.pi / 2, epsabs=1e-15, epsrel=1e-13, limit=200
+    )[0]
+    check(
+        f"pendulum exact amp={amp} vs quadrature",
+        O.pendulum_period_exact(I, mgl, amp),
+        4 * math.sqrt(I / mgl) * Kq,
+        1e-12,
+    )
 # independent: time integration of the ODE (quarter period = time to reach th=0)
 from scipy.integrate import solve_ivp  # noqa: E402
 
 amp = 2.0
 ev = lambda t, y: y[0]  # noqa: E731
 ev.terminal, ev.direction = True, -1
-sol = solve_ivp(lambda t, y: [y[1], -mgl / I * math.sin(y[0])], [0, 100], [amp, 0.0], events=ev, rtol=1e-12, atol=1e-12, method="DOP853")
+sol = solve_ivp(
+    lambda t, y: [y[1], -mgl / I * math.sin(y[0])],
+    [0, 100],
+    [amp, 0.0],
+    events=ev,
+    rtol=1e-12,
+    atol=1e-12,
+    method="DOP853",
+)
 check("pendulum exact amp=2 vs ODE quarter period", 4 * sol.t_events[0][0], O.pendulum_period_exact(I, mgl, amp), 1e-9)
 
 # ---------------------------------------------------------------- cantilever
 cr = O.cantilever_roots(6)
 print("cantilever roots:", np.array2string(cr, precision=10))
-check("cantilever roots (Blevins)", cr[:5], [1.8751040687, 4.6940911330, 7.8547574382, 10.9955407349, 14.1371683910], 1e-10)
+check(
+    "cantilever roots (Blevins)",
+    cr[:5],
+    [1.8751040687, 4.6940911330, 7.8547574382, 10.9955407349, 14.1371683910],
+    1e-10,
+)
 r = O.cantilever_roots(40)
 res = 1 + np.cos(r) * np.cosh(r)
 # |f'| ~ 1 near the roots, so |f(root)| must be at the level of the ulp of the root
-check("cantilever residual |cos + sech| / (4 ulp) (40 roots)", np.abs(np.cos(r) + 1 / np.cosh(r)) / (4 * np.spacing(r)), 0.0, 1.0)
+check(
+    "cantilever residual |cos + sech| / (4 ulp) (40 roots)",
+    np.abs(np.cos(r) + 1 / np.cosh(r)) / (4 * np.spacing(r)),
+    0.0,
+    1.0,
+)
 print("   residual of 1+cos cosh, first 5:", res[:5])
 check("cantilever asymptote (2k-1)pi/2, k=40", r[-1], (2 * 40 - 1) * math.pi / 2, 1e-15)
 
@@ -75,7 +100,9 @@ for mu, j in [(0.0, 0.0), (1.0, 0.0), (0.3, 0.05), (2.0, 0.5), (0.0, 0.1)]:
 # ---------------------------------------------------------------- hub beam
 pf = O.hub_beam_roots(4, 0.0)
 print("hub beam J_h=0 (pinned-free) roots:", pf)
-check("pinned-free roots 3.9266 7.0686 10.2102 13.3518", pf, [3.926602312, 7.068582745, 10.210176122, 13.351768777], 1e-9)
+check(
+    "pinned-free roots 3.9266 7.0686 10.2102 13.3518", pf, [3.926602312, 7.068582745, 10.210176122, 13.351768777], 1e-9
+)
 check("pinned-free satisfy tan x = tanh x", np.tan(pf) - np.tanh(pf), 0.0, 1e-12)
 check("hub beam J_h=1e14 == cantilever", O.hub_beam_roots(6, 1e14), cr, 1e-10)
 
@@ -110,7 +137,14 @@ def fe_hub_beam(EI, rho, L, Jh, M, J, ne=200, nmodes=8, clamp=False):
 
 # FE in double precision is good to ~1e-7 here (discretisation vs round-off); a wrong
 # boundary condition or a missed/spurious root would show up at the 1e-2 level.
-for Jh, M, J in [(0.02, 0.0, 0.0), (0.2, 0.1, 0.003), (1e-4, 0.5, 0.0), (5.0, 0.0, 0.01), (50.0, 5.0, 0.3), (1e-6, 0.0, 0.05)]:
+for Jh, M, J in [
+    (0.02, 0.0, 0.0),
+    (0.2, 0.1, 0.003),
+    (1e-4, 0.5, 0.0),
+    (5.0, 0.0, 0.01),
+    (50.0, 5.0, 0.3),
+    (1e-6, 0.0, 0.05),
+]:
     ex = O.hub_beam_frequencies(6, EI, rho, L, Jh, M, J)
     fe = fe_hub_beam(EI, rho, L, Jh, M, J, ne=150, nmodes=6)
     print(f"   J_h={Jh} M={M} J={J}: exact {np.array2string(ex, precision=6)}")
@@ -131,7 +165,16 @@ g = 9.81
 # 1 link, hub, payload, armature, damping
 lk = dict(length=0.8, mass=1.3, com=0.35, inertia=0.07)
 hm, hI, pm, pI, arm, d = 0.9, 0.011, 0.4, 0.002, 0.03, 0.17
-m1 = O.mujoco_planar_chain([lk], gravity=(0, -g), payload_mass=pm, payload_inertia=pI, hub_masses=[hm], hub_inertias=[hI], joint_damping=[d], armature=[arm])
+m1 = O.mujoco_planar_chain(
+    [lk],
+    gravity=(0, -g),
+    payload_mass=pm,
+    payload_inertia=pI,
+    hub_masses=[hm],
+    hub_inertias=[hI],
+    joint_damping=[d],
+    armature=[arm],
+)
 Mexp = lk["inertia"] + lk["mass"] * lk["com"] ** 2 + hI + pm * lk["length"] ** 2 + pI + arm
 for q in (0.0, 0.7, -2.1):
     check(f"1-link mass matrix q={q}", O.mujoco_mass_matrix(m1, [q]), Mexp, 1e-12)
@@ -141,7 +184,12 @@ for q in (0.0, 0.7, -2.1):
 # gravity along +x
 m1x = O.mujoco_planar_chain([lk], gravity=(4.0, 0.0))
 M0 = lk["inertia"] + lk["mass"] * lk["com"] ** 2
-check("1-link qacc, gravity (4,0)", O.mujoco_forward_dynamics(m1x, [0.5], [0.0], [0.0]), -lk["mass"] * lk["com"] * 4.0 * math.sin(0.5) / M0, 1e-12)
+check(
+    "1-link qacc, gravity (4,0)",
+    O.mujoco_forward_dynamics(m1x, [0.5], [0.0], [0.0]),
+    -lk["mass"] * lk["com"] * 4.0 * math.sin(0.5) / M0,
+    1e-12,
+)
 
 # 2 links: textbook planar arm
 L1 = dict(length=1.1, mass=2.0, com=0.45, inertia=0.21)
@@ -161,7 +209,12 @@ for _ in range(4):
     check(f"2-link textbook mass matrix q={np.round(q, 3)}", O.mujoco_mass_matrix(m2, q), Mt, 1e-12)
     h = mb * l1 * c2 * math.sin(q[1])
     cor = np.array([-h * (2 * qd[0] * qd[1] + qd[1] ** 2), h * qd[0] ** 2])
-    gr = np.array([(ma * c1 + mb * l1) * g * math.cos(q[0]) + mb * c2 * g * math.cos(q[0] + q[1]), mb * c2 * g * math.cos(q[0] + q[1])])
+    gr = np.array(
+        [
+            (ma * c1 + mb * l1) * g * math.cos(q[0]) + mb * c2 * g * math.cos(q[0] + q[1]),
+            mb * c2 * g * math.cos(q[0] + q[1]),
+        ]
+    )
     qdd = np.linalg.solve(Mt, tau - cor - gr - np.array(d2) * qd)
     check("2-link textbook forward dynamics", O.mujoco_forward_dynamics(m2, q, qd, tau), qdd, 1e-12)
 
@@ -200,25 +253,50 @@ def chain_model(links, hm, hI, pm, pI, arm, damp, gvec):
 
     def qdd(q, qd, tau, e=1e-6):
         # Lagrange: M qdd + Mdot qd - 1/2 d/dq (qd^T M qd) + dV/dq + D qd = tau   (central differences)
-        Md = sum((Mfun(q + e * qd * 0 + e * np.eye(n)[k]) - Mfun(q - e * np.eye(n)[k])) / (2 * e) * qd[k] for k in range(n))
-        dT = np.array([qd @ ((Mfun(q + e * np.eye(n)[k]) - Mfun(q - e * np.eye(n)[k])) / (2 * e)) @ qd for k in range(n)]) / 2
+        Md = sum(
+            (Mfun(q + e * qd * 0 + e * np.eye(n)[k]) - Mfun(q - e * np.eye(n)[k])) / (2 * e) * qd[k] for k in range(n)
+        )
+        dT = (
+            np.array(
+                [qd @ ((Mfun(q + e * np.eye(n)[k]) - Mfun(q - e * np.eye(n)[k])) / (2 * e)) @ qd for k in range(n)]
+            )
+            / 2
+        )
         dV = np.array([(V(q + e * np.eye(n)[k]) - V(q - e * np.eye(n)[k])) / (2 * e) for k in range(n)])
         return np.linalg.solve(Mfun(q), tau - Md @ qd + dT - dV - np.array(damp) * qd)
 
     return Mfun, qdd
 
 
-links3 = [dict(length=0.9, mass=1.5, com=0.4, inertia=0.1), dict(length=0.6, mass=0.8, com=0.25, inertia=0.03), dict(length=0.5, mass=0.5, com=0.3, inertia=0.012)]
+links3 = [
+    dict(length=0.9, mass=1.5, com=0.4, inertia=0.1),
+    dict(length=0.6, mass=0.8, com=0.25, inertia=0.03),
+    dict(length=0.5, mass=0.5, com=0.3, inertia=0.012),
+]
 hm3, hI3, arm3, dmp3 = [0.7, 0.4, 0.2], [0.01, 0.005, 0.0], [0.02, 0.0, 0.01], [0.1, 0.2, 0.0]
 gv = np.array([1.2, -9.81])
-m3 = O.mujoco_planar_chain(links3, gravity=gv, payload_mass=0.3, payload_inertia=0.004, hub_masses=hm3, hub_inertias=hI3, joint_damping=dmp3, armature=arm3)
+m3 = O.mujoco_planar_chain(
+    links3,
+    gravity=gv,
+    payload_mass=0.3,
+    payload_inertia=0.004,
+    hub_masses=hm3,
+    hub_inertias=hI3,
+    joint_damping=dmp3,
+    armature=arm3,
+)
 Mf, qddf = chain_model(links3, hm3, hI3, 0.3, 0.004, arm3, dmp3, gv)
 for _ in range(3):
     q = rng.uniform(-3, 3, 3)
     qd = rng.uniform(-2, 2, 3)
     tau = rng.uniform(-1, 1, 3)
     check("3-link (hubs, payload, armature) mass matrix vs Jacobian model", O.mujoco_mass_matrix(m3, q), Mf(q), 1e-12)
-    check("3-link forward dynamics vs finite-difference Lagrangian", O.mujoco_forward_dynamics(m3, q, qd, tau), qddf(q, qd, tau), 1e-7)
+    check(
+        "3-link forward dynamics vs finite-difference Lagrangian",
+        O.mujoco_forward_dynamics(m3, q, qd, tau),
+        qddf(q, qd, tau),
+        1e-7,
+    )
 
 # hub with rotary inertia but zero mass, payload inertia only
 m_i = O.mujoco_planar_chain([lk], hub_masses=[0.0], hub_inertias=[0.05], payload_mass=0.0, payload_inertia=0.02)
