@@ -145,3 +145,10 @@ from .simulate import (
 from .solvers import RK4 as RK4
 
 __version__ = "0.1.0"
+from .params import (
+    get_parameter as get_parameter,
+    is_signed as is_signed,
+    parameter_names as parameter_names,
+    parameter_unit as parameter_unit,
+    with_parameters as with_parameters,
+)

@@ -121,7 +121,9 @@ def modal_analysis(chain: Chain | AssembledChain, Q0=None) -> Modes:
     L = jnp.linalg.cholesky(M)
     Linv = jax.scipy.linalg.solve_triangular(L, jnp.eye(n), lower=True)
     w2, V = jnp.linalg.eigh(Linv @ K @ Linv.T)
-    natural = jnp.sqrt(jnp.clip(w2, 0.0, None)) / (2 * jnp.pi)
+    positive = w2 > 0.0
+    # sqrt with a finite derivative at rigid-body (zero) modes
+    natural = jnp.where(positive, jnp.sqrt(jnp.where(positive, w2, 1.0)), 0.0) / (2 * jnp.pi)
     return Modes(natural, Linv.T @ V, asm.layout.names)
 
 

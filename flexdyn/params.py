@@ -1,0 +1,133 @@
+"""Named access to a chain's physical parameters: `'link1.EI'`, `'joint2.damping'`,
+`'hub1.inertia'`, `'payload.mass'`, `'link1.damping_ratio[0]'`, `'gravity[1]'`.
+
+Numbering is 1-based from the base, as in the papers. These names are the
+vocabulary of experiment files and of fits (`identify`): any parameter listed by
+`parameter_names` can be read, replaced (functionally, `with_parameters`) and
+differentiated.
+"""
+
+from __future__ import annotations
+
+import re
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from .chain import Chain
+from .parts import ElasticJoint, FlexibleLink, Hub, Payload, RigidJoint, RigidLink
+
+#: Fields that are physical parameters, per part type, with their SI unit.
+PARAMETER_FIELDS: dict[type, dict[str, str]] = {
+    RigidLink: {"length": "m", "mass": "kg", "com": "m", "inertia": "kg m^2"},
+    FlexibleLink: {
+        "length": "m",
+        "rho": "kg/m",
+        "EI": "N m^2",
+        "damping_ratio": "1",
+        "sqrt_stiffness_damping": "kg^0.5",
+    },
+    RigidJoint: {"damping": "N m s/rad", "rotor_inertia": "kg m^2", "gear_ratio": "1"},
+    ElasticJoint: {
+        "stiffness": "N m/rad",
+        "rotor_inertia": "kg m^2",
+        "gear_ratio": "1",
+        "damping": "N m s/rad",
+        "spring_damping": "N m s/rad",
+    },
+    Hub: {"mass": "kg", "inertia": "kg m^2"},
+    Payload: {"mass": "kg", "inertia": "kg m^2"},
+}
+
+#: Parameters that may take any sign (all others are >= 0 and are fitted in log space).
+SIGNED = {"com", "gravity"}
+
+_NAME = re.compile(
+    r"^(?P<part>link|joint|hub)(?P<index>\d+)\.(?P<field>\w+)(\[(?P<k>\d+)\])?$|"
+    r"^(?P<payload>payload)\.(?P<pfield>\w+)$|^(?P<gravity>gravity)\[(?P<g>[01])\]$"
+)
+
+
+def _part(chain: Chain, kind: str, index: int):
+    parts = {"link": chain.links, "joint": chain.joints, "hub": chain.hubs}[kind]
+    return parts[index - 1]
+
+
+def parameter_names(chain: Chain) -> list[str]:
+    """Every named scalar parameter of `chain`, in a stable order."""
+    names = []
+    for kind, parts in (("link", chain.links), ("joint", chain.joints), ("hub", chain.hubs)):
+        for i, part in enumerate(parts, start=1):
+            for field in PARAMETER_FIELDS[type(part)]:
+                value = getattr(part, field)
+                if np.ndim(value) == 0:
+                    names.append(f"{kind}{i}.{field}")
+                else:
+                    names.extend(f"{kind}{i}.{field}[{k}]" for k in range(np.shape(value)[0]))
+    names.extend(f"payload.{f}" for f in PARAMETER_FIELDS[Payload])
+    names.extend(["gravity[0]", "gravity[1]"])
+    return names
+
+
+def _locate(chain: Chain, name: str):
+    """(getter of the leaf array, index into it or None, unit, signed) for `name`."""
+    m = _NAME.match(name)
+    if m is None:
+        raise KeyError(_unknown(chain, name))
+    if m["gravity"]:
+        return (lambda c: c.gravity), int(m["g"]), "m/s^2", True
+    if m["payload"]:
+        field = m["pfield"]
+        if field not in PARAMETER_FIELDS[Payload]:
+            raise KeyError(_unknown(chain, name))
+        return (lambda c: getattr(c.payload, field)), None, PARAMETER_FIELDS[Payload][field], False
+    kind, index, field = m["part"], int(m["index"]), m["field"]
+    n = len(chain.links)
+    if not 1 <= index <= n:
+        raise KeyError(_unknown(chain, name))
+    part = _part(chain, kind, index)
+    fields = PARAMETER_FIELDS[type(part)]
+    if field not in fields:
+        raise KeyError(_unknown(chain, name))
+    k = None if m["k"] is None else int(m["k"])
+    ndim = np.ndim(getattr(part, field))
+    if (k is None) != (ndim == 0) or (k is not None and k >= np.shape(getattr(part, field))[0]):
+        raise KeyError(_unknown(chain, name))
+    return (lambda c: getattr(_part(c, kind, index), field)), k, fields[field], field in SIGNED
+
+
+def _unknown(chain: Chain, name: str) -> str:
+    return f"unknown parameter {name!r}; this chain has: {', '.join(parameter_names(chain))}"
+
+
+def parameter_unit(chain: Chain, name: str) -> str:
+    """SI unit of a named parameter."""
+    return _locate(chain, name)[2]
+
+
+def is_signed(chain: Chain, name: str) -> bool:
+    """True for parameters that may be negative (`com`, gravity components)."""
+    return _locate(chain, name)[3]
+
+
+def get_parameter(chain: Chain, name: str):
+    """The value of a named parameter (a JAX scalar)."""
+    getter, k, _, _ = _locate(chain, name)
+    value = getter(chain)
+    return value if k is None else value[k]
+
+
+def with_parameters(chain: Chain, values: dict) -> Chain:
+    """A copy of `chain` with the named parameters replaced (values may be traced, so
+    this is differentiable and vmappable)."""
+    for name, value in values.items():
+        getter, k, _, _ = _locate(chain, name)
+        value = jnp.asarray(value, dtype=float)
+        if np.ndim(value) != 0:
+            raise ValueError(f"parameter {name!r}: expected a scalar, got shape {np.shape(value)}")
+        if k is None:
+            chain = eqx.tree_at(getter, chain, value)
+        else:
+            chain = eqx.tree_at(getter, chain, getter(chain).at[k].set(value))
+    return chain
