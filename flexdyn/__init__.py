@@ -147,8 +147,16 @@ from .solvers import RK4 as RK4
 __version__ = "0.1.0"
 from .params import (
     get_parameter as get_parameter,
+)
+from .params import (
     is_signed as is_signed,
+)
+from .params import (
     parameter_names as parameter_names,
+)
+from .params import (
     parameter_unit as parameter_unit,
+)
+from .params import (
     with_parameters as with_parameters,
 )
