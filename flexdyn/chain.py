@@ -121,6 +121,8 @@ class Chain(eqx.Module):
         self.gravity = as_float_array(gravity)
         if tuple(np.shape(self.gravity)) != (2,):
             raise ValueError(f"Chain.gravity: expected shape (2,) [m/s^2], got {np.shape(self.gravity)}")
+        if not isinstance(self.gravity, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(self.gravity))):
+            raise ValueError(f"Chain.gravity: expected finite values [m/s^2], got {np.asarray(self.gravity)}")
 
     # -- structure (static) --------------------------------------------------
     @property

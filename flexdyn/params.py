@@ -12,6 +12,7 @@ from __future__ import annotations
 import re
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -130,4 +131,18 @@ def with_parameters(chain: Chain, values: dict) -> Chain:
             chain = eqx.tree_at(getter, chain, value)
         else:
             chain = eqx.tree_at(getter, chain, getter(chain).at[k].set(value))
+        _recheck(chain, name)
     return chain
+
+
+def _recheck(chain: Chain, name: str) -> None:
+    """Re-run the validation of the part a parameter belongs to (eqx.tree_at bypasses
+    __init__): concrete values are checked now, traced ones inside `assemble`."""
+    m = _NAME.match(name)
+    if m["gravity"]:
+        g = chain.gravity
+        if not isinstance(g, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(g))):
+            raise ValueError(f"{name}: expected a finite value [m/s^2], got {np.asarray(g)}")
+        return
+    part = chain.payload if m["payload"] else _part(chain, m["part"], int(m["index"]))
+    part.__check_init__()

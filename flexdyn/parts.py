@@ -75,13 +75,19 @@ class FlexibleLink(eqx.Module):
     n_modes: int = eqx.field(static=True)
 
     def __init__(self, length, rho, EI, n_modes: int = 2, damping_ratio=0.0, sqrt_stiffness_damping=0.0):
-        if not isinstance(n_modes, int) or n_modes < 1:
+        if isinstance(n_modes, bool) or not isinstance(n_modes, int) or n_modes < 1:
             raise ValueError(f"FlexibleLink.n_modes: expected an integer >= 1, got {n_modes!r}")
         self.n_modes = n_modes
         self.length = as_float_array(length)
         self.rho = as_float_array(rho)
         self.EI = as_float_array(EI)
-        self.damping_ratio = jnp.broadcast_to(as_float_array(damping_ratio), (n_modes,))
+        damping_ratio = as_float_array(damping_ratio)
+        if damping_ratio.ndim > 1 or (damping_ratio.ndim == 1 and damping_ratio.shape[0] != n_modes):
+            raise ValueError(
+                f"FlexibleLink.damping_ratio: expected a scalar or one value per mode (shape ({n_modes},)), "
+                f"got shape {damping_ratio.shape}"
+            )
+        self.damping_ratio = jnp.broadcast_to(damping_ratio, (n_modes,))
         self.sqrt_stiffness_damping = as_float_array(sqrt_stiffness_damping)
 
     def __check_init__(self):

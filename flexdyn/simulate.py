@@ -43,6 +43,15 @@ def as_input(torque, n_joints: int) -> AbstractInput:
     raise ValueError(f"torque: expected None, an AbstractInput or a callable fn(t) -> (n_joints,) N m, got {torque!r}")
 
 
+def _check_torque_shape(torque: AbstractInput, t0, y0, n_joints: int) -> None:
+    shape = jax.eval_shape(torque, t0, y0).shape
+    if shape != (n_joints,):
+        raise ValueError(
+            f"torque: the input returns shape {shape}, expected ({n_joints},): one torque [N m] per joint "
+            f"(e.g. BangBang(amplitude=[...] with {n_joints} value(s)))"
+        )
+
+
 class ChainVectorField(eqx.Module):
     """The first-order vector field `y_dot = [Q_dot, Q_ddot(Q, Q_dot, torque(t, y))]`."""
 
@@ -152,6 +161,7 @@ def simulate(
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"simulate: ts expected a 1-D array of at least 2 times, got shape {ts.shape}")
     torque = as_input(torque, asm.chain.n_links)
+    _check_torque_shape(torque, ts[0], y0, asm.chain.n_links)
     field = ChainVectorField(asm, torque)
     if dt is None:
         solver = diffrax.Tsit5() if solver is None else solver

@@ -1,0 +1,173 @@
+"""Bad input gets a clear error naming the part and the parameter; solver failures are
+raised with a message that says what to change, never returned as NaNs."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import pytest
+
+import flexdyn as fd
+
+NAN = math.nan
+
+# Errors raised inside compiled code by `eqx.error_if`: EquinoxRuntimeError in recent
+# equinox (a RuntimeError subclass), ValueError/XlaRuntimeError in older ones.
+RUNTIME_ERRORS = (RuntimeError, ValueError, getattr(eqx, "EquinoxRuntimeError", RuntimeError))
+
+
+@pytest.mark.parametrize(
+    "build, match",
+    [
+        (lambda: fd.RigidLink(length=0.0, mass=1.0), r"RigidLink\.length.*> 0"),
+        (lambda: fd.RigidLink(length=-0.3, mass=1.0), r"RigidLink\.length.*> 0"),
+        (lambda: fd.RigidLink(length=0.3, mass=0.0), r"RigidLink\.mass.*> 0"),
+        (lambda: fd.RigidLink(length=0.3, mass=-1.0), r"RigidLink\.mass.*> 0"),
+        (lambda: fd.RigidLink(length=0.3, mass=1.0, inertia=-1e-3), r"RigidLink\.inertia"),
+        (lambda: fd.FlexibleLink(length=0.0, rho=0.2, EI=1.0), r"FlexibleLink\.length.*> 0"),
+        (lambda: fd.FlexibleLink(length=0.5, rho=-0.2, EI=1.0), r"FlexibleLink\.rho.*> 0"),
+        (lambda: fd.FlexibleLink(length=0.5, rho=0.0, EI=1.0), r"FlexibleLink\.rho.*> 0"),
+        (lambda: fd.FlexibleLink(length=0.5, rho=0.2, EI=0.0), r"FlexibleLink\.EI.*> 0"),
+        (lambda: fd.FlexibleLink(length=0.5, rho=0.2, EI=-1.0), r"FlexibleLink\.EI.*> 0"),
+        (lambda: fd.FlexibleLink(length=0.5, rho=0.2, EI=1.0, damping_ratio=-0.1), r"FlexibleLink\.damping_ratio"),
+        (lambda: fd.ElasticJoint(stiffness=0.0, rotor_inertia=0.02), r"ElasticJoint\.stiffness.*> 0"),
+        (lambda: fd.ElasticJoint(stiffness=100.0, rotor_inertia=-0.02), r"ElasticJoint\.rotor_inertia"),
+        (lambda: fd.RigidJoint(damping=-1.0), r"RigidJoint\.damping"),
+        (lambda: fd.RigidJoint(gear_ratio=0.0), r"RigidJoint\.gear_ratio"),
+        (lambda: fd.Hub(mass=-1.0), r"Hub\.mass"),
+        (lambda: fd.Hub(inertia=-1e-3), r"Hub\.inertia"),
+        (lambda: fd.Payload(mass=-0.1), r"Payload\.mass"),
+        (lambda: fd.Payload(inertia=-1e-3), r"Payload\.inertia"),
+    ],
+)
+def test_non_physical_parameters_are_rejected(build, match):
+    with pytest.raises(ValueError, match=match):
+        build()
+
+
+@pytest.mark.parametrize(
+    "build, match",
+    [
+        (lambda: fd.RigidLink(length=NAN, mass=1.0), r"RigidLink\.length.*finite"),
+        (lambda: fd.RigidLink(length=0.3, mass=NAN), r"RigidLink\.mass.*finite"),
+        (lambda: fd.FlexibleLink(length=0.5, rho=NAN, EI=1.0), r"FlexibleLink\.rho.*finite"),
+        (lambda: fd.FlexibleLink(length=0.5, rho=0.2, EI=NAN), r"FlexibleLink\.EI.*finite"),
+        (lambda: fd.FlexibleLink(length=0.5, rho=0.2, EI=math.inf), r"FlexibleLink\.EI.*finite"),
+        (lambda: fd.ElasticJoint(stiffness=NAN, rotor_inertia=0.02), r"ElasticJoint\.stiffness.*finite"),
+        (lambda: fd.RigidJoint(damping=NAN), r"RigidJoint\.damping.*finite"),
+        (lambda: fd.Hub(inertia=NAN), r"Hub\.inertia.*finite"),
+        (lambda: fd.Payload(mass=NAN), r"Payload\.mass.*finite"),
+        (lambda: fd.Chain([fd.RigidLink(0.3, 0.1)], gravity=(0.0, NAN)), r"Chain\.gravity"),
+    ],
+)
+def test_nan_parameters_are_rejected(build, match):
+    with pytest.raises(ValueError, match=match):
+        build()
+
+
+def test_wrong_shapes_are_rejected():
+    link = fd.RigidLink(0.3, 0.1)
+    with pytest.raises(ValueError, match=r"Chain\.gravity.*\(2,\).*\(3,\)"):
+        fd.Chain([link], gravity=(0.0, 0.0, -9.81))
+    with pytest.raises(ValueError, match=r"RigidLink\.length.*shape"):
+        fd.RigidLink(jnp.ones(2), 0.1)
+    with pytest.raises(ValueError, match=r"Payload\.mass.*shape"):
+        fd.Payload(mass=jnp.ones(3))
+
+
+def test_damping_ratio_of_the_wrong_length_is_rejected():
+    """One ratio per mode (or one for all): 3 ratios for 2 modes must name the parameter."""
+    with pytest.raises(ValueError, match=r"FlexibleLink\.damping_ratio"):
+        fd.FlexibleLink(length=0.5, rho=0.2, EI=1.0, n_modes=2, damping_ratio=[0.01, 0.02, 0.03])
+
+
+@pytest.mark.parametrize("n_modes", [2.0, 0, -1, "2", 1.5])
+def test_non_integer_or_non_positive_n_modes_is_rejected(n_modes):
+    with pytest.raises(ValueError, match=r"FlexibleLink\.n_modes"):
+        fd.FlexibleLink(length=0.5, rho=0.2, EI=1.0, n_modes=n_modes)
+
+
+def test_chain_with_mismatched_parts_is_rejected():
+    links = [fd.RigidLink(0.3, 0.1), fd.RigidLink(0.3, 0.1)]
+    with pytest.raises(ValueError, match=r"Chain\.joints.*2.*got 1"):
+        fd.Chain(links, joints=[fd.RigidJoint()])
+    with pytest.raises(ValueError, match=r"Chain\.hubs.*2.*got 3"):
+        fd.Chain(links, hubs=[fd.Hub()] * 3)
+    with pytest.raises(ValueError, match=r"Chain\.joints\[1\].*RigidJoint or ElasticJoint"):
+        fd.Chain(links, joints=[fd.RigidJoint(), fd.Hub()])
+    with pytest.raises(ValueError, match=r"Chain\.links"):
+        fd.Chain([])
+    with pytest.raises(ValueError, match=r"Chain\.payload"):
+        fd.Chain(links, payload=fd.Hub())
+
+
+def test_bad_simulation_arguments_are_rejected():
+    chain = fd.rigs.rigid_pendulum()
+    with pytest.raises(ValueError, match=r"y0.*\(2,\).*theta1.*\(3,\)"):
+        fd.simulate(chain, jnp.zeros(3), jnp.linspace(0.0, 1.0, 3))
+    with pytest.raises(ValueError, match=r"ts.*at least 2"):
+        fd.simulate(chain, jnp.zeros(2), jnp.array([0.0]))
+    with pytest.raises(ValueError, match=r"initial_state: joint_angles.*\(1,\)"):
+        fd.initial_state(chain, [0.0, 1.0])
+
+
+def test_torque_of_the_wrong_size_is_rejected():
+    """A 2-joint input on a 1-joint chain must say so, not fail inside a matmul."""
+    chain = fd.rigs.rigid_pendulum()
+    with pytest.raises(ValueError, match=r"torque"):
+        fd.simulate(chain, jnp.zeros(2), jnp.linspace(0.0, 0.1, 3), fd.BangBang([0.2, 0.2], 1.0))
+
+
+# ---------------------------------------------------------------------------
+# Solver failures are raised, never returned as NaN
+# ---------------------------------------------------------------------------
+
+
+def test_unstable_fixed_step_raises_instead_of_returning_nan():
+    """RK4 at 50 ms on the 3-mode flexible pendulum (highest mode ~2700 rad/s, RK4's
+    stability limit ~2.8 / 2700 s = 1 ms) blows up: the error names dt."""
+    chain = fd.rigs.flexible_pendulum(n_modes=3)
+    y0 = fd.initial_state(chain, [0.0], modal=[1e-4, 0.0, 0.0])
+    with pytest.raises(RUNTIME_ERRORS, match=r"non-finite.*dt|dt.*non-finite"):
+        fd.simulate(chain, y0, jnp.linspace(0.0, 2.0, 5), dt=0.05).Q.block_until_ready()
+
+
+def test_too_few_steps_raises_naming_max_steps():
+    chain = fd.rigs.rigid_pendulum()
+    y0 = fd.initial_state(chain, [0.0])
+    with pytest.raises(RUNTIME_ERRORS, match=r"max_steps"):
+        fd.simulate(chain, y0, jnp.linspace(0.0, 1.0, 3), max_steps=4).Q.block_until_ready()
+
+
+def test_negative_traced_stiffness_raises_at_run_time():
+    """Under jit the parameter is a tracer (no construction-time check): assembly's
+    run-time check must stop a negative EI rather than return NaN or a wrong answer."""
+    ts = jnp.linspace(0.0, 0.1, 3)
+
+    @jax.jit
+    def final_state(EI):
+        link = fd.FlexibleLink(length=0.3, rho=0.4, EI=EI, n_modes=1)
+        chain = fd.Chain([link], gravity=(0.0, -9.81))
+        y0 = fd.initial_state(chain, [0.0])
+        return fd.simulate(chain, y0, ts).Q[-1]
+
+    assert jnp.all(jnp.isfinite(final_state(3.3)))  # a valid EI runs
+    with pytest.raises(RUNTIME_ERRORS, match=r"FlexibleLink\.EI"):
+        final_state(-3.3).block_until_ready()
+    with pytest.raises(RUNTIME_ERRORS, match=r"FlexibleLink\.EI"):
+        final_state(jnp.nan).block_until_ready()
+
+
+def test_negative_traced_payload_mass_raises_under_vmap():
+    """The same through eqx.tree_at + vmap: one bad batch member is reported."""
+    chain = fd.rigs.flexible_pendulum(n_modes=1)
+    y0 = fd.initial_state(chain, [0.0])
+    ts = jnp.linspace(0.0, 0.1, 3)
+
+    def final_state(mass):
+        c = eqx.tree_at(lambda c: c.links[0].rho, chain, mass)
+        return fd.simulate(c, y0, ts).Q[-1]
+
+    with pytest.raises(RUNTIME_ERRORS, match=r"FlexibleLink\.rho"):
+        jax.vmap(final_state)(jnp.array([0.39, -0.39])).block_until_ready()

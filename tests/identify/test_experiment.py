@@ -1,0 +1,479 @@
+"""Experiment files (`identify.experiment`): building the rig, free parameters, noise and
+logs from TOML, and a clear error (file, line, key path, expectation) for each mistake."""
+
+import math
+import re
+import textwrap
+
+import numpy as np
+import pytest
+import scipy.io
+
+import flexdyn as fd
+from identify.experiment import ExperimentError, load_experiment
+from identify.logs import LogError
+
+
+def msg(*parts: str) -> str:
+    """A `match` pattern requiring every fragment, in order."""
+    return "(?s)" + ".*".join(re.escape(p) for p in parts)
+
+
+def write_log(path, n=20, header=("time [s]", "theta1 [deg]", "tip1 [mm]"), start=0.0):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = [",".join(header)]
+    for k in range(n):
+        t = start + 0.01 * k
+        lines.append(",".join([f"{t:.4f}"] + [f"{10.0 * math.cos(t) + j:.6f}" for j in range(len(header) - 1)]))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+RIG = """
+[rig]
+base = "flexible_pendulum"
+options = { n_modes = 2 }
+"""
+
+LOG = """
+[[logs]]
+file = "logs/drop.csv"
+columns = { time = "time [s]", theta1 = "theta1 [deg]", tip1 = "tip1 [mm]" }
+"""
+
+
+def experiment(tmp_path, body, log=True, name="exp.toml"):
+    """Write an experiment file (and by default a log it can use) into tmp_path."""
+    if log:
+        write_log(tmp_path / "logs" / "drop.csv")
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(body))
+    return path
+
+
+def line_of(path, text):
+    """1-based line of the first line of `path` containing `text`."""
+    return next(i for i, line in enumerate(path.read_text().splitlines(), start=1) if text in line)
+
+
+# ---------------------------------------------------------------------------
+# Valid experiments
+# ---------------------------------------------------------------------------
+
+FULL = """
+[experiment]
+name = "flexible pendulum drops"
+
+[rig]
+base = "flexible_pendulum"
+options = { n_modes = 2, damping_ratio = 0.01 }
+
+[rig.set]
+"payload.mass" = 0.02
+
+[parameters]
+"link1.EI" = { guess = 2.0, lower = 0.5, upper = 20.0 }
+"joint1.damping" = { guess = 1e-3, lower = 1e-6, upper = 0.1 }
+"hub1.inertia" = {}
+"gravity[1]" = { lower = -10.0, upper = -9.0 }
+
+[noise]
+theta1 = "0.1 deg"
+tip1 = "estimate"
+
+[[logs]]
+file = "logs/drop.csv"
+columns = { time = "time [s]", theta1 = "theta1 [deg]", tip1 = "gauge [V]" }
+calibration = { tip1 = { scale = 0.0125, offset = 0.001 } }
+initial = { theta1 = "measured", theta1_rate = 0.0, "q1_1" = 0.001 }
+fit_initial = ["theta1", "q1_1"]
+offsets = ["theta1"]
+
+[[logs]]
+name = "check"
+file = "logs/mat/held_out.mat"
+columns = { time = "t [ms]", theta1 = "enc [mrad]", torque1 = "tau [N mm]" }
+initial = { theta1 = "-97 deg" }
+role = "validation"
+"""
+
+
+def test_round_trip_named_rig(tmp_path):
+    write_log(tmp_path / "logs" / "drop.csv", header=("time [s]", "theta1 [deg]", "gauge [V]", "status [V]"))
+    (tmp_path / "logs" / "mat").mkdir()
+    t_ms = np.arange(15) * 2.0
+    scipy.io.savemat(tmp_path / "logs/mat/held_out.mat", {"t": t_ms, "enc": np.full(15, 500.0), "tau": np.ones(15)})
+    path = tmp_path / "drops.toml"
+    path.write_text(FULL)
+    before = sorted((p, p.stat().st_mtime_ns) for p in tmp_path.rglob("*"))
+
+    exp = load_experiment(path)
+
+    assert sorted((p, p.stat().st_mtime_ns) for p in tmp_path.rglob("*")) == before  # nothing written
+    assert exp.name == "flexible pendulum drops" and exp.path == path
+    # The chain: the named rig with its options and rig.set applied.
+    ref = fd.rigs.flexible_pendulum(n_modes=2, damping_ratio=0.01, payload_mass=0.02)
+    for name in fd.parameter_names(ref):
+        assert float(fd.get_parameter(exp.chain, name)) == pytest.approx(float(fd.get_parameter(ref, name)), rel=1e-15)
+    assert exp.chain.coordinate_names() == ["theta1", "q1_1", "q1_2"]
+    # Free parameters: guesses default to the rig's values; positive ones are log-scaled.
+    free = {p.name: p for p in exp.free}
+    assert list(free) == ["link1.EI", "joint1.damping", "hub1.inertia", "gravity[1]"]
+    assert (free["link1.EI"].guess, free["link1.EI"].lower, free["link1.EI"].upper) == (2.0, 0.5, 20.0)
+    assert free["link1.EI"].unit == "N m^2" and free["link1.EI"].log_scale
+    assert free["hub1.inertia"].guess == pytest.approx(2e-5) and free["hub1.inertia"].lower is None
+    assert free["gravity[1]"].guess == pytest.approx(-9.81) and not free["gravity[1]"].log_scale
+    assert float(fd.get_parameter(exp.chain_at_guess(), "link1.EI")) == 2.0
+    # Noise: units converted; channels not listed are estimated (None).
+    assert exp.noise == {"theta1": pytest.approx(math.radians(0.1)), "tip1": None}
+    assert exp.output_channels == ("theta1", "tip1") and exp.input_channels == ("torque1",)
+    # Logs: roles, conversions, initial values.
+    fit, val = exp.logs
+    assert exp.fit_logs == (fit,) and exp.validation_logs == (val,)
+    assert fit.name == "drop" and fit.file == (tmp_path / "logs" / "drop.csv").resolve()
+    t = 0.01 * np.arange(20)
+    np.testing.assert_allclose(fit.log.outputs["theta1"], np.deg2rad(np.round(10 * np.cos(np.round(t, 4)), 6)))
+    np.testing.assert_allclose(
+        fit.log.outputs["tip1"], 0.0125 * np.round(10 * np.cos(np.round(t, 4)) + 1, 6) + 0.001, rtol=1e-12
+    )
+    assert fit.log.ignored == ("status [V]",)
+    assert fit.initial == {"theta1": pytest.approx(math.radians(10.0)), "theta1_rate": 0.0, "q1_1": 0.001}
+    assert fit.fit_initial == ("theta1", "q1_1") and fit.offsets == ("theta1",)
+    assert fit.torque(1) is None
+    assert val.name == "check" and val.role == "validation"
+    np.testing.assert_allclose(val.log.t, 2e-3 * np.arange(15), atol=1e-15)
+    np.testing.assert_allclose(val.log.outputs["theta1"], 0.5)
+    np.testing.assert_allclose(val.torque(1), np.full((15, 1), 1e-3))
+    assert val.initial == {"theta1": pytest.approx(math.radians(-97.0))}
+    assert "flexible pendulum drops" in exp.summary()
+
+
+def test_explicit_chain(tmp_path):
+    write_log(tmp_path / "logs" / "arm.csv", header=("time [s]", "theta1 [deg]", "motor2 [deg]"))
+    path = experiment(
+        tmp_path,
+        """
+        [rig]
+        gravity = [0.0, -9.81]
+
+        [[rig.links]]
+        type = "rigid"
+        length = 0.4
+        mass = 0.3
+
+        [[rig.links]]
+        type = "flexible"
+        length = 0.3
+        rho = 0.39
+        EI = 3.3
+        n_modes = 2
+        damping_ratio = [0.01, 0.02]
+
+        [[rig.joints]]
+        type = "rigid"
+        damping = 1.9e-3
+
+        [[rig.joints]]
+        type = "elastic"
+        stiffness = 50.0
+        rotor_inertia = 1e-4
+        gear_ratio = 10
+        spong_approximation = true
+
+        [[rig.hubs]]
+        inertia = 2e-5
+
+        [[rig.hubs]]
+        mass = 0.1
+
+        [rig.payload]
+        mass = 0.05
+
+        [rig.set]
+        "joint1.damping" = 2e-3
+
+        [[logs]]
+        file = "logs/arm.csv"
+        columns = { time = "time [s]", theta1 = "theta1 [deg]", alpha2 = "motor2 [deg]" }
+        initial = { theta2 = 0.5, theta2_rate = 0.1 }
+        """,
+    )
+    exp = load_experiment(path)
+    ref = fd.Chain(
+        links=[
+            fd.RigidLink(length=0.4, mass=0.3),
+            fd.FlexibleLink(length=0.3, rho=0.39, EI=3.3, n_modes=2, damping_ratio=[0.01, 0.02]),
+        ],
+        joints=[
+            fd.RigidJoint(damping=2e-3),
+            fd.ElasticJoint(stiffness=50.0, rotor_inertia=1e-4, gear_ratio=10.0, spong_approximation=True),
+        ],
+        hubs=[fd.Hub(inertia=2e-5), fd.Hub(mass=0.1)],
+        payload=fd.Payload(mass=0.05),
+        gravity=(0.0, -9.81),
+    )
+    assert fd.parameter_names(exp.chain) == fd.parameter_names(ref)
+    for name in fd.parameter_names(ref):
+        assert float(fd.get_parameter(exp.chain, name)) == float(fd.get_parameter(ref, name)), name
+    assert exp.chain.joints[1].spong_approximation
+    assert exp.chain.coordinate_names() == ["theta1", "alpha2", "theta2", "q2_1", "q2_2"]
+    # Rotor angle and rate default to the link's (unloaded spring).
+    assert exp.logs[0].initial == {"theta2": 0.5, "theta2_rate": 0.1, "alpha2": 0.5, "alpha2_rate": 0.1}
+    assert exp.output_channels == ("alpha2", "theta1")
+
+
+def test_csv_header_channels_without_mapping(tmp_path):
+    write_log(tmp_path / "logs" / "drop.csv", header=("time [ms]", "theta1 [deg]", "tip1 [um]", "torque1 [N m]"))
+    path = experiment(tmp_path, RIG + '[[logs]]\nfile = "logs/drop.csv"\n', log=False)
+    exp = load_experiment(path)
+    assert set(exp.logs[0].log.outputs) == {"theta1", "tip1"} and exp.input_channels == ("torque1",)
+    np.testing.assert_allclose(exp.logs[0].log.t[1], 1e-5)
+
+
+# ---------------------------------------------------------------------------
+# Malformed experiment files
+# ---------------------------------------------------------------------------
+
+
+def test_toml_syntax_error(tmp_path):
+    path = experiment(tmp_path, RIG + '[parameters]\n"link1.EI" = { guess = 2.0, \n' + LOG)
+    with pytest.raises(ExperimentError, match=msg("exp.toml", "not valid TOML", "line 6")):
+        load_experiment(path)
+
+
+def test_missing_experiment_file(tmp_path):
+    with pytest.raises(ExperimentError, match=msg(str(tmp_path / "none.toml"), "does not exist")):
+        load_experiment(tmp_path / "none.toml")
+
+
+def test_unknown_key_typo(tmp_path):
+    path = experiment(tmp_path, RIG + LOG.replace("columns =", "colums ="))
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 8: logs[1].colums", "unknown key", "columns")):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + "[noises]\ntheta1 = 1e-3\n" + LOG)
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 5: noises", "unknown key", "noise")):
+        load_experiment(path)
+
+
+def test_unknown_rig_base(tmp_path):
+    path = experiment(tmp_path, '[rig]\nbase = "flexible_pendulm"\n' + LOG)
+    with pytest.raises(
+        ExperimentError, match=msg("exp.toml, line 2: rig.base", "unknown rig 'flexible_pendulm'", "flexible_pendulum")
+    ):
+        load_experiment(path)
+
+
+def test_bad_rig_option(tmp_path):
+    path = experiment(tmp_path, '[rig]\nbase = "flexible_pendulum"\noptions = { modes = 2 }\n' + LOG)
+    with pytest.raises(
+        ExperimentError,
+        match=msg("exp.toml, line 3: rig.options.modes", "has no option 'modes'", "n_modes (default 1)"),
+    ):
+        load_experiment(path)
+    path = experiment(tmp_path, '[rig]\nbase = "flexible_pendulum"\noptions = { n_modes = 1.5 }\n' + LOG)
+    with pytest.raises(ExperimentError, match=msg("rig.options.n_modes", "expected an integer >= 1", "1.5")):
+        load_experiment(path)
+    path = experiment(tmp_path, '[rig]\nbase = "rigid_pendulum"\noptions = { payload_mass = "20 g" }\n' + LOG)
+    with pytest.raises(ExperimentError, match=msg("rig.options.payload_mass", "expected a number (SI units)")):
+        load_experiment(path)
+
+
+def test_base_and_explicit_chain(tmp_path):
+    path = experiment(tmp_path, RIG + "gravity = [0.0, -9.81]\n" + LOG)
+    with pytest.raises(ExperimentError, match=msg("rig.gravity", "either base", "not both")):
+        load_experiment(path)
+
+
+def test_explicit_chain_errors(tmp_path):
+    link = '[[rig.links]]\ntype = "flexible"\nlength = 0.3\nrho = 0.39\n'
+    path = experiment(tmp_path, "[rig]\n" + link + LOG)
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 2: rig.links[1]", "FlexibleLink needs EI")):
+        load_experiment(path)
+    path = experiment(tmp_path, "[rig]\n" + link + "EI = -1.0\n" + LOG)
+    with pytest.raises(ExperimentError, match=msg("rig.links[1]", "FlexibleLink.EI", "> 0")):
+        load_experiment(path)
+    path = experiment(tmp_path, "[rig]\n" + link.replace("flexible", "bendy") + LOG)
+    with pytest.raises(ExperimentError, match=msg("line 3: rig.links[1].type", "'rigid' or 'flexible'", "'bendy'")):
+        load_experiment(path)
+    path = experiment(tmp_path, "[rig]\n" + link + "EI = 3.3\nwidth = 0.02\n" + LOG)
+    with pytest.raises(ExperimentError, match=msg("line 7: rig.links[1].width", "no parameter 'width'", "EI")):
+        load_experiment(path)
+    joints = "[[rig.joints]]\ndamping = 0.1\n[[rig.joints]]\ndamping = 0.1\n"
+    path = experiment(tmp_path, "[rig]\n" + link + "EI = 3.3\n" + joints + LOG)
+    with pytest.raises(ExperimentError, match=msg("rig.joints", "2 [[rig.joints]] table(s) for 1 link(s)")):
+        load_experiment(path)
+
+
+def test_rig_set_errors(tmp_path):
+    path = experiment(tmp_path, RIG + '[rig.set]\n"link1.E" = 2.0\n' + LOG)
+    with pytest.raises(ExperimentError, match=msg('line 6: rig.set."link1.E"', "unknown parameter", "link1.EI")):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + '[rig.set]\n"link1.EI" = 0.0\n' + LOG)
+    with pytest.raises(ExperimentError, match=msg('rig.set."link1.EI"', "FlexibleLink.EI", "> 0")):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + "[rig.set]\npayload.mass = 0.02\n" + LOG)
+    with pytest.raises(ExperimentError, match=msg("rig.set.payload", "quote the name", '"payload.mass"')):
+        load_experiment(path)
+
+
+def test_unknown_free_parameter(tmp_path):
+    path = experiment(tmp_path, RIG + '[parameters]\n"link1.stiffness" = { guess = 1.0 }\n' + LOG)
+    with pytest.raises(
+        ExperimentError,
+        match=msg('exp.toml, line 6: parameters."link1.stiffness"', "unknown parameter", "link1.EI", "joint1.damping"),
+    ):
+        load_experiment(path)
+
+
+@pytest.mark.parametrize(
+    "entry, expected",
+    [
+        ("{ guess = 30.0, lower = 0.5, upper = 20.0 }", ("guess = 30 is outside [0.5, 20]", "lower <= guess <= upper")),
+        ("{ guess = 2.0, lower = 5.0, upper = 5.0 }", ("lower = 5 is not below upper = 5",)),
+        ("{ guess = 2.0, lower = 0.0, upper = 20.0 }", ('"link1.EI".lower', "log space", "expected lower > 0")),
+        ("{ guess = -2.0 }", ('"link1.EI".guess', "expected a guess > 0")),
+        ("{ guess = 2.0, upper = 1.0 }", ("guess = 2 is outside [unbounded, 1]",)),
+        ('{ guess = "2" }', ("guess", "expected a number (SI units)", "'2'")),
+        ("{ guess = 2.0, max = 3.0 }", ('"link1.EI".max', "unknown key", "guess, lower, upper")),
+    ],
+)
+def test_bad_bounds(tmp_path, entry, expected):
+    path = experiment(tmp_path, RIG + f'[parameters]\n"link1.EI" = {entry}\n' + LOG)
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 6", *expected)):
+        load_experiment(path)
+
+
+def test_guess_from_rig_outside_bounds(tmp_path):
+    path = experiment(tmp_path, RIG + '[parameters]\n"link1.EI" = { lower = 10.0, upper = 20.0 }\n' + LOG)
+    with pytest.raises(
+        ExperimentError, match=msg("line 6", "the rig's value (no guess given) 3.33", "outside [10, 20]")
+    ):
+        load_experiment(path)
+
+
+def test_noise_errors(tmp_path):
+    path = experiment(tmp_path, RIG + "[noise]\ntip2 = 1e-3\n" + LOG)
+    with pytest.raises(
+        ExperimentError, match=msg("exp.toml, line 6: noise.tip2", "no log measures tip2", "theta1, tip1")
+    ):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + "[noise]\ntorque1 = 1e-3\n" + LOG)
+    with pytest.raises(ExperimentError, match=msg("noise.torque1", "not an output channel")):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + "[noise]\ntip1 = 0.0\n" + LOG)
+    with pytest.raises(ExperimentError, match=msg("noise.tip1", "expected a standard deviation > 0")):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + '[noise]\ntip1 = "0.1 deg"\n' + LOG)
+    with pytest.raises(ExperimentError, match=msg("noise.tip1", "'0.1 deg' is a angle; expected a length", "mm")):
+        load_experiment(path)
+
+
+def test_log_file_missing(tmp_path):
+    path = experiment(tmp_path, RIG + LOG.replace("drop.csv", "drop_0deg.csv"))
+    resolved = (tmp_path / "logs" / "drop_0deg.csv").resolve()
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 7: logs[1].file", str(resolved), "does not exist")):
+        load_experiment(path)
+
+
+def test_missing_time_mapping(tmp_path):
+    path = experiment(tmp_path, RIG + LOG.replace('time = "time [s]", ', ""))
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 8: logs[1].columns", "no time column", "[s]")):
+        load_experiment(path)
+
+
+@pytest.mark.parametrize(
+    "rig, channel, expected",
+    [
+        (RIG, "tip2", "the rig has 1 link(s)"),
+        ('[rig]\nbase = "rigid_pendulum"\n', "tip1", "link 1 is rigid (no deflection)"),
+        (RIG, "alpha1", "joint 1 is rigid (no rotor angle alpha1)"),
+        (RIG, "tipp1", "'tipp1' is not a channel"),
+    ],
+)
+def test_channel_not_on_rig(tmp_path, rig, channel, expected):
+    path = experiment(tmp_path, rig + LOG.replace("tip1 = ", f"{channel} = "))
+    with pytest.raises(ExperimentError, match=msg(f"logs[1].columns.{channel}", expected)):
+        load_experiment(path)
+
+
+def test_csv_header_channel_not_on_rig(tmp_path):
+    write_log(tmp_path / "logs" / "drop.csv", header=("time [s]", "theta1 [deg]", "tip2 [mm]"))
+    path = experiment(tmp_path, RIG + '[[logs]]\nfile = "logs/drop.csv"\n', log=False)
+    with pytest.raises(ExperimentError, match=msg("logs[1].file", "'tip2 [mm]'", "the rig has 1 link(s)")):
+        load_experiment(path)
+
+
+def test_log_error_names_log_and_experiment_entry(tmp_path):
+    path = experiment(tmp_path, RIG + LOG.replace("tip1 [mm]", "tip1 [deg]"))
+    with pytest.raises(
+        LogError,
+        match=msg("drop.csv, line 1, column 3", "header says [mm]", "make them agree", "exp.toml, line 6: logs[1]]"),
+    ):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + LOG.replace('theta1 = "theta1 [deg]"', 'theta1 = "enc [deg]"'))
+    with pytest.raises(LogError, match=msg("drop.csv, line 1", "no column 'enc'", "exp.toml logs[1].columns.theta1")):
+        load_experiment(path)
+
+
+def test_calibration_errors(tmp_path):
+    path = experiment(tmp_path, RIG + LOG + "calibration = { tip1 = { offset = 1.0 } }\n")
+    with pytest.raises(ExperimentError, match=msg("line 9: logs[1].calibration.tip1", "missing 'scale'")):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + LOG + "calibration = { tip1 = { scale = 1.0 } }\n")
+    with pytest.raises(LogError, match=msg("column 3", "calibration is given for tip1", "not [V]")):
+        load_experiment(path)
+
+
+@pytest.mark.parametrize(
+    "extra, expected",
+    [
+        ("initial = { phi1 = 0.0 }", ("logs[1].initial.phi1", "not a coordinate", "theta1, q1_1, q1_2, theta1_rate")),
+        ('fit_initial = ["theta1", "q1_3"]', ("logs[1].fit_initial", "'q1_3' is not a coordinate", "q1_2_rate")),
+        ('offsets = ["tip2"]', ("logs[1].offsets", "'tip2' is not an output channel of this log", "theta1, tip1")),
+        ('initial = { q1_1 = "measured" }', ("logs[1].initial.q1_1", '"measured" needs a q1_1 channel')),
+        ('initial = { theta1 = "ten" }', ("logs[1].initial.theta1", "expected a number with a unit", "'ten'")),
+        ('role = "test"', ("logs[1].role", 'expected "fit" or "validation"', "'test'")),
+    ],
+)
+def test_log_entry_errors(tmp_path, extra, expected):
+    path = experiment(tmp_path, RIG + LOG + extra + "\n")
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 9", *expected)):
+        load_experiment(path)
+
+
+def test_duplicate_log_names_and_no_fit_log(tmp_path):
+    path = experiment(tmp_path, RIG + LOG + LOG)
+    assert line_of(path, "[[logs]]") == 6
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 10: logs[2].name", "'drop' is also used by logs[1]")):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + LOG + 'role = "validation"\n')
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 6: logs", 'expected at least one with role = "fit"')):
+        load_experiment(path)
+
+
+def test_no_rig_or_no_logs(tmp_path):
+    path = experiment(tmp_path, LOG)
+    with pytest.raises(ExperimentError, match=msg("exp.toml", "missing [rig]", "base")):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG)
+    with pytest.raises(ExperimentError, match=msg("exp.toml", "no [[logs]]", "file =")):
+        load_experiment(path)
+
+
+def test_format_md_example_loads(tmp_path):
+    """The complete example in identify/FORMAT.md is a valid experiment file."""
+    import pathlib
+
+    doc = (pathlib.Path(__file__).parents[2] / "identify" / "FORMAT.md").read_text()
+    example = doc.split("## A complete example", 1)[1].split("```toml\n", 1)[1].split("```", 1)[0]
+    # gauge column: 10 cos(t) + 1 V, so 11 V at t = 0
+    write_log(tmp_path / "logs" / "drop_0deg.csv", header=("time [s]", "enc [deg]", "gauge [V]", "status"))
+    t = np.arange(12) * 1.0
+    scipy.io.savemat(tmp_path / "logs" / "drop_m97.mat", {"t": t, "enc": -97 + 0 * t, "tip": 0 * t})
+    path = tmp_path / "drops.toml"
+    path.write_text(example)
+    exp = load_experiment(path)
+    assert [p.name for p in exp.free] == ["link1.EI", "joint1.damping", "hub1.inertia"]
+    assert [entry.role for entry in exp.logs] == ["fit", "validation"]
+    np.testing.assert_allclose(exp.logs[0].log.outputs["tip1"][0], 12.5e-3 * 11.0, rtol=1e-12)
+    assert exp.logs[1].name == "drop from -97 deg"

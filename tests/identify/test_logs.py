@@ -1,0 +1,332 @@
+"""Log loading (`identify.logs`): unit conversion, .mat files, and a clear error for each
+kind of malformed log (file, line, column or variable, and what was expected)."""
+
+import math
+import re
+
+import numpy as np
+import pytest
+import scipy.io
+
+from identify.logs import Calibration, LogError, load_log
+
+
+def msg(*parts: str) -> str:
+    """A `match` pattern requiring every fragment, in order."""
+    return "(?s)" + ".*".join(re.escape(p) for p in parts)
+
+
+def write_csv(path, header, rows, comments=(), delimiter=","):
+    lines = [f"# {c}" for c in comments] + [delimiter.join(header)]
+    lines += [delimiter.join(str(c) for c in row) for row in rows]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def samples(n=20, dt=0.01):
+    t = np.arange(n) * dt
+    return t, np.sin(t), 0.5 * np.cos(t)
+
+
+def good_rows(n=20):
+    t, a, b = samples(n)
+    return [[f"{ti:.4f}", f"{ai:.6f}", f"{bi:.6f}"] for ti, ai, bi in zip(t, a, b)]
+
+
+HEADER = ["time [s]", "theta1 [deg]", "tip1 [mm]"]
+COLUMNS = {"time": "time [s]", "theta1": "theta1 [deg]", "tip1": "tip1 [mm]"}
+
+
+# ---------------------------------------------------------------------------
+# Valid logs
+# ---------------------------------------------------------------------------
+
+
+def test_csv_units_converted_to_si(tmp_path):
+    path = write_csv(tmp_path / "drop.csv", HEADER + ["torque1 [N mm]"], [r + ["250"] for r in good_rows()], ["a"])
+    log = load_log(path, {**COLUMNS, "torque1": "torque1 [N mm]"})
+    t, a, b = samples()
+    assert log.name == "drop" and log.path == path and len(log) == 20
+    assert log.t.dtype == np.float64
+    np.testing.assert_allclose(log.t, np.round(t, 4), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(log.outputs["theta1"], np.deg2rad(np.round(a, 6)), rtol=1e-12)
+    np.testing.assert_allclose(log.outputs["tip1"], 1e-3 * np.round(b, 6), rtol=1e-12)
+    np.testing.assert_allclose(log.inputs["torque1"], 0.25, rtol=1e-12)
+    assert set(log.outputs) == {"theta1", "tip1"} and set(log.inputs) == {"torque1"}
+    with pytest.raises(ValueError):
+        log.t[0] = 1.0  # read-only
+
+
+def test_header_mapping_by_default_and_absolute_time(tmp_path):
+    rows = [[f"{100 + 0.001 * k:.3f}", "1.0", "2.0", "ok"] for k in range(12)]
+    path = write_csv(tmp_path / "a.csv", ["time [ms]", "theta1 [mrad]", "tip1 [um]", "status"], rows)
+    log = load_log(path)
+    np.testing.assert_allclose(log.t[0], 0.1, rtol=1e-12)  # absolute, as in the file
+    np.testing.assert_allclose(log.t_relative, 1e-6 * np.arange(12), atol=1e-15)
+    np.testing.assert_allclose(log.outputs["theta1"], 1e-3)
+    np.testing.assert_allclose(log.outputs["tip1"], 2e-6)
+    assert log.ignored == ("status",)
+    assert "ignored: status" in log.summary()
+
+
+def test_semicolon_with_decimal_comma(tmp_path):
+    rows = [[f"{0.01 * k:.2f}".replace(".", ","), "1,5", "2"] for k in range(10)]
+    path = write_csv(tmp_path / "eu.csv", ["time [s]", "theta1 [deg]", "tip1 [mm]"], rows, delimiter=";")
+    log = load_log(path, COLUMNS)
+    np.testing.assert_allclose(log.t, 0.01 * np.arange(10), atol=1e-15)
+    np.testing.assert_allclose(log.outputs["theta1"], math.radians(1.5))
+
+
+def test_volts_with_calibration(tmp_path):
+    rows = [[f"{0.01 * k:.2f}", "0", f"{0.1 * k:.1f}"] for k in range(10)]
+    path = write_csv(tmp_path / "v.csv", ["time [s]", "theta1 [rad]", "gauge [V]"], rows)
+    columns = {"time": "time [s]", "theta1": "theta1 [rad]", "tip1": "gauge [V]"}
+    log = load_log(path, columns, calibration={"tip1": {"scale": 0.0125, "offset": 0.001}})
+    np.testing.assert_allclose(log.outputs["tip1"], 0.0125 * 0.1 * np.arange(10) + 0.001, rtol=1e-12)
+    # a calibration in mm per volt
+    log = load_log(path, columns, calibration={"tip1": Calibration(scale=12.5, unit="mm")})
+    np.testing.assert_allclose(log.outputs["tip1"], 0.0125 * 0.1 * np.arange(10), rtol=1e-12, atol=1e-15)
+
+
+def test_non_uniform_sampling_and_gap_accepted(tmp_path):
+    t = np.concatenate([np.arange(10) * 0.01, 0.5 + np.arange(10) * 0.01, [0.6005, 0.6103]])
+    rows = [[f"{ti:.4f}", "0", "0"] for ti in t]
+    log = load_log(write_csv(tmp_path / "gap.csv", HEADER, rows), COLUMNS)
+    s = log.sampling
+    assert s.n_samples == 22 and not s.uniform and s.n_gaps == 1
+    np.testing.assert_allclose(s.median_dt, 0.01, rtol=1e-9)
+    np.testing.assert_allclose(s.max_dt, 0.41, rtol=1e-9)
+    np.testing.assert_allclose(s.largest_gap_at, 0.09, rtol=1e-9)
+    np.testing.assert_allclose(s.duration, 0.6103, rtol=1e-12)
+    assert "largest 0.41 s at t = 0.09 s" in str(s)
+
+
+def test_mat_log(tmp_path):
+    t, a, b = samples(15)
+    path = tmp_path / "run.mat"
+    scipy.io.savemat(path, {"t": t, "enc": np.rad2deg(a)[:, None], "gauge": b * 1e3, "extra": np.ones(3)})
+    log = load_log(path, {"time": "t [s]", "theta1": "enc [deg]", "tip1": "gauge [mm]"})
+    np.testing.assert_allclose(log.t, t, rtol=0, atol=0)
+    np.testing.assert_allclose(log.outputs["theta1"], a, rtol=1e-13)
+    np.testing.assert_allclose(log.outputs["tip1"], b, rtol=1e-13)
+    assert log.ignored == ("extra",)
+
+
+# ---------------------------------------------------------------------------
+# Malformed CSV logs
+# ---------------------------------------------------------------------------
+
+
+def test_missing_column(tmp_path):
+    path = write_csv(tmp_path / "m.csv", ["time [s]", "theta1 [deg]"], [r[:2] for r in good_rows()])
+    with pytest.raises(LogError, match=msg("m.csv, line 1", "no column 'tip1'", "columns.tip1", "theta1")):
+        load_log(path, COLUMNS)
+
+
+def test_missing_time_column(tmp_path):
+    path = write_csv(tmp_path / "nt.csv", ["t [s]", "theta1 [deg]", "tip1 [mm]"], good_rows())
+    with pytest.raises(LogError, match=msg("nt.csv, line 1", "no 'time' column", "time [s]")):
+        load_log(path)
+    with pytest.raises(LogError, match=msg("nt.csv", "columns", "no 'time' entry")):
+        load_log(path, {"theta1": "theta1 [deg]"})
+
+
+def test_extra_columns_strict(tmp_path):
+    rows = [r + ["1"] for r in good_rows()]
+    path = write_csv(tmp_path / "x.csv", HEADER + ["temp [s]"], rows, ["c1", "c2"])
+    assert load_log(path, COLUMNS).ignored == ("temp [s]",)
+    with pytest.raises(LogError, match=msg("x.csv, line 3", "['temp [s]']", "not mapped", "strict = true")):
+        load_log(path, COLUMNS, strict=True)
+
+
+def test_unknown_unit(tmp_path):
+    path = write_csv(tmp_path / "u.csv", ["time [s]", "theta1 [grad]", "tip1 [mm]"], good_rows())
+    with pytest.raises(LogError, match=msg("u.csv, line 1, column 2", "unknown unit [grad]", "[deg]", "[N mm]")):
+        load_log(path, {"time": "time [s]", "theta1": "theta1", "tip1": "tip1"})
+
+
+def test_wrong_dimension(tmp_path):
+    path = write_csv(tmp_path / "d.csv", ["time [s]", "theta1 [deg]", "tip1 [deg]"], good_rows())
+    with pytest.raises(LogError, match=msg("d.csv, line 1, column 3 ('tip1 [deg]')", "tip1 is a length", "[mm]")):
+        load_log(path)
+
+
+def test_missing_unit(tmp_path):
+    path = write_csv(tmp_path / "nu.csv", ["time [s]", "theta1", "tip1 [mm]"], good_rows())
+    with pytest.raises(LogError, match=msg("nu.csv, line 1, column 2", "no unit", "theta1 [rad]")):
+        load_log(path, {"time": "time", "theta1": "theta1", "tip1": "tip1"})
+
+
+def test_mapping_unit_disagrees_with_header(tmp_path):
+    path = write_csv(tmp_path / "dis.csv", HEADER, good_rows())
+    with pytest.raises(LogError, match=msg("dis.csv, line 1, column 2", "[deg]", "theta1 [rad]", "agree")):
+        load_log(path, {**COLUMNS, "theta1": "theta1 [rad]"})
+
+
+def test_malformed_header_cell(tmp_path):
+    path = write_csv(tmp_path / "h.csv", ["time [s]", "theta1 [deg", "tip1 [mm]"], good_rows())
+    with pytest.raises(LogError, match=msg("h.csv, line 1, column 2", "expected 'name [unit]'")):
+        load_log(path, COLUMNS)
+
+
+def test_duplicate_header(tmp_path):
+    path = write_csv(tmp_path / "dup.csv", ["time [s]", "tip1 [deg]", "tip1 [mm]"], good_rows())
+    with pytest.raises(LogError, match=msg("dup.csv, line 1", "columns 2 and 3", "'tip1'")):
+        load_log(path, COLUMNS)
+
+
+def test_non_numeric_cell(tmp_path):
+    rows = good_rows()
+    rows[4][2] = "n/a"
+    path = write_csv(tmp_path / "nn.csv", HEADER, rows, ["comment"])
+    # comment on line 1, header on line 2, rows[4] on line 7
+    with pytest.raises(LogError, match=msg("nn.csv, line 7, column 3 ('tip1 [mm]')", "expected a number", "'n/a'")):
+        load_log(path, COLUMNS)
+
+
+def test_empty_cell(tmp_path):
+    rows = good_rows()
+    rows[0][1] = ""
+    path = write_csv(tmp_path / "e.csv", HEADER, rows)
+    with pytest.raises(LogError, match=msg("e.csv, line 2, column 2", "expected a number, got an empty cell")):
+        load_log(path, COLUMNS)
+
+
+@pytest.mark.parametrize("bad", ["nan", "NaN", "inf", "-inf"])
+def test_nan_or_inf_sample(tmp_path, bad):
+    rows = good_rows()
+    rows[9][1] = bad
+    path = write_csv(tmp_path / "nan.csv", HEADER, rows)
+    with pytest.raises(LogError, match=msg("nan.csv, line 11, column 2", "in theta1", "expected a finite number")):
+        load_log(path, COLUMNS)
+
+
+def test_time_not_increasing(tmp_path):
+    rows = good_rows()
+    rows[5][0], rows[6][0] = rows[6][0], rows[5][0]
+    path = write_csv(tmp_path / "back.csv", HEADER, rows)
+    with pytest.raises(LogError, match=msg("back.csv, line 8, column 1", "time goes backwards", "line 7", "strictly")):
+        load_log(path, COLUMNS)
+
+
+def test_duplicate_time_stamp(tmp_path):
+    rows = good_rows()
+    rows[3][0] = rows[2][0]
+    path = write_csv(tmp_path / "dupt.csv", HEADER, rows)
+    with pytest.raises(LogError, match=msg("dupt.csv, line 5", "duplicate time stamp", "line 4")):
+        load_log(path, COLUMNS)
+
+
+def test_too_short(tmp_path):
+    path = write_csv(tmp_path / "short.csv", HEADER, good_rows(5))
+    with pytest.raises(LogError, match=msg("short.csv", "5 samples", "at least 10")):
+        load_log(path, COLUMNS)
+    assert len(load_log(path, COLUMNS, min_samples=5)) == 5
+
+
+def test_ragged_row(tmp_path):
+    rows = good_rows()
+    rows[2] = rows[2][:2]
+    path = write_csv(tmp_path / "rag.csv", HEADER, rows)
+    with pytest.raises(LogError, match=msg("rag.csv, line 4", "2 cells", "expected 3", "header on line 1")):
+        load_log(path, COLUMNS)
+
+
+def test_empty_file(tmp_path):
+    path = tmp_path / "empty.csv"
+    path.write_text("# only a comment\n\n")
+    with pytest.raises(LogError, match=msg("empty.csv", "no header row")):
+        load_log(path, COLUMNS)
+
+
+def test_volts_need_calibration(tmp_path):
+    path = write_csv(tmp_path / "v.csv", ["time [s]", "theta1 [rad]", "gauge [V]"], good_rows())
+    columns = {"time": "time [s]", "tip1": "gauge [V]"}
+    with pytest.raises(LogError, match=msg("v.csv, line 1, column 3", "tip1 is in [V]", "needs a calibration")):
+        load_log(path, columns)
+    columns = {"time": "time [s]", "theta1": "theta1"}
+    with pytest.raises(LogError, match=msg("column 2", "calibration is given for theta1", "not [V]")):
+        load_log(path, columns, calibration={"theta1": {"scale": 2.0}})
+
+
+def test_bad_channel_name_in_mapping(tmp_path):
+    path = write_csv(tmp_path / "c.csv", HEADER, good_rows())
+    with pytest.raises(LogError, match=msg("c.csv", "columns.tipp1", "not a channel", "tip{i}")):
+        load_log(path, {"time": "time [s]", "tipp1": "tip1 [mm]"})
+
+
+def test_missing_file_and_unknown_type(tmp_path):
+    with pytest.raises(LogError, match=msg(str(tmp_path / "nope.csv"), "does not exist")):
+        load_log(tmp_path / "nope.csv", COLUMNS)
+    path = tmp_path / "log.xlsx"
+    path.write_bytes(b"PK")
+    with pytest.raises(LogError, match=msg("log.xlsx", "unknown log type '.xlsx'", ".csv", ".mat")):
+        load_log(path, COLUMNS)
+
+
+# ---------------------------------------------------------------------------
+# Malformed .mat logs
+# ---------------------------------------------------------------------------
+
+MAT_COLUMNS = {"time": "t [s]", "theta1": "enc [deg]"}
+
+
+def save_mat(path, **variables):
+    scipy.io.savemat(path, variables)
+    return path
+
+
+def test_mat_needs_mapping_with_units(tmp_path):
+    path = save_mat(tmp_path / "a.mat", t=np.arange(12.0), enc=np.zeros(12))
+    with pytest.raises(LogError, match=msg("a.mat", "needs a column mapping", "enc [deg]")):
+        load_log(path)
+    with pytest.raises(LogError, match=msg("a.mat: variable 'enc'", "no unit", "enc [rad]")):
+        load_log(path, {"time": "t [s]", "theta1": "enc"})
+
+
+def test_mat_missing_variable(tmp_path):
+    path = save_mat(tmp_path / "b.mat", t=np.arange(12.0), encoder=np.zeros(12))
+    with pytest.raises(LogError, match=msg("b.mat", "no variable 'enc'", "columns.theta1", "['encoder', 't']")):
+        load_log(path, MAT_COLUMNS)
+
+
+def test_mat_length_mismatch(tmp_path):
+    path = save_mat(tmp_path / "c.mat", t=np.arange(12.0), enc=np.zeros(11))
+    with pytest.raises(LogError, match=msg("c.mat", "'enc' (theta1) has 11 samples", "expected 12", "'t'")):
+        load_log(path, MAT_COLUMNS)
+
+
+def test_mat_nan_and_time(tmp_path):
+    enc = np.zeros(12)
+    enc[6] = np.nan
+    path = save_mat(tmp_path / "d.mat", t=np.arange(12.0), enc=enc)
+    with pytest.raises(LogError, match=msg("d.mat, variable 'enc', sample 7", "nan in theta1", "finite")):
+        load_log(path, MAT_COLUMNS)
+    t = np.arange(12.0)
+    t[4] = t[3]
+    path = save_mat(tmp_path / "e.mat", t=t, enc=np.zeros(12))
+    with pytest.raises(LogError, match=msg("e.mat, variable 't', sample 5", "duplicate time stamp", "sample 4")):
+        load_log(path, MAT_COLUMNS)
+
+
+def test_mat_not_a_vector_or_not_numeric(tmp_path):
+    path = save_mat(tmp_path / "f.mat", t=np.arange(12.0), enc=np.zeros((12, 2)))
+    with pytest.raises(LogError, match=msg("f.mat: variable 'enc'", "shape (12, 2)", "expected a vector")):
+        load_log(path, MAT_COLUMNS)
+    path = save_mat(tmp_path / "g.mat", t=np.arange(12.0), enc="twelve")
+    with pytest.raises(LogError, match=msg("g.mat: variable 'enc'", "expected a real numeric vector")):
+        load_log(path, MAT_COLUMNS)
+
+
+def test_mat_v73_and_garbage(tmp_path, monkeypatch):
+    # A v7.3 (HDF5) file announces version 0x0200 in its 128-byte header.
+    header = b"MATLAB 7.3 MAT-file".ljust(116, b" ") + b"\0" * 8 + b"\x00\x02" + b"IM"
+    path = tmp_path / "v73.mat"
+    path.write_bytes(header + b"\0" * 512)
+    monkeypatch.setitem(__import__("sys").modules, "h5py", None)  # as if h5py were not installed
+    with pytest.raises(LogError, match=msg("v73.mat", "v7.3 (HDF5)", "'-v7'")):
+        load_log(path, MAT_COLUMNS)
+    path = tmp_path / "junk.mat"
+    path.write_bytes(b"this is not a mat file")
+    with pytest.raises(LogError, match=msg("junk.mat", "not a readable MATLAB .mat file")):
+        load_log(path, MAT_COLUMNS)
