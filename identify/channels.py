@@ -21,27 +21,53 @@ import jax.numpy as jnp
 
 import flexdyn as fd
 
+from . import units as u
+
 _CHANNEL = re.compile(r"^(theta|alpha|tip|curvature)(\d+)$|^(end|accel)_(x|y)$")
 
 UNITS = {"theta": "rad", "alpha": "rad", "tip": "m", "curvature": "1/m", "end": "m", "accel": "m/s^2"}
 
 
+def channel_problem(chain: fd.Chain, channel: str) -> str | None:
+    """None if `chain` has the channel `channel` (an output or `torque<i>`), else why not
+    (naming what the rig has)."""
+    if u.channel_dimension(channel) is None:
+        return f"{channel!r} is not a channel; expected time or one of {u.CHANNEL_PATTERNS}"
+    kind, i = u.channel_kind_index(channel)
+    if i is None:
+        return None
+    n = chain.n_links
+    if i > n:
+        return f"the rig has {n} link(s) ({describe(chain)}); there is no link/joint {i}"
+    if kind == "alpha" and not chain.joints[i - 1].elastic:
+        return f"joint {i} is rigid (no rotor angle alpha{i}); the rig has {describe(chain)}"
+    if kind in ("tip", "curvature") and chain.links[i - 1].n_modes == 0:
+        return f"link {i} is rigid (no deflection); the rig has {describe(chain)}"
+    return None
+
+
 def check_channel(chain: fd.Chain, name: str) -> None:
-    """Raise `ValueError` if `name` is not an output this chain has."""
-    m = _CHANNEL.match(name)
-    if m is None:
-        raise ValueError(
-            f"unknown output channel {name!r}: expected theta<i>, alpha<i>, tip<i>, curvature<i>, "
-            "end_x, end_y, accel_x or accel_y"
-        )
-    if m[1]:
-        kind, i = m[1], int(m[2])
-        if not 1 <= i <= chain.n_links:
-            raise ValueError(f"output channel {name!r}: the rig has {chain.n_links} link(s)")
-        if kind == "alpha" and not chain.joints[i - 1].elastic:
-            raise ValueError(f"output channel {name!r}: joint {i} is rigid (no rotor angle)")
-        if kind in ("tip", "curvature") and chain.links[i - 1].n_modes == 0:
-            raise ValueError(f"output channel {name!r}: link {i} is rigid (no deflection)")
+    """Raise `ValueError` if `name` is not an output channel this chain has."""
+    why = channel_problem(chain, name)
+    if why is None and u.is_input(name):
+        why = f"{name!r} is an input, not an output channel"
+    if why is not None:
+        raise ValueError(f"output channel {name!r}: {why}")
+
+
+def describe(chain: fd.Chain) -> str:
+    """One line describing the chain's structure, for error messages."""
+    parts = []
+    for i, (link, joint) in enumerate(zip(chain.links, chain.joints), start=1):
+        lk = f"flexible link {i} ({link.n_modes} modes)" if link.n_modes else f"rigid link {i}"
+        parts.append(f"{'elastic' if joint.elastic else 'rigid'} joint {i} + {lk}")
+    return ", ".join(parts)
+
+
+def state_names(chain: fd.Chain) -> list[str]:
+    """Names of the entries of the state `y = [Q, Q_dot]`: coordinates then `<coord>_rate`."""
+    names = chain.coordinate_names()
+    return names + [f"{n}_rate" for n in names]
 
 
 def channel_unit(name: str) -> str:

@@ -52,6 +52,7 @@ import optimistix as optx
 import flexdyn as fd
 
 from . import channels as ch
+from .channels import state_names  # noqa: F401  (re-exported)
 
 Z95 = 1.959963984540054
 
@@ -87,12 +88,6 @@ class LogData:
     fit_initial: tuple = ()
     offsets: tuple = ()
     name: str = "log"
-
-
-def state_names(chain: fd.Chain) -> list[str]:
-    """Names of the entries of the state `y = [Q, Q_dot]`: coordinates then `<coord>_rate`."""
-    names = chain.coordinate_names()
-    return names + [f"{n}_rate" for n in names]
 
 
 class Problem(eqx.Module):

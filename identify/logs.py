@@ -1,0 +1,538 @@
+"""Measured logs: CSV and MATLAB `.mat` files, read into SI arrays with checks.
+
+A log is a set of sampled channels (see `identify.units` for the vocabulary):
+the sample times, measured outputs (`theta1`, `tip1`, ...) and applied inputs
+(`torque1`, ...). `load_log` reads one file, converts every channel to SI and
+checks it; anything wrong raises `LogError` naming the file, the line and column
+(CSV) or the variable and sample (.mat), and what was expected. Nothing is ever
+written. The file format is documented in `identify/FORMAT.md`.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+
+from . import units as u
+
+#: Fewest samples a log may have (a fit needs more data points than free parameters).
+MIN_SAMPLES = 10
+
+#: A sampling interval larger than this multiple of the median interval is a gap.
+GAP_FACTOR = 1.5
+
+CSV_SUFFIXES = (".csv", ".txt", ".tsv")
+MAT_SUFFIXES = (".mat",)
+
+
+class LogError(ValueError):
+    """A log file (or its description in an experiment file) is not usable. The message
+    names the file, the line and column or variable, and what was expected."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """Conversion of a voltage channel: `value = scale * volts + offset`, in `unit`
+    (default: the channel's SI unit), then converted to SI."""
+
+    scale: float
+    offset: float = 0.0
+    unit: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Sampling:
+    """Summary of a log's time stamps (s). Non-uniform sampling and gaps are allowed;
+    a gap is an interval longer than `GAP_FACTOR` times the median interval."""
+
+    n_samples: int
+    duration: float
+    median_dt: float
+    min_dt: float
+    max_dt: float
+    largest_gap_at: float  # time (s, as in the file) where the longest interval starts
+    n_gaps: int
+
+    @property
+    def rate(self) -> float:
+        """Nominal sampling rate, Hz (1 / median interval)."""
+        return 1.0 / self.median_dt
+
+    @property
+    def uniform(self) -> bool:
+        return self.n_gaps == 0 and self.min_dt >= self.median_dt / GAP_FACTOR
+
+    def __str__(self) -> str:
+        text = (
+            f"{self.n_samples} samples over {self.duration:.6g} s, median dt {self.median_dt:.6g} s "
+            f"({self.rate:.6g} Hz), dt range [{self.min_dt:.6g}, {self.max_dt:.6g}] s"
+        )
+        if self.n_gaps:
+            text += f", {self.n_gaps} gap(s), the largest {self.max_dt:.6g} s at t = {self.largest_gap_at:.6g} s"
+        return text
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Log:
+    """One loaded log, in SI units (arrays are float64 and read-only).
+
+    - `name`: a label (the file's stem unless the experiment names it).
+    - `path`: the file it was read from.
+    - `t`: sample times, s, as in the file (absolute); `t_relative` starts at 0.
+    - `outputs`: measured channels, e.g. `{'theta1': rad, 'tip1': m}`.
+    - `inputs`: applied torques, e.g. `{'torque1': N m}`.
+    - `sampling`: a `Sampling` summary.
+    - `sources`: channel -> where it came from (`'enc [deg]'`), for messages.
+    - `ignored`: columns or variables in the file that no channel uses.
+    """
+
+    name: str
+    path: Path
+    t: np.ndarray = dataclasses.field(repr=False)
+    outputs: dict[str, np.ndarray] = dataclasses.field(repr=False)
+    inputs: dict[str, np.ndarray] = dataclasses.field(repr=False)
+    sampling: Sampling
+    sources: dict[str, str] = dataclasses.field(repr=False)
+    ignored: tuple[str, ...] = ()
+
+    @property
+    def t_relative(self) -> np.ndarray:
+        """Sample times from the first sample, s."""
+        return self.t - self.t[0]
+
+    @property
+    def channels(self) -> list[str]:
+        return [*self.outputs, *self.inputs]
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    def summary(self) -> str:
+        lines = [f"log {self.name!r} ({self.path}): {self.sampling}"]
+        for ch in self.channels:
+            lines.append(f"  {ch:<12} <- {self.sources[ch]}")
+        if self.ignored:
+            lines.append(f"  ignored: {', '.join(self.ignored)}")
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------
+# The column mapping
+# ---------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class _Wanted:
+    channel: str
+    source: str  # column header name or .mat variable
+    unit: str | None  # as written in the mapping (not normalised), or None
+
+
+def _parse_mapping(path: Path, columns: Mapping[str, str], where: str) -> list[_Wanted]:
+    wanted = []
+    for channel, spec in columns.items():
+        key = f"{where}.{channel}"
+        if u.channel_dimension(channel) is None:
+            raise LogError(
+                f"{path}: {key}: {channel!r} is not a channel; expected 'time' or one of {u.CHANNEL_PATTERNS}"
+            )
+        if not isinstance(spec, str):
+            raise LogError(f"{path}: {key}: expected a string 'column [unit]', got {spec!r}")
+        try:
+            source, unit = u.split_header(spec)
+        except ValueError as e:
+            raise LogError(f"{path}: {key}: {e}") from None
+        if not source:
+            raise LogError(f"{path}: {key}: expected 'column [unit]' naming a column, got {spec!r}")
+        wanted.append(_Wanted(channel, source, unit))
+    if not any(w.channel == "time" for w in wanted):
+        raise LogError(f"{path}: {where}: no 'time' entry; expected e.g. time = \"time [s]\" naming the time column")
+    sources = {}
+    for w in wanted:
+        if w.source in sources:
+            raise LogError(
+                f"{path}: {where}: channels {sources[w.source]!r} and {w.channel!r} both read column {w.source!r}"
+            )
+        sources[w.source] = w.channel
+    return wanted
+
+
+def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibration) -> tuple[str, Calibration | None]:
+    """The canonical unit of a wanted channel, checked against the channel's dimension."""
+    written = w.unit if w.unit is not None else file_unit
+    if w.unit is not None and file_unit is not None:
+        a, b = u.normalise_unit(w.unit), u.normalise_unit(file_unit)
+        if (a or w.unit) != (b or file_unit):
+            raise LogError(
+                f"{where}: the file's header says [{file_unit}] but the experiment maps {w.channel} = "
+                f"'{w.source} [{w.unit}]'; make them agree"
+            )
+    if written is None:
+        raise LogError(f"{where}: no unit; expected the unit in brackets, e.g. '{w.source} [{_si(w.channel)}]'")
+    unit = u.normalise_unit(written)
+    if unit is None:
+        raise LogError(f"{where}: unknown unit [{written}]; known units: {u.known_units()}")
+    dim, dim_unit = u.channel_dimension(w.channel), u.unit_dimension(unit)
+    cal = (calibration or {}).get(w.channel)
+    if dim_unit == u.VOLTAGE and dim != u.TIME:
+        if cal is None:
+            raise LogError(
+                f"{where}: {w.channel} is in [{written}] and needs a calibration "
+                f"(SI = scale * V + offset): add calibration = {{ {w.channel} = {{ scale = ..., offset = ... }} }} "
+                "to this log in the experiment file"
+            )
+        return unit, cal
+    if dim_unit != dim:
+        raise LogError(
+            f"{where}: {w.channel} is a{'n' if dim[0] in 'aeiou' else ''} {dim} but [{written}] is a "
+            f"{dim_unit} unit; expected one of {_units_of(dim)}"
+            + ("" if dim == u.TIME else " or [V] with a calibration")
+        )
+    if cal is not None:
+        raise LogError(
+            f"{where}: a calibration is given for {w.channel} but its unit is [{written}], not [V]; "
+            "remove the calibration (it applies to voltage columns only)"
+        )
+    return unit, None
+
+
+def _si(channel: str) -> str:
+    return u.SI_UNIT[u.channel_dimension(channel)]
+
+
+def _units_of(dim: str) -> str:
+    return " ".join(f"[{k}]" for k, (d, _) in u.UNITS.items() if d == dim)
+
+
+def _to_si(values: np.ndarray, unit: str, cal: Calibration | None, channel: str) -> np.ndarray:
+    values = values * u.unit_factor(unit)
+    if cal is not None:
+        values = cal.scale * values + cal.offset
+        if cal.unit is not None:
+            values = values * u.unit_factor(u.normalise_unit(cal.unit))
+    return values
+
+
+def check_calibration(channel: str, spec, where: str) -> Calibration:
+    """A `Calibration` from an experiment-file table `{scale, offset, unit}`."""
+    if not isinstance(spec, Mapping):
+        raise LogError(f"{where}: expected a table {{ scale = ..., offset = ... }}, got {spec!r}")
+    extra = set(spec) - {"scale", "offset", "unit"}
+    if extra:
+        raise LogError(f"{where}: unknown key(s) {sorted(extra)}; expected scale, offset and optionally unit")
+    if "scale" not in spec:
+        raise LogError(f"{where}: missing 'scale' (SI = scale * V + offset)")
+    for key in ("scale", "offset"):
+        v = spec.get(key, 0.0)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise LogError(f"{where}.{key}: expected a finite number, got {v!r}")
+    if spec["scale"] == 0:
+        raise LogError(f"{where}.scale: expected a non-zero number, got 0")
+    unit = spec.get("unit")
+    dim = u.channel_dimension(channel)
+    if dim is None or dim == u.TIME:
+        raise LogError(f"{where}: calibrations apply to measured channels, not {channel!r}")
+    if unit is not None:
+        if not isinstance(unit, str) or u.normalise_unit(unit) is None:
+            raise LogError(f"{where}.unit: unknown unit {unit!r}; known units: {u.known_units()}")
+        if u.unit_dimension(u.normalise_unit(unit)) != dim:
+            raise LogError(f"{where}.unit: [{unit}] is not a {dim} unit; expected one of {_units_of(dim)}")
+    return Calibration(float(spec["scale"]), float(spec.get("offset", 0.0)), unit)
+
+
+# ---------------------------------------------------------------------------
+# Loading
+# ---------------------------------------------------------------------------
+
+
+def load_log(
+    path,
+    columns: Mapping[str, str] | None = None,
+    *,
+    calibration: Mapping[str, Calibration | Mapping] | None = None,
+    strict: bool = False,
+    min_samples: int = MIN_SAMPLES,
+    name: str | None = None,
+    context: str = "columns",
+) -> Log:
+    """Read a CSV or MATLAB `.mat` log into SI units, with checks.
+
+    **Arguments:**
+    - `path`: the file (`.csv`, `.txt`, `.tsv`: text with a header row; `.mat`: MATLAB v5/v7).
+    - `columns`: channel -> `'column [unit]'` (CSV header name or .mat variable, with its
+      unit in brackets; for CSV the unit may be left out when the header has it). For CSV,
+      None maps every column whose name is a channel (`time [s]`, `theta1 [deg]`, ...).
+    - `calibration`: channel -> `Calibration` (or `{scale, offset, unit}`) for `[V]` columns.
+    - `strict`: if True, columns or variables that no channel uses are an error (default:
+      they are ignored and listed in `Log.ignored`).
+    - `min_samples`: fewest samples accepted.
+    - `name`: label of the log (default: the file's stem).
+    - `context`: how the mapping is named in messages (e.g. `'logs[2].columns'`).
+
+    Raises `LogError` (a `ValueError`) naming the file, line and column (or variable and
+    sample) and what was expected.
+    """
+    path = Path(path)
+    cals = {}
+    for ch, c in (calibration or {}).items():
+        spec = dataclasses.asdict(c) if isinstance(c, Calibration) else c
+        cals[ch] = check_calibration(ch, spec, f"{path}: calibration.{ch}")
+    if not path.is_file():
+        what = "is a directory" if path.is_dir() else "does not exist"
+        raise LogError(f"{path.resolve()}: log file {what}; expected a .csv or .mat file")
+    suffix = path.suffix.lower()
+    wanted = None if columns is None else _parse_mapping(path, columns, context)
+    for ch in cals:
+        if wanted is not None and ch not in {w.channel for w in wanted}:
+            raise LogError(f"{path}: calibration.{ch}: no column is mapped to {ch}")
+    if suffix in MAT_SUFFIXES:
+        if wanted is None:
+            raise LogError(
+                f"{path}: a .mat log needs a column mapping (.mat variables carry no units); expected "
+                'columns = { time = "t [s]", theta1 = "enc [deg]", ... } naming each variable and its unit'
+            )
+        t, channels, sources, ignored = _read_mat(path, wanted, cals, strict, context)
+    elif suffix in CSV_SUFFIXES:
+        t, channels, sources, ignored = _read_csv(path, wanted, cals, strict, context)
+    else:
+        raise LogError(f"{path}: unknown log type {path.suffix!r}; expected {', '.join(CSV_SUFFIXES + MAT_SUFFIXES)}")
+    n = t.shape[0]
+    if n < max(min_samples, 2):
+        raise LogError(f"{path}: {n} samples; expected at least {min_samples} to fit a model")
+    sampling = _sampling(t)
+    for arr in [t, *channels.values()]:
+        arr.flags.writeable = False
+    return Log(
+        name=path.stem if name is None else name,
+        path=path,
+        t=t,
+        outputs={k: v for k, v in channels.items() if u.is_output(k)},
+        inputs={k: v for k, v in channels.items() if u.is_input(k)},
+        sampling=sampling,
+        sources=sources,
+        ignored=tuple(ignored),
+    )
+
+
+def _sampling(t: np.ndarray) -> Sampling:
+    dt = np.diff(t)
+    median = float(np.median(dt))
+    k = int(np.argmax(dt))
+    return Sampling(
+        n_samples=int(t.shape[0]),
+        duration=float(t[-1] - t[0]),
+        median_dt=median,
+        min_dt=float(dt.min()),
+        max_dt=float(dt[k]),
+        largest_gap_at=float(t[k]),
+        n_gaps=int(np.sum(dt > GAP_FACTOR * median)),
+    )
+
+
+def _check_samples(path, channel: str, values: np.ndarray, where: Callable[[int], str]):
+    bad = ~np.isfinite(values)
+    if bad.any():
+        j = int(np.argmax(bad))
+        raise LogError(f"{path}, {where(j)}: {values[j]} in {channel}; expected a finite number")
+
+
+def _check_time(path, t: np.ndarray, where: Callable[[int], str]):
+    dt = np.diff(t)
+    bad = dt <= 0
+    if bad.any():
+        j = int(np.argmax(bad)) + 1
+        what = "duplicate time stamp" if dt[j - 1] == 0 else "time goes backwards"
+        raise LogError(
+            f"{path}, {where(j)}: {what} (t = {t[j]:.9g} after t = {t[j - 1]:.9g} at {where(j - 1)}); "
+            "expected strictly increasing times"
+        )
+
+
+# -- CSV ---------------------------------------------------------------------
+
+
+def _read_text(path: Path) -> str:
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return data.decode("cp1252", errors="replace")  # Windows DAQ software
+
+
+def _skip(line: str) -> bool:
+    s = line.strip()
+    return not s or s.startswith("#")
+
+
+def _read_csv(path: Path, wanted, cals, strict, context):
+    lines = _read_text(path).splitlines()
+    header_at = next((i for i, line in enumerate(lines) if not _skip(line)), None)
+    if header_at is None:
+        raise LogError(f"{path}: no header row; expected a first row like 'time [s],theta1 [rad],tip1 [mm]'")
+    header_line = lines[header_at]
+    delimiter = ";" if ";" in header_line else "\t" if "\t" in header_line else ","
+    decimal_comma = delimiter != ","
+
+    def split(line: str) -> list[str]:
+        return next(csv.reader([line], delimiter=delimiter))
+
+    header = [h.strip() for h in split(header_line)]
+    hline = header_at + 1
+    names, file_units = [], []
+    for c, text in enumerate(header, start=1):
+        try:
+            name, unit = u.split_header(text)
+        except ValueError as e:
+            raise LogError(f"{path}, line {hline}, column {c}: {e}") from None
+        names.append(name)
+        file_units.append(unit)
+    seen: dict[str, int] = {}
+    for c, name in enumerate(names, start=1):
+        if name and name in seen:
+            raise LogError(f"{path}, line {hline}: columns {seen[name]} and {c} are both named {name!r}")
+        seen[name] = c
+
+    if wanted is None:  # identity mapping: columns named like channels
+        wanted = [_Wanted(n, n, None) for n, unit in zip(names, file_units) if u.channel_dimension(n) is not None]
+        if not any(w.channel == "time" for w in wanted):
+            raise LogError(
+                f"{path}, line {hline}: no 'time' column among {names}; expected a column 'time [s]', "
+                'or map the time column in the experiment file: columns = { time = "<header> [s]", ... }'
+            )
+    used = {}
+    for w in wanted:
+        if w.source not in seen:
+            raise LogError(
+                f"{path}, line {hline}: no column {w.source!r} (mapped by {context}.{w.channel}); "
+                f"the header has {[n for n in names if n]}"
+            )
+        c = seen[w.source]
+        where = f"{path}, line {hline}, column {c} ({header[c - 1]!r})"
+        unit, cal = _resolve_unit(path, w, file_units[c - 1], where, cals)
+        used[c] = (w, unit, cal)
+    ignored = [header[c - 1] for c in range(1, len(names) + 1) if c not in used and names[c - 1]]
+    if strict and ignored:
+        raise LogError(
+            f"{path}, line {hline}: column(s) {ignored} are not mapped to any channel (strict = true); "
+            "map them in columns, or remove strict"
+        )
+
+    cells: dict[int, list[str]] = {c: [] for c in used}
+    line_numbers = []
+    for i in range(header_at + 1, len(lines)):
+        if _skip(lines[i]):
+            continue
+        row = split(lines[i])
+        if len(row) != len(header):
+            raise LogError(
+                f"{path}, line {i + 1}: {len(row)} cells; expected {len(header)} like the header on line {hline}"
+            )
+        line_numbers.append(i + 1)
+        for c in used:
+            cells[c].append(row[c - 1])
+
+    def where_for(c):
+        return lambda j: f"line {line_numbers[j]}, column {c} ({header[c - 1]!r})"
+
+    channels, sources = {}, {}
+    for c, (w, unit, cal) in used.items():
+        raw = _parse_floats(path, cells[c], decimal_comma, where_for(c))
+        _check_samples(path, w.channel, raw, where_for(c))
+        channels[w.channel] = _to_si(raw, unit, cal, w.channel)
+        sources[w.channel] = f"column {c} {header[c - 1]!r}" + (" (calibrated)" if cal else "")
+    t = channels.pop("time")
+    if t.shape[0] >= 2:
+        _check_time(path, t, where_for(seen[next(w.source for w in wanted if w.channel == "time")]))
+    sources.pop("time")
+    return t, channels, sources, ignored
+
+
+def _parse_floats(path, texts: list[str], decimal_comma: bool, where) -> np.ndarray:
+    out = np.empty(len(texts))
+    for j, text in enumerate(texts):
+        s = text.strip()
+        if decimal_comma:
+            s = s.replace(",", ".")
+        try:
+            out[j] = float(s)
+        except ValueError:
+            got = "an empty cell" if not s else repr(text)
+            raise LogError(f"{path}, {where(j)}: expected a number, got {got}") from None
+    return out
+
+
+# -- MATLAB ------------------------------------------------------------------
+
+
+def _load_mat_variables(path: Path) -> dict:
+    import scipy.io
+
+    try:
+        return scipy.io.loadmat(path)
+    except NotImplementedError:  # scipy's answer for v7.3 (HDF5) files
+        try:
+            import h5py
+        except ImportError:
+            raise LogError(
+                f"{path}: a MATLAB v7.3 (HDF5) file, which needs h5py; re-save it in MATLAB with "
+                "save('file.mat', ..., '-v7'), or install h5py"
+            ) from None
+        with h5py.File(path, "r") as f:  # MATLAB stores arrays transposed; vectors don't mind
+            return {k: np.asarray(f[k]).T for k in f.keys() if isinstance(f[k], h5py.Dataset)}
+    except Exception as e:  # scipy raises several types for a file that is not a .mat
+        raise LogError(f"{path}: not a readable MATLAB .mat file ({type(e).__name__}: {e})") from None
+
+
+def _read_mat(path: Path, wanted, cals, strict, context):
+    data = _load_mat_variables(path)
+    variables = {k: v for k, v in data.items() if not k.startswith("__")}
+    used = {}
+    for w in wanted:
+        if w.source not in variables:
+            raise LogError(
+                f"{path}: no variable {w.source!r} (mapped by {context}.{w.channel}); the file has {sorted(variables)}"
+            )
+        where = f"{path}: variable {w.source!r}"
+        unit, cal = _resolve_unit(path, w, None, where, cals)
+        value = variables[w.source]
+        if not isinstance(value, np.ndarray) or value.dtype.kind not in "biuf":
+            kind = getattr(value, "dtype", type(value))
+            raise LogError(f"{where}: expected a real numeric vector, got {kind}")
+        if sum(d > 1 for d in value.shape) > 1:
+            raise LogError(f"{where}: shape {value.shape}; expected a vector (one channel per variable)")
+        used[w] = (value.astype(np.float64).ravel(), unit, cal)
+    ignored = sorted(set(variables) - {w.source for w in wanted})
+    if strict and ignored:
+        raise LogError(f"{path}: variable(s) {ignored} are not mapped to any channel (strict = true)")
+    time_w = next(w for w in wanted if w.channel == "time")
+    n = used[time_w][0].shape[0]
+    channels, sources = {}, {}
+    for w, (raw, unit, cal) in used.items():
+        if raw.shape[0] != n:
+            raise LogError(
+                f"{path}: variable {w.source!r} ({w.channel}) has {raw.shape[0]} samples; "
+                f"expected {n} like the time variable {time_w.source!r}"
+            )
+        where = lambda j, s=w.source: f"variable {s!r}, sample {j + 1}"  # noqa: E731 (1-based, as in MATLAB)
+        _check_samples(path, w.channel, raw, where)
+        channels[w.channel] = _to_si(raw, unit, cal, w.channel)
+        sources[w.channel] = f"variable {w.source!r} [{w.unit}]" + (" (calibrated)" if cal else "")
+    t = channels.pop("time")
+    sources.pop("time")
+    _check_time(path, t, lambda j: f"variable {time_w.source!r}, sample {j + 1}")
+    return t, channels, sources, ignored
+
+
+__all__ = [
+    "Calibration",
+    "Log",
+    "LogError",
+    "MIN_SAMPLES",
+    "Sampling",
+    "load_log",
+]

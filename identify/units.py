@@ -1,0 +1,200 @@
+"""Units of measured logs and the channel vocabulary of the model.
+
+A log column is named `name [unit]` (e.g. `tip1 [mm]`). `UNITS` lists every unit a
+log may use, with its physical dimension and its factor to SI; volts (`V`, `mV`)
+are a dimension of their own and are converted with a per-channel calibration
+`SI = scale * volts + offset` given in the experiment file.
+
+Channels are what the model predicts or is driven by (the experiment file's
+vocabulary), each with a dimension used to check a log's units:
+
+| channel        | meaning                                           | dimension    | SI unit |
+|----------------|---------------------------------------------------|--------------|---------|
+| `time`         | sample time                                       | time         | s       |
+| `theta{i}`     | link angle of joint i                             | angle        | rad     |
+| `alpha{i}`     | rotor angle of elastic joint i (link side)        | angle        | rad     |
+| `tip{i}`       | elastic tip deflection of link i                  | length       | m       |
+| `curvature{i}` | bending curvature at the root of link i           | curvature    | 1/m     |
+| `end_x/end_y`  | end-point position (base frame)                   | length       | m       |
+| `accel_x/_y`   | end-point acceleration (base frame)               | acceleration | m/s^2   |
+| `torque{i}`    | torque applied at joint i (input)                 | torque       | N m     |
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+TIME = "time"
+ANGLE = "angle"
+LENGTH = "length"
+CURVATURE = "curvature"
+ACCELERATION = "acceleration"
+TORQUE = "torque"
+VOLTAGE = "voltage"
+
+#: SI unit of each dimension (volts have none: they need a calibration).
+SI_UNIT = {
+    TIME: "s",
+    ANGLE: "rad",
+    LENGTH: "m",
+    CURVATURE: "1/m",
+    ACCELERATION: "m/s^2",
+    TORQUE: "N m",
+    VOLTAGE: "V",
+}
+
+#: unit -> (dimension, factor to SI).
+UNITS: dict[str, tuple[str, float]] = {
+    "s": (TIME, 1.0),
+    "ms": (TIME, 1e-3),
+    "us": (TIME, 1e-6),
+    "rad": (ANGLE, 1.0),
+    "mrad": (ANGLE, 1e-3),
+    "deg": (ANGLE, math.pi / 180.0),
+    "m": (LENGTH, 1.0),
+    "mm": (LENGTH, 1e-3),
+    "um": (LENGTH, 1e-6),
+    "1/m": (CURVATURE, 1.0),
+    "m/s^2": (ACCELERATION, 1.0),
+    "g": (ACCELERATION, 9.80665),  # standard gravity, as accelerometers are rated
+    "N m": (TORQUE, 1.0),
+    "N mm": (TORQUE, 1e-3),
+    "mN m": (TORQUE, 1e-3),
+    "V": (VOLTAGE, 1.0),
+    "mV": (VOLTAGE, 1e-3),
+}
+
+#: Other spellings accepted for the same units.
+ALIASES = {
+    "sec": "s",
+    "µs": "us",
+    "μs": "us",
+    "degree": "deg",
+    "degrees": "deg",
+    "°": "deg",
+    "µm": "um",
+    "μm": "um",
+    "m/s2": "m/s^2",
+    "m/s²": "m/s^2",
+    "Nm": "N m",
+    "N*m": "N m",
+    "N.m": "N m",
+    "N·m": "N m",
+    "Nmm": "N mm",
+    "N*mm": "N mm",
+    "N.mm": "N mm",
+    "N·mm": "N mm",
+    "mNm": "mN m",
+    "mN*m": "mN m",
+    "mN.m": "mN m",
+}
+
+_INDEXED = re.compile(r"^(theta|alpha|tip|curvature|torque)([1-9][0-9]*)$")
+_INDEXED_DIMENSION = {
+    "theta": ANGLE,
+    "alpha": ANGLE,
+    "tip": LENGTH,
+    "curvature": CURVATURE,
+    "torque": TORQUE,
+}
+_PLAIN = {"end_x": LENGTH, "end_y": LENGTH, "accel_x": ACCELERATION, "accel_y": ACCELERATION}
+
+#: The channel patterns, for error messages.
+CHANNEL_PATTERNS = (
+    "theta{i}, alpha{i}, tip{i}, curvature{i}, end_x, end_y, accel_x, accel_y (outputs); torque{i} (inputs)"
+)
+
+
+def known_units() -> str:
+    """The accepted units, grouped by dimension, for error messages."""
+    by_dim: dict[str, list[str]] = {}
+    for unit, (dim, _) in UNITS.items():
+        by_dim.setdefault(dim, []).append(f"[{unit}]")
+    return "; ".join(f"{dim}: {' '.join(units)}" for dim, units in by_dim.items())
+
+
+def normalise_unit(unit: str) -> str | None:
+    """The canonical spelling of `unit` (a key of `UNITS`), or None if unknown."""
+    u = " ".join(unit.split())
+    if u in UNITS:
+        return u
+    return ALIASES.get(u, ALIASES.get(u.replace(" ", "")))
+
+
+def unit_dimension(unit: str) -> str:
+    return UNITS[unit][0]
+
+
+def unit_factor(unit: str) -> float:
+    return UNITS[unit][1]
+
+
+_HEADER = re.compile(r"^(?P<name>[^\[\]]*?)\s*\[(?P<unit>[^\[\]]*)\]\s*$")
+
+
+def split_header(text: str) -> tuple[str, str | None]:
+    """`'tip1 [mm]'` -> `('tip1', 'mm')`; `'tip1'` -> `('tip1', None)`. Raises
+    `ValueError` for unbalanced or repeated brackets (the unit is not normalised here)."""
+    text = text.strip()
+    if "[" not in text and "]" not in text:
+        return text, None
+    m = _HEADER.match(text)
+    if m is None:
+        raise ValueError(f"expected 'name [unit]', got {text!r}")
+    return m["name"].strip(), m["unit"].strip()
+
+
+def channel_dimension(channel: str) -> str | None:
+    """Dimension of a channel name (`'time'` included), or None if it is not a channel."""
+    if channel == "time":
+        return TIME
+    m = _INDEXED.match(channel)
+    if m:
+        return _INDEXED_DIMENSION[m[1]]
+    return _PLAIN.get(channel)
+
+
+def channel_kind_index(channel: str) -> tuple[str, int | None]:
+    """`'tip2'` -> `('tip', 2)`, `'end_x'` -> `('end_x', None)`."""
+    m = _INDEXED.match(channel)
+    if m:
+        return m[1], int(m[2])
+    return channel, None
+
+
+def is_input(channel: str) -> bool:
+    """True for input channels (joint torques)."""
+    return channel_kind_index(channel)[0] == "torque"
+
+
+def is_output(channel: str) -> bool:
+    """True for measured output channels (everything but `time` and torques)."""
+    return channel != "time" and channel_dimension(channel) is not None and not is_input(channel)
+
+
+_QUANTITY = re.compile(r"^\s*(?P<value>[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)\s*(?P<unit>\S.*?)?\s*$")
+
+
+def parse_quantity(text: str, dimension: str) -> float:
+    """`'0.5 deg'` -> 0.008726... (SI) for a quantity of the given dimension. A bare
+    number is taken as SI. Raises `ValueError` saying what was expected."""
+    m = _QUANTITY.match(text)
+    if m is None:
+        raise ValueError(f"expected a number with a unit, e.g. '0.5 {_example_unit(dimension)}', got {text!r}")
+    value = float(m["value"])
+    if m["unit"] is None:
+        return value
+    unit = normalise_unit(m["unit"])
+    if unit is None:
+        raise ValueError(f"unknown unit {m['unit']!r} in {text!r}; known units: {known_units()}")
+    if unit_dimension(unit) != dimension:
+        raise ValueError(
+            f"{text!r} is a {unit_dimension(unit)}; expected a {dimension} "
+            f"(e.g. '{m['value']} {_example_unit(dimension)}')"
+        )
+    return value * unit_factor(unit)
+
+
+def _example_unit(dimension: str) -> str:
+    return {ANGLE: "deg", LENGTH: "mm", TIME: "ms"}.get(dimension, SI_UNIT.get(dimension, ""))
