@@ -634,3 +634,25 @@ def _identifiability(problem: Problem, J: np.ndarray, threshold: float = 1e-6):
             ]
             warnings.append({"combination": " ".join(terms), "ratio": float(ratio)})
     return warnings, S
+
+
+def fitted_outputs(result: FitResult) -> dict:
+    """Per log: `{'t', 'measured': {ch: ...}, 'simulated': {ch: ...}, 'residual': {ch: ...}}`
+    (SI; simulated includes the fitted sensor offsets), for plots and residual tests."""
+    problem, z = result.problem, result.z
+    theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
+    pred, _ = predict(problem, theta, _initial_states(problem, z["y0"]))
+    off = _offsets(problem, z["offset"])
+    pred = np.asarray(pred + off[:, None, :])
+    meas, valid, present = np.asarray(problem.measured), np.asarray(problem.valid), np.asarray(problem.present)
+    out = {}
+    for l, name in enumerate(problem.log_names):
+        k = valid[l]
+        entry = {"t": np.asarray(problem.t[l])[k], "measured": {}, "simulated": {}, "residual": {}}
+        for j, c in enumerate(problem.channels):
+            if present[l, j]:
+                entry["measured"][c] = meas[l, k, j]
+                entry["simulated"][c] = pred[l, k, j]
+                entry["residual"][c] = pred[l, k, j] - meas[l, k, j]
+        out[name] = entry
+    return out

@@ -1,0 +1,67 @@
+"""From an experiment file to a fit: the glue between `identify.experiment` and
+`identify.fit`, and the residual report."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import diagnostics
+from .experiment import Experiment, LogSpec
+from .fit import FitResult, LogData, Parameter, Problem, fit, fitted_outputs, make_problem
+
+
+def log_data(spec: LogSpec, n_joints: int) -> LogData:
+    """The `LogData` of one experiment log (times start at the log's first sample)."""
+    log = spec.log
+    return LogData(
+        t=np.asarray(log.t, float) - float(log.t[0]),
+        outputs={c: np.asarray(v, float) for c, v in spec.outputs().items()},
+        torque=spec.torque(n_joints),
+        initial=dict(spec.initial),
+        fit_initial=tuple(spec.fit_initial),
+        offsets=tuple(spec.offsets),
+        name=spec.name,
+    )
+
+
+def parameters(exp: Experiment) -> list[Parameter]:
+    return [Parameter(p.name, p.guess, p.lower, p.upper) for p in exp.free]
+
+
+def problem_from_experiment(exp: Experiment, logs=None, **solver) -> Problem:
+    """A `Problem` over the experiment's fit logs (or `logs`, a list of `LogSpec`)."""
+    specs = exp.fit_logs if logs is None else logs
+    data = [log_data(s, exp.chain.n_links) for s in specs]
+    noise = {c: v for c, v in exp.noise.items() if v is not None}
+    return make_problem(exp.chain, parameters(exp), data, noise, **solver)
+
+
+def fit_experiment(exp: Experiment, *, progress=None, **options) -> FitResult:
+    """Fit the experiment's free parameters to its fit logs. `options` go to `identify.fit`."""
+    problem = problem_from_experiment(exp)
+    estimate = [c for c in problem.channels if exp.noise.get(c) is None]
+    return fit(problem, parameters(exp), estimate_noise=estimate or False, progress=progress, **options)
+
+
+def residual_report(result: FitResult, max_lag: int = 25) -> dict:
+    """Per log and channel: residual RMS, whiteness test, and cross-correlation with each
+    joint torque the log applies (MATLAB `resid`)."""
+    report = {}
+    outputs = fitted_outputs(result)
+    problem = result.problem
+    for l, (name, entry) in enumerate(outputs.items()):
+        t = entry["t"]
+        uniform = np.allclose(np.diff(t), np.median(np.diff(t)), rtol=1e-3) if len(t) > 2 else True
+        per_channel = {}
+        torque = np.asarray(problem.torque_v[l])[: len(t)]
+        for c, r in entry["residual"].items():
+            item = {"rms": float(np.sqrt(np.mean(r**2))), "uniform_sampling": bool(uniform)}
+            item["whiteness"] = diagnostics.whiteness(r, max_lag)
+            item["input_correlation"] = {
+                f"torque{j + 1}": diagnostics.input_correlation(r, torque[:, j], max_lag)
+                for j in range(torque.shape[1])
+                if np.any(torque[:, j] != 0)
+            }
+            per_channel[c] = item
+        report[name] = per_channel
+    return report
