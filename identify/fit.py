@@ -269,6 +269,8 @@ def _z_from_x(problem: Problem, x):
 
 
 def _theta_from_x(problem: Problem, x):
+    if not problem.names:
+        return jnp.zeros((0,), x.dtype)
     return jnp.stack([jnp.exp(x[i]) if problem.log_scale[i] else x[i] for i in range(len(problem.names))])
 
 
@@ -347,7 +349,7 @@ def predict(problem: Problem, theta, y0s, horizon=None, step=None, *, stats: boo
 
 def _strictly_increasing(t):
     # Padded logs repeat their last time; SampledTorque needs increasing knots.
-    k = jnp.arange(t.shape[0])
+    k = jnp.arange(t.shape[0], dtype=t.dtype)
     return jnp.where(jnp.concatenate([jnp.ones(1, bool), t[1:] > t[:-1]]), t, t[-1] + 1e-6 * k)
 
 
@@ -560,6 +562,7 @@ def fit(
         if rnd + 1 < rounds:
             sigma = _reestimate_sigma(problem, z, sigma, estimate_noise, step)
             say("  noise re-estimated: " + ", ".join(f"{c}={float(s):.3g}" for c, s in zip(problem.channels, sigma)))
+    say("  computing standard errors (exact Jacobian at the optimum) ...")
     x = _x_from_z(problem, z["phys"])
     r, J = _jacobian_natural(problem, x, z["y0"], z["offset"], sigma, step)
     _, ok = predict(problem, _theta_from_x(problem, x), _initial_states(problem, z["y0"]), None, step)

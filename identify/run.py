@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+import flexdyn as fd
+
 from . import diagnostics
 from .experiment import Experiment, LogSpec
 from .fit import FitResult, LogData, Parameter, Problem, fit, fitted_outputs, make_problem
@@ -15,7 +17,7 @@ def log_data(spec: LogSpec, n_joints: int) -> LogData:
     log = spec.log
     return LogData(
         t=np.asarray(log.t, float) - float(log.t[0]),
-        outputs={c: np.asarray(v, float) for c, v in spec.outputs().items()},
+        outputs={c: np.asarray(v, float) for c, v in spec.outputs.items()},
         torque=spec.torque(n_joints),
         initial=dict(spec.initial),
         fit_initial=tuple(spec.fit_initial),
@@ -41,6 +43,21 @@ def fit_experiment(exp: Experiment, *, progress=None, **options) -> FitResult:
     problem = problem_from_experiment(exp)
     estimate = [c for c in problem.channels if exp.noise.get(c) is None]
     return fit(problem, parameters(exp), estimate_noise=estimate or False, progress=progress, **options)
+
+
+def evaluate_held_out(result: FitResult, exp: Experiment, logs=None, *, progress=None) -> FitResult:
+    """The fitted model on held-out logs (default: the experiment's validation logs):
+    physical parameters fixed at the fitted values, only each log's own nuisances (its
+    `fit_initial` entries and offsets) estimated. Returns a `FitResult` over those logs
+    (no free physical parameters); its `fitted_outputs` and `residual_report` give the
+    held-out error."""
+    specs = exp.validation_logs if logs is None else logs
+    if not specs:
+        raise ValueError("evaluate_held_out: the experiment has no validation logs")
+    chain = fd.with_parameters(exp.chain, result.value)
+    data = [log_data(s, chain.n_links) for s in specs]
+    problem = make_problem(chain, [], data, dict(result.sigma))
+    return fit(problem, [], n_stages=1, estimate_noise=False, progress=progress)
 
 
 def residual_report(result: FitResult, max_lag: int = 25) -> dict:

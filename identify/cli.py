@@ -1,0 +1,471 @@
+"""The `identify` command line (also `python -m identify`).
+
+    identify fit EXPERIMENT.toml [--out DIR] [--stages N] [--quiet] [--force]
+
+loads the experiment (see `identify/FORMAT.md`), fits its free parameters to its fit
+logs, checks the fit on its validation logs, prints the parameter table, the
+identifiability warnings and a residual summary, and writes into the output folder
+(default `./<experiment file stem>-fit/`):
+
+- `result.json`: `FitResult.to_dict()`, the residual report, the validation results,
+  the model's natural frequencies, the experiment's name and path, versions;
+- `measured_vs_fitted.png`, `residuals.png`, `residual_spectrum.png`,
+  `residual_autocorrelation.png`, `parameter_correlation.png` (`identify.report`);
+- `.identify-output`: marks the folder as written by this command.
+
+The output folder policy never risks an input: the command refuses (exit code 2) to
+write into a folder that holds an input of the experiment (the experiment file or a log),
+and, unless `--force`, into an existing folder that holds files other than ours or that a
+previous run did not mark. `--force` only lets it write its own file names next to other
+files; it never deletes anything and never writes over an input.
+
+Exit codes: 0 done (see `converged` in `result.json`), 1 the fit failed, 2 a usage
+error, an unreadable experiment or log, or a refused output folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+
+MARKER = ".identify-output"
+RESULT_FILE = "result.json"
+
+
+class _Refused(Exception):
+    """The output folder may not be used; the message says why."""
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="identify", description="System identification of flexdyn rigs from measured logs."
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    fit = sub.add_parser(
+        "fit",
+        help="fit an experiment's free parameters to its logs",
+        description="Fit the free parameters of an experiment file (identify/FORMAT.md) to its fit logs, check "
+        "the fit on its validation logs, print the results and write result.json and plots.",
+    )
+    fit.add_argument("experiment", type=Path, help="the experiment file (TOML)")
+    fit.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder, created if needed (default: ./<experiment stem>-fit in the current folder)",
+    )
+    fit.add_argument(
+        "--stages",
+        type=int,
+        default=4,
+        metavar="N",
+        help="horizon stages of the fit: the horizon doubles N-1 times up to the logs' length (default 4; 1 is "
+        "plain single shooting)",
+    )
+    fit.add_argument("--quiet", action="store_true", help="print no progress, only the results")
+    fit.add_argument(
+        "--force",
+        action="store_true",
+        help="write our files into --out even if it holds other files (they are never deleted or overwritten)",
+    )
+    return parser
+
+
+def main(argv=None) -> int:
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2, already printed)
+        return int(e.code or 0) if not isinstance(e.code, str) else 2
+    if args.command == "fit":
+        return _fit_command(args)
+    return 2  # pragma: no cover (argparse requires a command)
+
+
+# ---------------------------------------------------------------------------
+# Output folder
+# ---------------------------------------------------------------------------
+
+
+def output_files() -> tuple[str, ...]:
+    """Every file name this command writes into its output folder."""
+    from .report import PLOT_FILES
+
+    return (MARKER, RESULT_FILE, *PLOT_FILES)
+
+
+def _same(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and a.samefile(b))
+    except OSError:
+        return False
+
+
+def check_output_folder(out: Path, inputs: list[Path], force: bool) -> None:
+    """Raise `_Refused` unless we may write our files into `out`. `inputs`: the
+    experiment file and its logs."""
+    for p in inputs:
+        if _same(out, p.parent):
+            raise _Refused(
+                f"refusing to write into {out}: it holds an input of the experiment ({p.name}). "
+                "Choose another folder with --out (by default the command writes ./<experiment stem>-fit "
+                "in the current folder)."
+            )
+    if out.exists() and not out.is_dir():
+        raise _Refused(f"refusing to use --out {out}: it exists and is not a folder")
+    if not out.exists():
+        return
+    ours = set(output_files())
+    entries = sorted(out.iterdir(), key=lambda p: p.name)
+    targets = [out / name for name in ours]
+    for target in targets:  # e.g. a symbolic link from one of our names to a log
+        if any(_same(target, p) for p in inputs if target.exists()):
+            raise _Refused(f"refusing to write {target}: it is an input of the experiment")
+    if force or not entries:
+        return
+    foreign = [p.name + ("/" if p.is_dir() else "") for p in entries if p.name not in ours or not p.is_file()]
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (f", ... ({len(foreign)} in all)" if len(foreign) > 5 else "")
+        raise _Refused(
+            f"refusing to write into {out}: it holds files this command did not write ({shown}). "
+            "Choose another folder with --out, or pass --force to write our files there anyway "
+            "(other files are left untouched)."
+        )
+    if not (out / MARKER).is_file():
+        raise _Refused(
+            f"refusing to write into {out}: it exists and is not the output of a previous `identify fit` "
+            f"(no {MARKER} file). Choose another folder with --out, or pass --force."
+        )
+
+
+# ---------------------------------------------------------------------------
+# Computation helpers
+# ---------------------------------------------------------------------------
+
+
+def modal_configuration(chain):
+    """The configuration to analyse the fitted chain about: hanging along gravity (first
+    joint angle `atan2(g_y, g_x)`, i.e. -pi/2 for gravity pointing down, the others 0,
+    rotor angles with their links, undeformed) under gravity, else all zero."""
+    import numpy as np
+
+    lay = chain.layout
+    Q0 = np.zeros(lay.n_dof)
+    g = np.asarray(chain.gravity, float) if getattr(chain, "gravity", None) is not None else np.zeros(2)
+    if np.linalg.norm(g) > 0:
+        angle = float(np.arctan2(g[1], g[0]))
+        Q0[lay.theta[0]] = angle
+        if lay.rotor[0] is not None:
+            Q0[lay.rotor[0]] = angle
+        where = f"hanging equilibrium, theta1 = {np.degrees(angle):.4g} deg"
+    else:
+        where = "zero configuration"
+    return Q0, where
+
+
+def natural_frequencies(chain):
+    """Undamped natural frequencies (Hz) of `chain` about `modal_configuration(chain)`."""
+    import numpy as np
+
+    import flexdyn as fd
+
+    Q0, where = modal_configuration(chain)
+    modes = fd.modal_analysis(chain, Q0)
+    return [float(f) for f in np.asarray(modes.natural_frequency)], where
+
+
+def validate(exp, result, progress=None):
+    """The fitted model on every validation log (`identify.evaluate_held_out`: physical
+    parameters fixed, each log's own initial-state entries and offsets re-estimated).
+    Returns `(outputs, report, nuisances)` in the layout of `identify.fitted_outputs`,
+    `identify.residual_report` and `FitResult.initial_states/offsets`."""
+    from .fit import fitted_outputs
+    from .run import evaluate_held_out, residual_report
+
+    held = evaluate_held_out(result, exp, progress=progress)
+    nuisances = {
+        name: {
+            "initial_states": {k: v[0] for k, v in held.initial_states.get(name, {}).items()},
+            "offsets": {k: v[0] for k, v in held.offsets.get(name, {}).items()},
+        }
+        for name in held.problem.log_names
+    }
+    return fitted_outputs(held), residual_report(held), nuisances
+
+
+def _jsonable(x):
+    """Plain JSON types (NaN and infinities become null)."""
+    import numpy as np
+
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def _versions() -> dict:
+    import importlib.metadata as md
+
+    out = {"python": platform.python_version()}
+    for pkg in ("flexdyn", "jax", "jaxlib", "equinox", "diffrax", "optimistix", "numpy", "scipy", "matplotlib"):
+        try:
+            out[pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Printing
+# ---------------------------------------------------------------------------
+
+
+def _residual_lines(report: dict, sigma: dict, roles: dict) -> list[str]:
+    from .report import display_unit
+
+    lines = [
+        f"{'log':<24} {'channel':<10} {'RMS':>14} {'RMS/noise':>9}  {'whiteness (Ljung-Box p)':<26} input correlation"
+    ]
+    for name, per_channel in report.items():
+        label = name + (" [val]" if roles.get(name) == "validation" else "")
+        for c, item in per_channel.items():
+            scale, unit = display_unit(c)
+            w = item["whiteness"]
+            white = f"{'white' if w['white'] else 'NOT white'} (p = {w['p_value']:.2g})"
+            ic = item["input_correlation"]
+            if not ic:
+                inp = "n/a (no input)"
+            else:
+                bad = [k for k, v in ic.items() if not v["independent"]]
+                inp = "correlated with " + ", ".join(bad) if bad else "independent of " + ", ".join(ic)
+            ratio = item["rms"] / sigma[c] if sigma.get(c) else float("nan")
+            rms = f"{scale * item['rms']:.4g} {unit}"
+            lines.append(f"{label:<24} {c:<10} {rms:>14} {ratio:>9.3g}  {white:<26} {inp}")
+    return lines
+
+
+def _nuisance_lines(result, validation_nuisances: dict) -> list[str]:
+    from .report import display_unit
+
+    lines = []
+    names = list(dict.fromkeys([*result.initial_states, *result.offsets, *validation_nuisances]))
+    for name in names:
+        parts = []
+        for entry, (v, se) in result.initial_states.get(name, {}).items():
+            scale, unit = display_unit(entry) if not entry.endswith("_rate") else (1.0, "SI")
+            parts.append(f"initial {entry} = {scale * v:.4g} +- {scale * se:.2g} {unit}")
+        for c, (v, se) in result.offsets.get(name, {}).items():
+            scale, unit = display_unit(c)
+            parts.append(f"offset {c} = {scale * v:.4g} +- {scale * se:.2g} {unit}")
+        val = validation_nuisances.get(name)
+        if val is not None:
+            for entry, v in val["initial_states"].items():
+                scale, unit = display_unit(entry) if not entry.endswith("_rate") else (1.0, "SI")
+                parts.append(f"initial {entry} = {scale * v:.4g} {unit}")
+            for c, v in val["offsets"].items():
+                scale, unit = display_unit(c)
+                parts.append(f"offset {c} = {scale * v:.4g} {unit}")
+            name = name + " [val]"
+        if parts:
+            lines.append(f"  {name}: " + "; ".join(parts))
+    return lines
+
+
+def _compile_estimate(exp) -> float:
+    """A rough guess of the first call's compilation time (s) on a laptop: about 30 s for a
+    rigid pendulum, growing with the number of coordinates and channels."""
+    n = exp.chain.n_dof
+    return 25.0 * (1.0 + 0.5 * (n - 1)) * (1.0 + 0.2 * (len(exp.output_channels) - 1))
+
+
+# ---------------------------------------------------------------------------
+# The fit command
+# ---------------------------------------------------------------------------
+
+
+def _fit_command(args) -> int:
+    start = time.perf_counter()
+    quiet = args.quiet
+
+    def say(msg=""):
+        if not quiet:
+            print(msg, flush=True)
+
+    def error(msg: str) -> int:
+        print(f"identify fit: {msg}", file=sys.stderr, flush=True)
+        return 2
+
+    if args.stages < 1:
+        return error(f"--stages expects an integer >= 1, got {args.stages}")
+
+    from .experiment import ExperimentError, load_experiment
+    from .logs import LogError
+
+    try:
+        exp = load_experiment(args.experiment)
+    except (ExperimentError, LogError) as e:
+        return error(str(e))
+
+    inputs = [Path(exp.path)] + [Path(spec.file) for spec in exp.logs]
+    out = args.out if args.out is not None else Path.cwd() / f"{Path(exp.path).stem}-fit"
+    try:
+        check_output_folder(out, inputs, args.force)
+    except _Refused as e:
+        return error(str(e))
+
+    import jax
+    import numpy as np
+
+    import flexdyn as fd
+
+    from . import report as plots
+    from .fit import fitted_outputs
+    from .run import fit_experiment, residual_report
+
+    roles = {spec.name: spec.role for spec in exp.logs}
+    n_fit = len(exp.fit_logs)
+    n_samples = sum(len(spec.log) for spec in exp.fit_logs)
+    say(f"identify fit: experiment {exp.name!r} ({exp.path})")
+    say(
+        f"  rig: {exp.chain.n_links} link(s), coordinates {', '.join(exp.chain.coordinate_names())}; "
+        f"free: {', '.join(p.name for p in exp.free)}"
+    )
+    say(
+        f"  {n_fit} fit log(s) ({n_samples} samples), {len(exp.validation_logs)} validation log(s); "
+        f"{args.stages} horizon stage(s); JAX on {jax.default_backend()}"
+    )
+    say(
+        f"compiling the simulation and Levenberg-Marquardt (first call, ~{_compile_estimate(exp):.0f} s in all: the "
+        "first stage's time includes it, and the standard errors compile one more program after the last stage) ..."
+    )
+
+    last = [time.perf_counter()]
+
+    def progress(msg: str):
+        now = time.perf_counter()
+        say(f"[{now - start:6.1f} s, +{now - last[0]:5.1f} s] {msg.strip()}")
+        last[0] = now
+
+    try:
+        result = fit_experiment(exp, n_stages=args.stages, progress=progress)
+    except (RuntimeError, ValueError) as e:
+        print(f"identify fit: the fit failed: {e}", file=sys.stderr, flush=True)
+        return 1
+    say(f"[{time.perf_counter() - start:6.1f} s] fit done ({result.wall_time:.1f} s incl. compilation and covariance)")
+
+    t0 = time.perf_counter()
+    outputs = fitted_outputs(result)
+    resid = residual_report(result)
+    fitted_chain = fd.with_parameters(exp.chain, result.value)
+    freqs, where = natural_frequencies(fitted_chain)
+    val_outputs, val_report, val_nuisances = {}, {}, {}
+    if exp.validation_logs:
+        say("checking the fit on the validation log(s) (their initial state and offsets re-estimated) ...")
+        val_outputs, val_report, val_nuisances = validate(exp, result, progress)
+    t_post = time.perf_counter() - t0
+
+    # ---- results -------------------------------------------------------------
+    print()
+    print(f"Fitted parameters ({exp.name}):")
+    print(result.summary())
+    if not result.identifiability:
+        sv = np.asarray(result.singular_values)
+        ratio = float(sv[-1] / sv[0]) if sv.size and sv[0] > 0 else float("nan")
+        print(f"identifiability: no warnings (smallest/largest singular value of the Jacobian {ratio:.2g})")
+    if not result.converged:
+        print(f"WARNING: the fit did not converge (last stage: {result.stages[-1]['result']}); try more --stages")
+    nuisance = _nuisance_lines(result, val_nuisances)
+    if nuisance:
+        print()
+        print("Per-log nuisances:")
+        print("\n".join(nuisance))
+    print()
+    nf = ", ".join(f"{f:.4g}" for f in freqs if f > 0) or "none (rigid-body modes only)"
+    print(f"Natural frequencies of the fitted model ({where}): {nf} Hz")
+    print()
+    print("Residuals (fitted - measured; [val] = validation log, not used by the fit):")
+    combined_report = {**resid, **val_report}
+    print("\n".join(_residual_lines(combined_report, result.sigma, roles)))
+
+    # ---- files ---------------------------------------------------------------
+    t0 = time.perf_counter()
+    try:
+        check_output_folder(out, inputs, args.force)  # again: the fit took a while
+    except _Refused as e:
+        return error(str(e))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / MARKER).write_text(
+        "Written by `identify fit` (flexdyn). This folder holds its outputs; a new run may overwrite these "
+        f"files: {', '.join(output_files())}.\n"
+    )
+    doc = result.to_dict()
+    doc["experiment"] = {
+        "name": exp.name,
+        "description": exp.description,
+        "path": str(Path(exp.path).resolve()),
+        "logs": [
+            {"name": s.name, "file": str(Path(s.file).resolve()), "role": s.role, "samples": len(s.log)}
+            for s in exp.logs
+        ],
+    }
+    doc["residuals"] = resid
+    doc["validation"] = {name: {"residuals": val_report[name], **val_nuisances[name]} for name in val_outputs}
+    doc["natural_frequencies_hz"] = freqs
+    doc["modal_configuration"] = where
+    doc["options"] = {"stages": args.stages}
+    doc["command"] = ["identify", "fit", *map(str, _argv_tail(args))]
+    doc["versions"] = _versions()
+    (out / RESULT_FILE).write_text(json.dumps(_jsonable(doc), indent=1) + "\n")
+    written = [out / MARKER, out / RESULT_FILE]
+    written += plots.write_plots(
+        result,
+        {**outputs, **val_outputs},
+        combined_report,
+        out,
+        natural_frequencies=freqs,
+        where=where,
+        roles=roles,
+        title=exp.name,
+    )
+    t_files = time.perf_counter() - t0
+
+    print()
+    say(
+        f"timings: fit {result.wall_time:.1f} s (compilation included), residual tests, modal analysis and "
+        f"validation {t_post:.1f} s, files {t_files:.1f} s; total {time.perf_counter() - start:.1f} s"
+    )
+    print(f"Results written to {out}/:")
+    for p in written:
+        if p.name != MARKER:
+            print(f"  {p}")
+    return 0
+
+
+def _argv_tail(args) -> list:
+    tail = [args.experiment]
+    if args.out is not None:
+        tail += ["--out", args.out]
+    tail += ["--stages", args.stages]
+    if args.quiet:
+        tail.append("--quiet")
+    if args.force:
+        tail.append("--force")
+    return tail
+
+
+if __name__ == "__main__":
+    sys.exit(main())

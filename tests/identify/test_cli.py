@@ -1,0 +1,172 @@
+"""The `identify fit` command (`identify.cli.main`) on a copy of the shipped example
+(`identify/examples/pendulum_drops`), shortened to 3 s per log: exit codes, result.json,
+plots, error messages, the output-folder policy, and that inputs are never touched."""
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from identify.cli import MARKER, main
+from identify.report import PLOT_FILES
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "identify" / "examples" / "pendulum_drops"
+TRUTH = {"joint1.damping": 1.9e-3, "hub1.inertia": 2e-5}
+KEEP_S = 3.0  # seconds of each log kept by the tests (the shipped logs are 6 s)
+
+
+def _shorten(csv: Path, keep_s: float):
+    lines = csv.read_text().splitlines()
+    out = []
+    for line in lines:
+        head = line.split(",", 1)[0]
+        try:
+            if float(head) > keep_s:
+                continue
+        except ValueError:  # comment or header
+            pass
+        out.append(line)
+    csv.write_text("\n".join(out) + "\n")
+
+
+def _copy_example(folder: Path) -> Path:
+    """A shortened copy of the example; returns its experiment file."""
+    shutil.copytree(EXAMPLE, folder, ignore=shutil.ignore_patterns("__pycache__", "*-fit"))
+    for csv in (folder / "logs").glob("*.csv"):
+        _shorten(csv, KEEP_S)
+    return folder / "experiment.toml"
+
+
+def _snapshot(folder: Path) -> dict:
+    """Path -> (mtime_ns, sha256) of every file under `folder`."""
+    return {
+        p: (p.stat().st_mtime_ns, hashlib.sha256(p.read_bytes()).hexdigest())
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """One run of `identify fit` (2 stages) from a working folder; shared by the tests."""
+    root = tmp_path_factory.mktemp("cli")
+    exp = _copy_example(root / "example")
+    work = root / "work"
+    work.mkdir()
+    before = _snapshot(root / "example")
+    out = work / "experiment-fit"
+    code = main(["fit", str(exp), "--out", str(out), "--stages", "2"])
+    after = _snapshot(root / "example")
+    return {"code": code, "exp": exp, "out": out, "before": before, "after": after, "work": work}
+
+
+def test_fit_succeeds_and_writes_results(fitted):
+    assert fitted["code"] == 0
+    out = fitted["out"]
+    assert (out / MARKER).is_file()
+    for name in PLOT_FILES:
+        assert (out / name).is_file() and (out / name).stat().st_size > 1000, name
+    doc = json.loads((out / "result.json").read_text())
+    assert doc["converged"] is True
+    params = {p["name"]: p for p in doc["parameters"]}
+    assert set(params) == set(TRUTH)
+    for name, truth in TRUTH.items():
+        lo, hi = params[name]["ci95"]
+        assert lo <= truth <= hi, (name, params[name])
+        assert params[name]["std_error"] > 0
+    assert doc["experiment"]["path"] == str(fitted["exp"].resolve())
+    assert {log["role"] for log in doc["experiment"]["logs"]} == {"fit", "validation"}
+    assert set(doc["residuals"]) == {"drop_0deg", "drop_m45deg"}
+    assert doc["residuals"]["drop_0deg"]["theta1"]["rms"] > 0
+    assert set(doc["validation"]) == {"drop_m97deg"}
+    assert doc["validation"]["drop_m97deg"]["residuals"]["theta1"]["rms"] < 3 * 0.1 * 3.14159 / 180  # ~noise
+    # small-amplitude frequency of the pendulum about the hanging equilibrium
+    assert any(0.9 < f < 1.2 for f in doc["natural_frequencies_hz"])
+    assert doc["versions"]["jax"]
+
+
+def test_inputs_untouched(fitted):
+    assert fitted["before"] == fitted["after"]
+
+
+def test_rerun_into_own_folder_and_default_folder(fitted, monkeypatch, capsys):
+    # A second run may reuse the folder of a previous run (marked by MARKER); the compiled
+    # programs are cached, so this is quick. The default folder is ./<stem>-fit.
+    monkeypatch.chdir(fitted["work"])
+    before = _snapshot(fitted["exp"].parent)
+    assert main(["fit", str(fitted["exp"]), "--stages", "2", "--quiet"]) == 0
+    assert _snapshot(fitted["exp"].parent) == before
+    printed = capsys.readouterr().out
+    assert "joint1.damping" in printed and "hub1.inertia" in printed and "white" in printed
+    assert "compiling" not in printed and "] horizon" not in printed  # --quiet: no progress lines
+    assert (fitted["work"] / "experiment-fit" / "result.json").is_file()
+
+
+def test_bad_experiment_is_exit_2_naming_the_file(tmp_path, capsys):
+    exp = _copy_example(tmp_path / "example")
+    text = exp.read_text().replace('"hub1.inertia"', '"hub1.inertai"')
+    exp.write_text(text)
+    assert main(["fit", str(exp), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "experiment.toml" in err and "hub1.inertai" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_bad_log_is_exit_2_naming_the_log(tmp_path, capsys):
+    exp = _copy_example(tmp_path / "example")
+    log = tmp_path / "example" / "logs" / "drop_m45deg.csv"
+    lines = log.read_text().splitlines()
+    lines[10] = "0.035,n/a"
+    log.write_text("\n".join(lines) + "\n")
+    assert main(["fit", str(exp), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "drop_m45deg.csv" in err and "line 11" in err
+
+
+def test_missing_experiment_is_exit_2(tmp_path, capsys):
+    assert main(["fit", str(tmp_path / "nope.toml")]) == 2
+    assert "nope.toml" in capsys.readouterr().err
+
+
+def test_refuses_folder_with_foreign_file(tmp_path, capsys):
+    exp = _copy_example(tmp_path / "example")
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    (out / "result.json").write_text("someone else's")  # one of our names, but not our folder
+    before = _snapshot(out)
+    assert main(["fit", str(exp), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "refusing" in err and "notes.txt" in err and "--force" in err
+    assert _snapshot(out) == before
+
+
+def test_refuses_unmarked_folder_holding_only_our_names(tmp_path, capsys):
+    exp = _copy_example(tmp_path / "example")
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "result.json").write_text("not from identify")
+    assert main(["fit", str(exp), "--out", str(out)]) == 2
+    assert MARKER in capsys.readouterr().err
+    assert (out / "result.json").read_text() == "not from identify"
+
+
+@pytest.mark.parametrize("where", ["experiment", "logs"])
+def test_refuses_input_folders_even_with_force(tmp_path, capsys, where):
+    exp = _copy_example(tmp_path / "example")
+    out = exp.parent if where == "experiment" else exp.parent / "logs"
+    before = _snapshot(exp.parent)
+    assert main(["fit", str(exp), "--out", str(out), "--force"]) == 2
+    err = capsys.readouterr().err
+    assert "refusing" in err and "input" in err
+    assert _snapshot(exp.parent) == before
+
+
+def test_help_and_usage_errors(capsys):
+    assert main(["--help"]) == 0
+    assert "fit" in capsys.readouterr().out
+    assert main([]) == 2
+    assert main(["fit", "x.toml", "--stages", "0"]) == 2
+    assert "--stages" in capsys.readouterr().err
