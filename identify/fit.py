@@ -583,12 +583,14 @@ def fit(
     xs = np.asarray(x)
     values = np.array([np.exp(v) if s else v for v, s in zip(xs, problem.log_scale)])
     se = np.array([values[i] * se_nat[i] if problem.log_scale[i] else se_nat[i] for i in range(p)])
-    lo = np.array(
-        [np.exp(xs[i] - Z95 * se_nat[i]) if problem.log_scale[i] else xs[i] - Z95 * se_nat[i] for i in range(p)]
-    )
-    hi = np.array(
-        [np.exp(xs[i] + Z95 * se_nat[i]) if problem.log_scale[i] else xs[i] + Z95 * se_nat[i] for i in range(p)]
-    )
+    with np.errstate(over="ignore"):  # an unidentifiable parameter has an unbounded interval
+        lo = np.array(
+            [np.exp(xs[i] - Z95 * se_nat[i]) if problem.log_scale[i] else xs[i] - Z95 * se_nat[i] for i in range(p)]
+        )
+        hi = np.array(
+            [np.exp(xs[i] + Z95 * se_nat[i]) if problem.log_scale[i] else xs[i] + Z95 * se_nat[i] for i in range(p)]
+        )
+        se = np.where(np.isfinite(se), se, np.inf)
     d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     corr = (cov / np.outer(d, d))[:p, :p]
     ident, sv = _identifiability(problem, J)
