@@ -21,6 +21,7 @@ from .fit import (
     Parameter as Parameter,
     Problem as Problem,
     fit as fit,
+    fit_independent as fit_independent,
     fitted_outputs as fitted_outputs,
     make_problem as make_problem,
     predict as predict,

@@ -568,6 +568,11 @@ def fit(
     _, ok = predict(problem, _theta_from_x(problem, x), _initial_states(problem, z["y0"]), None, step)
     if not bool(jnp.all(ok)):
         raise RuntimeError("fit: the simulation at the fitted parameters failed; check bounds and solver settings")
+    return _finish(problem, parameters, z, x, sigma, step, r, J, stages, time.perf_counter() - start)
+
+
+def _finish(problem: Problem, parameters, z, x, sigma, step, r, J, stages, wall_time) -> FitResult:
+    """Host-side statistics of a converged fit: covariance, intervals, identifiability."""
     r, J = np.asarray(r), np.asarray(J)
     used = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :]).reshape(-1)
     r, J = r[used], J[used]
@@ -620,11 +625,113 @@ def fit(
         converged=converged,
         identifiability=ident,
         singular_values=sv,
-        wall_time=time.perf_counter() - start,
+        wall_time=wall_time,
         problem=problem,
         z=z,
         step=step,
     )
+
+
+def _split(problem: Problem) -> tuple[Problem, list[Problem]]:
+    """The single-log problems of a multi-log problem, stacked along a leading axis (for
+    `vmap`) and as a list. All logs must estimate the same nuisance entries."""
+    L = problem.t.shape[0]
+    per_log_y0 = [tuple(s for l, s in problem.y0_free if l == k) for k in range(L)]
+    per_log_off = [tuple(c for l, c in problem.offset_free if l == k) for k in range(L)]
+    if len(set(per_log_y0)) > 1 or len(set(per_log_off)) > 1:
+        raise ValueError("fit_independent: every log must estimate the same initial-state entries and offsets")
+    fields = ("t", "valid", "measured", "present", "torque_t", "torque_v", "y0_known")
+    singles = []
+    for k in range(L):
+        singles.append(
+            dataclasses.replace(
+                problem,
+                **{f: getattr(problem, f)[k : k + 1] for f in fields},
+                y0_free=tuple((0, s) for s in per_log_y0[k]),
+                offset_free=tuple((0, c) for c in per_log_off[k]),
+                log_names=(problem.log_names[k],),
+            )
+        )
+    same = [dataclasses.replace(q, log_names=("log",)) for q in singles]  # static parts must agree
+    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs) if eqx.is_array(xs[0]) else xs[0], *same)
+    return stacked, singles
+
+
+def fit_independent(
+    problem: Problem,
+    parameters: Sequence[Parameter],
+    *,
+    horizons: Sequence[float] | None = None,
+    n_stages: int = 4,
+    max_steps: int = 200,
+    rtol: float = 1e-3,
+    atol: float = 1e-10,
+    grid_safety: float = 0.5,
+    progress=None,
+) -> list[FitResult]:
+    """Independent fits of every log of `problem` (each log its own parameter values), all
+    in one `vmap`ped call per stage: the batch runs in lockstep, each log with its own
+    integration step. The noise levels are those of `problem` (not re-estimated).
+    Returns one `FitResult` per log."""
+    start = time.perf_counter()
+    say = progress or (lambda msg: None)
+    stacked, singles = _split(problem)
+    L = len(singles)
+    x0 = _x_from_theta(problem, [p.guess for p in parameters])
+    z1 = {
+        "phys": jnp.asarray(_z_from_x(problem, x0)),
+        "y0": None,
+        "offset": jnp.zeros(len(singles[0].offset_free)),
+    }
+    z = {
+        "phys": jnp.tile(z1["phys"], (L, 1)),
+        "y0": jnp.stack([jnp.asarray([q.y0_known[0, s] for _, s in q.y0_free], dtype=float) for q in singles]),
+        "offset": jnp.tile(z1["offset"], (L, 1)),
+    }
+    sigma = problem.sigma
+    horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
+    grid = eqx.filter_vmap(_grid_step, in_axes=(0, 0, None, None))
+    solve = eqx.filter_vmap(_solve, in_axes=(0, 0, None, None, 0, None, None, None))
+    stages = [[] for _ in range(L)]
+    for h in horizons:
+        step, ok = grid(stacked, z, jnp.asarray(h), grid_safety)
+        if not bool(jnp.all(ok)):
+            raise RuntimeError("fit_independent: a simulation at the current parameters failed")
+        z, result, steps, cost = solve(stacked, z, sigma, jnp.asarray(h), step, max_steps, rtol, atol)
+        for k in range(L):
+            stages[k].append(
+                {
+                    "horizon_s": float(h),
+                    "iterations": int(steps[k]),
+                    "cost": float(cost[k]),
+                    "result": _result_name(jax.tree_util.tree_map(lambda a: a[k], result)),
+                }
+            )
+        say(f"  horizon {h:8.3f} s: {int(jnp.max(steps)):3d} iterations (slowest of {L} logs)")
+    say("  computing standard errors (exact Jacobians at the optima) ...")
+    x = (
+        jax.vmap(_x_from_z)(stacked, z["phys"])
+        if False
+        else jnp.stack([_x_from_z(singles[k], z["phys"][k]) for k in range(L)])
+    )
+    jac = eqx.filter_vmap(_jacobian_natural, in_axes=(0, 0, 0, 0, None, 0))
+    r, J = jac(stacked, x, z["y0"], z["offset"], sigma, step)
+    wall = (time.perf_counter() - start) / L
+    return [
+        _finish(
+            singles[k],
+            parameters,
+            {key: v[k] for key, v in z.items()},
+            x[k],
+            sigma,
+            step[k],
+            r[k],
+            J[k],
+            stages[k],
+            wall,
+        )
+        for k in range(L)
+    ]
 
 
 def _result_name(result) -> str:
