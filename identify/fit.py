@@ -434,7 +434,8 @@ class FitResult:
     n_residuals: int
     stages: list  # [{horizon, iterations, cost, result}]
     converged: bool
-    identifiability: list  # warnings, [{'combination': str, 'singular_value_ratio': float}]
+    at_bounds: list  # parameters that ended on a bound (the fit is then not converged)
+    identifiability: list  # warnings, [{'combination': str, 'ratio': float}]
     singular_values: np.ndarray
     wall_time: float
     problem: Problem = dataclasses.field(repr=False)
@@ -462,6 +463,8 @@ class FitResult:
             f"{its} LM iterations in {len(self.stages)} horizon stages, {self.wall_time:.1f} s, "
             f"{'converged' if self.converged else 'NOT converged'}"
         )
+        for name in self.at_bounds:
+            lines.append(f"warning: {name} ended on its bound: widen the bounds or improve the guess")
         for w in self.identifiability:
             lines.append(
                 f"warning: the data cannot separate {w['combination']} (singular value ratio {w['ratio']:.2g})"
@@ -490,6 +493,7 @@ class FitResult:
             "n_residuals": self.n_residuals,
             "stages": self.stages,
             "converged": self.converged,
+            "at_bounds": self.at_bounds,
             "identifiability_warnings": self.identifiability,
             "singular_values": self.singular_values.tolist(),
             "wall_time_s": self.wall_time,
@@ -515,6 +519,10 @@ def fit(
     rtol: float = 1e-3,
     atol: float = 1e-10,
     grid_safety: float = 0.5,
+    n_starts: int = 8,
+    start_spread: float = 2.0,
+    early_max_steps: int = 60,
+    max_restarts: int = 2,
     progress=None,
 ) -> FitResult:
     """Fit the free parameters (and per-log nuisances) of `problem`.
@@ -533,6 +541,15 @@ def fit(
       accept/reject decisions flip under tiny parameter changes: measured 1e-7 relative
       at rtol 1e-10), which stalls Levenberg-Marquardt; a grid that is frozen during
       a stage makes the loss smooth.
+    - `n_starts`, `start_spread`: the first (shortest) stage is solved from `n_starts`
+      points (the guess and a deterministic design within a factor `start_spread` of it,
+      see `_starts`) in one vmapped call, and the best continues. Measured on the
+      4-parameter flexible-arm benchmark: from guesses -50 %/+100 % off, single-start
+      growing horizon converged in 20 of 24 trials, all failures starting at 2x EI.
+    - `max_restarts`: if the fit ends with a parameter on a bound (a wrong basin), the
+      growing horizon is run again from up to this many next-best starts.
+    - `early_max_steps`: iteration budget of the stages before the last (they only need
+      to land in the right basin).
     - `progress`: callable taking a message string (e.g. `print`), or None.
     """
     start = time.perf_counter()
@@ -549,19 +566,64 @@ def fit(
     if estimate_noise is True:
         estimate_noise = problem.channels
     rounds = 2 if estimate_noise else 1
-    for rnd in range(rounds):
-        # The horizon grows in the first round only; later rounds (new noise weights) start
-        # at the optimum, where the full horizon is safe.
-        for h in horizons if rnd == 0 else horizons[-1:]:
-            step = _stage_step(problem, z, h, grid_safety)
-            z, result, steps, cost = _solve(problem, z, sigma, jnp.asarray(h), step, max_steps, rtol, atol)
-            stages.append(
-                {"horizon_s": float(h), "iterations": int(steps), "cost": float(cost), "result": _result_name(result)}
-            )
-            say(f"  horizon {h:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1]['result']})")
-        if rnd + 1 < rounds:
-            sigma = _reestimate_sigma(problem, z, sigma, estimate_noise, step)
-            say("  noise re-estimated: " + ", ".join(f"{c}={float(s):.3g}" for c, s in zip(problem.channels, sigma)))
+    candidates = [z]
+    if n_starts > 1 and problem.names:
+        # Multi-start on the shortest horizon: a few cheap short fits from a design around
+        # the guess, all in one vmapped call; the best ones seed the growing horizon.
+        h = horizons[0]
+        step = _stage_step(problem, z, h, grid_safety)
+        xs = _starts(problem, x0, n_starts, start_spread)
+        zs = {
+            "phys": jnp.asarray(np.stack([_z_from_x(problem, x) for x in xs])),
+            "y0": jnp.tile(z["y0"], (n_starts, 1)),
+            "offset": jnp.tile(z["offset"], (n_starts, 1)),
+        }
+        multi = eqx.filter_vmap(_solve, in_axes=(None, 0, None, None, None, None, None, None))
+        zs, results, steps, costs = multi(problem, zs, sigma, jnp.asarray(h), step, early_max_steps, rtol, atol)
+        order = np.argsort(np.where(np.isfinite(np.asarray(costs)), np.asarray(costs), np.inf))
+        candidates = [{k: v[int(i)] for k, v in zs.items()} for i in order[: max_restarts + 1]]
+        best = int(order[0])
+        stages.append(
+            {
+                "horizon_s": float(h),
+                "iterations": int(jnp.max(steps)),
+                "cost": float(costs[best]),
+                "result": _result_name(jax.tree_util.tree_map(lambda a: a[best], results)),
+                "starts": n_starts,
+                "start_costs": [float(c) for c in costs],
+            }
+        )
+        say(
+            f"  horizon {h:8.3f} s: {n_starts} starts, best cost {float(costs[best]):.6g} "
+            f"(start {best}; others {', '.join(f'{float(c):.4g}' for c in costs)})"
+        )
+    # Grow the horizon from the best start; if that ends on a bound of a parameter (a
+    # wrong basin), try the next-best starts and keep the lowest cost off the bounds.
+    outcomes = []
+    for attempt, z in enumerate(candidates):
+        if attempt:
+            say(f"  a parameter ended on its bound: growing the horizon again from start #{attempt + 1}")
+        z, sigma_a, step, tried = _grow(
+            problem,
+            z,
+            sigma,
+            horizons,
+            rounds,
+            estimate_noise,
+            grid_safety,
+            max_steps,
+            early_max_steps,
+            rtol,
+            atol,
+            say,
+        )
+        x = _x_from_z(problem, z["phys"])
+        bounded = _at_bounds(problem, np.asarray(x))
+        outcomes.append((bool(bounded), tried[-1]["cost"], z, sigma_a, step, tried))
+        if not bounded:
+            break
+    _, _, z, sigma, step, tried = min(outcomes, key=lambda o: (o[0], o[1]))
+    stages.extend(tried)
     say("  computing standard errors (exact Jacobian at the optimum) ...")
     x = _x_from_z(problem, z["phys"])
     r, J = _jacobian_natural(problem, x, z["y0"], z["offset"], sigma, step)
@@ -569,6 +631,45 @@ def fit(
     if not bool(jnp.all(ok)):
         raise RuntimeError("fit: the simulation at the fitted parameters failed; check bounds and solver settings")
     return _finish(problem, parameters, z, x, sigma, step, r, J, stages, time.perf_counter() - start)
+
+
+def _grow(
+    problem, z, sigma, horizons, rounds, estimate_noise, grid_safety, max_steps, early_max_steps, rtol, atol, say
+):
+    """The growing-horizon stages (and a noise re-estimation round) from `z`."""
+    stages = []
+    step = None
+    for rnd in range(rounds):
+        # The horizon grows in the first round only; later rounds (new noise weights) start
+        # at the optimum, where the full horizon is safe.
+        for k, h in enumerate(horizons if rnd == 0 else horizons[-1:]):
+            last = rnd > 0 or k == len(horizons) - 1
+            step = _stage_step(problem, z, h, grid_safety)
+            budget = max_steps if last else early_max_steps
+            z, result, steps, cost = _solve(problem, z, sigma, jnp.asarray(h), step, budget, rtol, atol)
+            stages.append(
+                {"horizon_s": float(h), "iterations": int(steps), "cost": float(cost), "result": _result_name(result)}
+            )
+            say(f"  horizon {h:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1]['result']})")
+        if rnd + 1 < rounds:
+            sigma = _reestimate_sigma(problem, z, sigma, estimate_noise, step)
+            say("  noise re-estimated: " + ", ".join(f"{c}={float(s):.3g}" for c, s in zip(problem.channels, sigma)))
+    return z, sigma, step, stages
+
+
+def _at_bounds(problem: Problem, xs: np.ndarray) -> list[str]:
+    """Names of the parameters whose natural coordinate is on (within 0.1 % of the range
+    of) a finite bound."""
+    lo_b, hi_b = np.asarray(problem.lower), np.asarray(problem.upper)
+    out = []
+    for i, name in enumerate(problem.names):
+        if np.isfinite(lo_b[i]) and np.isfinite(hi_b[i]):
+            u = (xs[i] - lo_b[i]) / (hi_b[i] - lo_b[i])
+            if u < 1e-3 or u > 1 - 1e-3:
+                out.append(name)
+        elif (np.isfinite(lo_b[i]) and xs[i] - lo_b[i] < 1e-6) or (np.isfinite(hi_b[i]) and hi_b[i] - xs[i] < 1e-6):
+            out.append(name)
+    return out
 
 
 def _finish(problem: Problem, parameters, z, x, sigma, step, r, J, stages, wall_time) -> FitResult:
@@ -606,7 +707,10 @@ def _finish(problem: Problem, parameters, z, x, sigma, step, r, J, stages, wall_
     q = p + len(problem.y0_free)
     for k, (l, c) in enumerate(problem.offset_free):
         offs.setdefault(problem.log_names[l], {})[problem.channels[c]] = (float(z["offset"][k]), float(se_nat[q + k]))
-    converged = stages[-1]["result"] == "successful"
+    at_bounds = _at_bounds(problem, xs)
+    # A parameter on its bound is not an interior optimum: the standard errors mean nothing
+    # there and the bound, not the data, decided the value.
+    converged = stages[-1]["result"] == "successful" and not at_bounds
     return FitResult(
         names=list(problem.names),
         values=values,
@@ -623,6 +727,7 @@ def _finish(problem: Problem, parameters, z, x, sigma, step, r, J, stages, wall_
         n_residuals=n_res,
         stages=stages,
         converged=converged,
+        at_bounds=at_bounds,
         identifiability=ident,
         singular_values=sv,
         wall_time=wall_time,
@@ -737,9 +842,38 @@ def fit_independent(
 def _result_name(result) -> str:
     if result == optx.RESULTS.successful:
         return "successful"
-    if result == optx.RESULTS.max_steps_reached:
-        return "max_steps_reached"
+    for name in ("nonlinear_max_steps_reached", "max_steps_reached"):
+        if name in optx.RESULTS._name_to_item and result == getattr(optx.RESULTS, name):
+            return "max_steps_reached"
     return "failed"
+
+
+def _starts(problem: Problem, x0: np.ndarray, n_starts: int, spread: float) -> np.ndarray:
+    """`n_starts` starting points in natural coordinates: the guess itself, then a
+    deterministic low-discrepancy (Halton) design around it: log-scaled parameters within
+    a factor `spread` of the guess, signed ones within +-50 % (+-1 when the guess is 0),
+    clipped inside the bounds."""
+    p = len(x0)
+    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53][:p] or [2]
+
+    def halton(k, b):
+        f, r = 1.0, 0.0
+        while k > 0:
+            f /= b
+            r += f * (k % b)
+            k //= b
+        return r
+
+    lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
+    out = [np.asarray(x0, float)]
+    for k in range(1, n_starts):
+        u = np.array([2.0 * halton(k, primes[i % len(primes)]) - 1.0 for i in range(p)])
+        width = np.array([np.log(spread) if problem.log_scale[i] else 0.5 * abs(x0[i]) or 1.0 for i in range(p)])
+        x = x0 + u * width
+        span = hi - lo
+        margin = np.where(np.isfinite(span), 1e-3 * span, 0.0)
+        out.append(np.clip(x, lo + margin, hi - margin))
+    return np.stack(out)
 
 
 def _stage_step(problem: Problem, z, horizon, safety):

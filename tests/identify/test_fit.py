@@ -1,0 +1,429 @@
+"""System identification (`identify.fit`) on synthetic logs from known parameters.
+
+Issue requirements tested here:
+
+- recovery: every parameter inside its reported 95 % CI (coverage >= 90 % over 50 seeded
+  trials, slow) and to 1 % (EI, hub inertia) / 5 % (joint damping, payload) at 1 % noise;
+- convergence from far-off guesses (-50 % / +100 % on each of EI, damping, hub inertia,
+  payload) in >= 95 % of seeded trials (slow), with the iteration counts printed;
+- a multi-log fit (three releases, shared EI and damping, per-log initial angle);
+- paper 000's log-decrement damping estimate against a full fit of the exact model.
+
+The CI-sized versions run by default (about 3 minutes on 2 cores); the statistical ones
+are marked `slow` (`pytest -m slow -s tests/identify/test_fit.py` prints their tables).
+
+**The 4-parameter scenario.** A single flexible link in the horizontal plane (paper
+002's link: l = 0.5 m, rho = 0.2 kg/m, EI = 1 N m^2, hub 0.02 kg m^2, payload 0.05 kg,
+joint damping 0.005 N m s, modal damping ratio 0.02), driven by two torque doublets of
+0.05 N m, logged for 1.2 s at 4 ms (`theta1` and `tip1`), white noise of 1 % of each
+channel's RMS. We use ONE assumed mode (`N_MODES`): measured on seeds 1-3, the estimates
+and standard errors with one mode agree with those of the two-mode model to 3 digits
+(e.g. seed 1: EI +0.127 % vs +0.128 %, damping +0.294 % vs +0.292 %) while a fit is ~4x
+cheaper (about 12 s instead of 45 s per fit on the shared 2-core machine); the 1.2 s log
+at 4 ms (instead of 2.0 s at 2 ms) recovers all four parameters within the issue's bars.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+from scipy.signal import find_peaks
+
+import flexdyn as fd
+import identify
+
+# ---------------------------------------------------------------------------
+# The 4-parameter scenario
+# ---------------------------------------------------------------------------
+
+N_MODES = 1
+TRUTH = {"link1.EI": 1.0, "joint1.damping": 0.005, "hub1.inertia": 0.02, "payload.mass": 0.05}
+#: The issue's accuracy bars at 1 % noise (relative error).
+BARS = {"link1.EI": 0.01, "joint1.damping": 0.05, "hub1.inertia": 0.01, "payload.mass": 0.05}
+T_END, DT = 1.2, 4e-3
+CHANNELS = ("theta1", "tip1")
+
+
+def arm_chain() -> fd.Chain:
+    return fd.Chain(
+        [fd.FlexibleLink(0.5, 0.2, TRUTH["link1.EI"], n_modes=N_MODES, damping_ratio=0.02)],
+        joints=[fd.RigidJoint(damping=TRUTH["joint1.damping"])],
+        hubs=[fd.Hub(inertia=TRUTH["hub1.inertia"])],
+        payload=fd.Payload(mass=TRUTH["payload.mass"]),
+    )
+
+
+def doublets(t):
+    """Two torque doublets of 0.05 N m: +/- on [0, 0.2)/[0.2, 0.4), then [0.8, 0.9)/[0.9, 1.0)."""
+    tau = np.zeros_like(t)
+    for a, b, v in ((0.0, 0.2, 0.05), (0.2, 0.4, -0.05), (0.8, 0.9, 0.05), (0.9, 1.0, -0.05)):
+        tau[(t >= a) & (t < b)] = v
+    return tau[:, None]
+
+
+class Arm:
+    """The scenario's chain, time grid, torque and noise levels (1 % of each channel's RMS
+    on the noise-free log), built once per test session."""
+
+    def __init__(self):
+        self.chain = arm_chain()
+        self.t = np.arange(0.0, T_END, DT)
+        self.torque = doublets(self.t)
+        clean = identify.simulate_log(self.chain, self.t, torque=self.torque, channels=CHANNELS)
+        self.noise = {c: 0.01 * float(np.sqrt(np.mean(v**2))) for c, v in clean.outputs.items()}
+
+    def log(self, seed: int) -> identify.LogData:
+        return identify.simulate_log(
+            self.chain,
+            self.t,
+            torque=self.torque,
+            channels=CHANNELS,
+            noise=self.noise,
+            rng=np.random.default_rng(seed),
+        )
+
+    def fit(self, seed: int, factors, **options):
+        """Fit all four parameters to the log of `seed` from guesses `truth * factors`,
+        bounds truth * [1e-2, 1e2]. Returns (result, wall seconds)."""
+        params = [
+            identify.Parameter(name, value * f, value * 1e-2, value * 1e2)
+            for (name, value), f in zip(TRUTH.items(), factors)
+        ]
+        start = time.perf_counter()
+        problem = identify.make_problem(self.chain, params, [self.log(seed)], noise=self.noise)
+        result = identify.fit(problem, params, estimate_noise=False, **options)
+        return result, time.perf_counter() - start
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return Arm()
+
+
+def rel_errors(result) -> dict:
+    return {n: result.value[n] / TRUTH[n] - 1.0 for n in TRUTH}
+
+
+def within_bars(result) -> bool:
+    return all(abs(e) <= BARS[n] for n, e in rel_errors(result).items())
+
+
+def in_ci(result) -> dict:
+    return {n: bool(result.ci_low[i] <= TRUTH[n] <= result.ci_high[i]) for i, n in enumerate(result.names)}
+
+
+def iterations(result) -> int:
+    return sum(s["iterations"] for s in result.stages)
+
+
+def describe(result, seconds, label="") -> str:
+    errs = rel_errors(result)
+    se = {n: result.std_errors[i] / TRUTH[n] for i, n in enumerate(result.names)}
+    cells = "  ".join(f"{n} {100 * errs[n]:+.3f}% (SE {100 * se[n]:.3f}%)" for n in TRUTH)
+    its = "+".join(str(s["iterations"]) for s in result.stages)
+    return f"{label} {cells}  iterations {its}={iterations(result)}  {seconds:.1f} s  converged={result.converged}"
+
+
+# ---------------------------------------------------------------------------
+# CI-sized: recovery and far-off guesses
+# ---------------------------------------------------------------------------
+
+
+def test_recovery_accuracy_and_ci(arm):
+    """Three seeded noisy logs, moderate guesses (+-20 %): each fit converges, recovers EI
+    and hub inertia to 1 % and damping and payload to 5 % (the issue's bars at 1 % noise),
+    and the reported 95 % CIs cover the truth.
+
+    CI containment is probabilistic: with 3 x 4 = 12 intervals each covering with
+    probability 0.95, P(3 or more misses) = 2 %, so we allow at most 2 misses; and no
+    estimate may be more than 4 standard errors from the truth (P = 6e-5 each), which
+    catches error bars that are too small by a large factor."""
+    misses = []
+    for seed, factors in ((1, (1.2, 0.8, 1.2, 0.8)), (2, (0.8, 1.2, 0.8, 1.2)), (3, (1.2, 1.2, 0.8, 0.8))):
+        result, seconds = arm.fit(seed, factors)
+        print(describe(result, seconds, f"seed {seed}:"))
+        assert result.converged, result.summary()
+        for n, e in rel_errors(result).items():
+            assert abs(e) <= BARS[n], f"seed {seed}: {n} off by {100 * e:+.3f}% (bar {100 * BARS[n]:.0f}%)"
+        for i, n in enumerate(result.names):
+            z = (result.values[i] - TRUTH[n]) / result.std_errors[i]
+            assert abs(z) <= 4.0, f"seed {seed}: {n} is {z:+.1f} standard errors from the truth"
+        misses += [(seed, n) for n, ok in in_ci(result).items() if not ok]
+    assert len(misses) <= 2, f"truth outside the 95% CI in {misses}"
+
+
+@pytest.mark.parametrize(
+    "seed, factors",
+    [
+        (4, (0.5, 2.0, 0.5, 2.0)),  # EI -50 %, damping +100 %, hub -50 %, payload +100 %
+        (5, (2.0, 0.5, 2.0, 0.5)),  # the opposite corner
+    ],
+    ids=["EI-50_damp+100_hub-50_payload+100", "EI+100_damp-50_hub+100_payload-50"],
+)
+def test_converges_from_far_off_corner(arm, seed, factors):
+    """From guesses -50 % / +100 % off on every parameter the default fit (growing horizon)
+    converges to the truth within the issue's accuracy bars."""
+    result, seconds = arm.fit(seed, factors)
+    print(describe(result, seconds, f"corner {factors}:"))
+    assert result.converged, result.summary()
+    errs = rel_errors(result)
+    for n, e in errs.items():
+        assert abs(e) <= BARS[n], f"{n} off by {100 * e:+.3f}% (bar {100 * BARS[n]:.0f}%)\n{result.summary()}"
+
+
+# ---------------------------------------------------------------------------
+# CI-sized: multi-log fit
+# ---------------------------------------------------------------------------
+
+
+def test_multi_log_shared_parameters():
+    """Paper 000's flexible pendulum (one mode, modal damping ratio 0.02), three drop logs
+    released from 0, -45 and -97 deg: EI and joint damping shared, the release angle of each
+    log fitted (the logs' nominal angles are 1.5 deg off, as a protractor reading might be).
+    The fit recovers the shared parameters to the issue's bars and each log's release angle.
+
+    Error bars: a single seeded trial is within its 95 % CI only with probability 0.95 per
+    quantity (this seed, 7, happens to put EI 2.1 SE low: -0.15 % with SE 0.07 %; the same
+    optimum is found with LM rtol 1e-8 and a 5x finer integration grid, and the noise-free
+    logs give EI and damping exact to 1e-6 %, so it is the noise). Coverage is what
+    `test_coverage_50_trials` measures; here every estimate must lie within 3 standard
+    errors of the truth (P = 0.997 each), which catches error bars that are too small."""
+    chain = fd.rigs.flexible_pendulum(n_modes=1, damping_ratio=0.02)
+    ei, damping = float(fd.get_parameter(chain, "link1.EI")), float(fd.get_parameter(chain, "joint1.damping"))
+    t = np.arange(0.0, 1.0, 2e-3)
+    releases = {"drop_0": 0.0, "drop_m45": -45.0, "drop_m97": -97.0}
+    logs, noise = [], {"theta1": 1e-3, "tip1": 2e-6}  # pot 0.06 deg, strain-gauge tip 2 um
+    rng = np.random.default_rng(7)
+    for name, deg in releases.items():
+        log = identify.simulate_log(
+            chain,
+            t,
+            initial={"theta1": math.radians(deg)},
+            channels=("theta1", "tip1"),
+            noise=noise,
+            rng=rng,
+            name=name,
+        )
+        nominal = {"theta1": math.radians(deg + 1.5)}
+        logs.append(dataclasses.replace(log, initial=nominal, fit_initial=("theta1",)))
+    params = [
+        identify.Parameter("link1.EI", 1.5 * ei, ei / 100, ei * 100),
+        identify.Parameter("joint1.damping", 0.5 * damping, damping / 100, damping * 100),
+    ]
+    start = time.perf_counter()
+    problem = identify.make_problem(chain, params, logs, noise=noise)
+    result = identify.fit(problem, params, estimate_noise=False)
+    print(result.summary(), f"\n({time.perf_counter() - start:.1f} s)")
+    assert result.converged, result.summary()
+    truth = {"link1.EI": ei, "joint1.damping": damping}
+    for i, n in enumerate(result.names):
+        err = result.values[i] / truth[n] - 1
+        assert abs(err) <= BARS[n], f"{n} off by {100 * err:+.3f}%"
+        z = (result.values[i] - truth[n]) / result.std_errors[i]
+        assert abs(z) <= 3.0, f"{n}: {z:+.1f} standard errors from the truth\n{result.summary()}"
+    assert set(result.initial_states) == set(releases)
+    for name, deg in releases.items():
+        value, se = result.initial_states[name]["theta1"]
+        assert abs(value - math.radians(deg)) <= 3.0 * se, (name, math.degrees(value), deg, se)
+        assert abs(math.degrees(value) - deg) < 0.05, (name, math.degrees(value), deg)
+
+
+# ---------------------------------------------------------------------------
+# CI-sized: paper 000's log-decrement damping estimate vs a full fit
+# ---------------------------------------------------------------------------
+
+G = fd.rigs.STANDARD_GRAVITY
+ROD_L, ROD_M, PAYLOAD_M, HUB_I, XI_TRUE = 0.30, 0.180, 0.020, 2e-5, 1.9e-3
+
+
+def amplitude_factor(A: float) -> float:
+    """r(A): the per-cycle log decrement of a viscously damped (lightly) pendulum swinging
+    at amplitude A, relative to its small-amplitude value. Energy E = k (1 - cos A) and
+    its loss per cycle c * oint theta_dot^2 dt give d(ln A) per cycle = c oint theta_dot^2 dt
+    / (k A sin A), against c pi omega_0 / k for the linear oscillator, so
+    r(A) = 4 sqrt(2) int_0^A sqrt(cos u - cos A) du / (pi A sin A)  (-> 1 as A -> 0)."""
+    integral = quad(lambda u: math.sqrt(max(math.cos(u) - math.cos(A), 0.0)), 0.0, A)[0]
+    return 4.0 * math.sqrt(2.0) * integral / (math.pi * A * math.sin(A))
+
+
+def swing_peaks(t, theta):
+    """Times and amplitudes (rad, from the hanging equilibrium) of the successive maxima,
+    refined by a parabola through each sampled peak and its neighbours."""
+    phi = theta + math.pi / 2
+    idx, _ = find_peaks(phi)
+    idx = idx[(idx > 0) & (idx < len(phi) - 1)]
+    a, b, c = phi[idx - 1], phi[idx], phi[idx + 1]
+    shift = 0.5 * (a - c) / (a - 2 * b + c)
+    return t[idx] + shift * (t[1] - t[0]), b - 0.25 * (a - c) * shift
+
+
+def test_paper000_damping_full_fit_vs_log_decrement():
+    """Paper 000's joint-damping estimate against a full fit.
+
+    **What "eta" must be.** Paper 000 (section 4) writes xi = eta * xi_c with xi_c =
+    rho l^2 sqrt(2 l g / 3) and calls eta "the ratio of the successive amplitudes". Taken
+    literally (eta = A_{n+1}/A_n ~ 0.85) xi would be 85 % of critical damping and the
+    pendulum would not swing at all, so eta must be the *damping ratio* obtained from that
+    ratio. For the linear oscillator J phi'' + xi phi' + k phi = 0 with xi < xi_c = 2 sqrt(k J):
+    phi = A e^{-zeta w0 t} cos(w_d t), zeta = xi / xi_c, w_d = w0 sqrt(1 - zeta^2); successive
+    maxima are one damped period T_d = 2 pi / w_d apart, so the log decrement is
+        delta = ln(A_n / A_{n+1}) = zeta w0 T_d = 2 pi zeta / sqrt(1 - zeta^2),
+    hence
+        eta = zeta = delta / sqrt(4 pi^2 + delta^2)  (~ delta / 2 pi),   xi = eta * xi_c.
+    The paper's xi_c is exactly 2 sqrt(k J) of the bare uniform rod: J = rho l^3 / 3,
+    k = rho l g * l / 2 (gravity stiffness at the hanging equilibrium), 2 sqrt(k J) =
+    rho l^2 sqrt(2 l g / 3).
+
+    **Why it differs from the fit, quantified.** The rig (`fd.rigs.rigid_pendulum`) also has
+    the 0.020 kg payload at the tip and the 2e-5 kg m^2 hub: J = 7.22e-3 instead of 5.40e-3
+    kg m^2 and k = 0.324 instead of 0.265 N m, so its true critical damping is 0.0967 N m s,
+    not xi_c = 0.0756. The decrement measures the damping ratio of the real system, so
+    the paper's formula returns xi * (xi_c,rod / xi_c,true) = 0.782 xi at small amplitude: 22 %
+    low. At large amplitude the pendulum is nonlinear and the decrement is larger by r(A)
+    (`amplitude_factor`: 1.37 at 90 deg, 1.21 at 71 deg), which happens to offset part of the
+    inertia error for a drop from horizontal (the first-cycle estimate is only ~5 % low,
+    drifting to ~18 % low as the swing decays). The full fit uses the exact nonlinear model
+    with payload and hub and recovers xi to << 1 %. We check all three statements on
+    noise-free logs (the decrement's best case) and fit the noisy log."""
+    chain = fd.rigs.rigid_pendulum(joint_damping=XI_TRUE, payload_mass=PAYLOAD_M, hub_inertia=HUB_I)
+    rho, l = ROD_M / ROD_L, ROD_L
+    xi_c_rod = rho * l**2 * math.sqrt(2 * l * G / 3)
+    J = rho * l**3 / 3 + PAYLOAD_M * l**2 + HUB_I
+    k = (rho * l**2 / 2 + PAYLOAD_M * l) * G
+    xi_c_true = 2 * math.sqrt(k * J)
+    assert xi_c_rod == pytest.approx(2 * math.sqrt(rho * l**2 * G / 2 * rho * l**3 / 3), rel=1e-12)
+    inertia_ratio = xi_c_rod / xi_c_true
+    assert inertia_ratio == pytest.approx(0.782, abs=1e-3)
+
+    t = np.arange(0.0, 8.0, 5e-3)
+    estimates = {}
+    for deg in (-97.0, 0.0):  # paper's Fig. 6(b) and 6(a)
+        clean = identify.simulate_log(chain, t, initial={"theta1": math.radians(deg)}, channels=("theta1",))
+        _, A = swing_peaks(t, clean.outputs["theta1"])
+        assert len(A) >= 6
+        delta = np.log(A[:-1] / A[1:])
+        eta = delta / np.sqrt(4 * math.pi**2 + delta**2)
+        xi_paper = eta * xi_c_rod
+        # The model behind the decrement: xi_paper = xi * (xi_c,rod / xi_c,true) * r(A_mean).
+        r = np.array([amplitude_factor(math.sqrt(a0 * a1)) for a0, a1 in zip(A[:-1], A[1:])])
+        predicted = XI_TRUE * inertia_ratio * r
+        print(
+            f"release {deg:+.0f} deg: amplitudes {np.round(np.degrees(A[:6]), 2)} deg\n"
+            f"  paper's xi (per cycle) {np.array2string(xi_paper[:5], precision=4)} = "
+            f"{np.array2string(xi_paper[:5] / XI_TRUE, precision=4)} x truth;"
+            f" predicted {np.array2string(predicted[:5] / XI_TRUE, precision=4)} x truth"
+        )
+        np.testing.assert_allclose(xi_paper, predicted, rtol=5e-3)
+        estimates[deg] = xi_paper
+
+    small = estimates[-97.0]
+    # Small amplitude: the decrement gives the true damping ratio; the paper's xi_c makes it 22 % low.
+    np.testing.assert_allclose(small / xi_c_rod, XI_TRUE / xi_c_true, rtol=5e-3)
+    np.testing.assert_allclose(small / XI_TRUE, inertia_ratio, rtol=5e-3)
+    large = estimates[0.0]
+    assert 0.93 < large[0] / XI_TRUE < 0.96  # first cycle from horizontal: errors partly cancel
+    assert np.all(np.diff(large) < 0)  # and the estimate drifts down as the swing decays
+
+    # The full fit of the exact model on a noisy drop from horizontal (pot noise 0.1 deg),
+    # starting from the paper's own (small-amplitude) estimate.
+    noise = {"theta1": math.radians(0.1)}
+    log = identify.simulate_log(
+        chain, t, initial={"theta1": 0.0}, channels=("theta1",), noise=noise, rng=np.random.default_rng(0)
+    )
+    guess = float(small.mean())
+    params = [identify.Parameter("joint1.damping", guess, 1e-5, 1e-1)]
+    start = time.perf_counter()
+    problem = identify.make_problem(chain, params, [log], noise=noise)
+    result = identify.fit(problem, params, estimate_noise=False)
+    print(result.summary(), f"\n({time.perf_counter() - start:.1f} s)")
+    assert result.converged, result.summary()
+    xi_fit = result.values[0]
+    assert abs(xi_fit / XI_TRUE - 1) < 2e-3, xi_fit
+    assert result.ci_low[0] <= XI_TRUE <= result.ci_high[0], result.summary()
+    assert abs(xi_fit - XI_TRUE) < 0.05 * abs(guess - XI_TRUE)
+
+
+# ---------------------------------------------------------------------------
+# Slow: the statistical versions
+# ---------------------------------------------------------------------------
+
+
+def _table(rows) -> str:
+    head = f"{'trial':>5} {'seed':>4} {'guess factors':>24} " + " ".join(f"{n:>16}" for n in TRUTH)
+    head += f" {'iters':>11} {'s':>6} {'ok':>3}"
+    lines = [head]
+    for r in rows:
+        f = " ".join(f"{x:.2f}" for x in r["factors"])
+        errs = " ".join(f"{100 * r['err'][n]:+8.3f}%{'' if r['in_ci'][n] else '*':1}{'':6}" for n in TRUTH)
+        lines.append(
+            f"{r['trial']:>5} {r['seed']:>4} {f:>24} {errs} {r['iters_str']:>11} {r['seconds']:6.1f} "
+            f"{'yes' if r['ok'] else 'NO':>3}"
+        )
+    return "\n".join(lines)
+
+
+def _trial_row(trial, seed, factors, result, seconds):
+    return {
+        "trial": trial,
+        "seed": seed,
+        "factors": factors,
+        "err": rel_errors(result),
+        "in_ci": in_ci(result),
+        "iters": iterations(result),
+        "iters_str": "+".join(str(s["iterations"]) for s in result.stages),
+        "seconds": seconds,
+        "converged": result.converged,
+        "ok": result.converged and within_bars(result),
+    }
+
+
+@pytest.mark.slow
+def test_coverage_50_trials(arm):
+    """50 seeded noisy logs, guesses within +-20 % (log-uniform): each parameter's 95 % CI
+    covers the truth in >= 90 % of the trials, and >= 95 % of the trials recover every
+    parameter within the issue's bars (1 % EI/hub, 5 % damping/payload). The table marks
+    CI misses with '*'."""
+    rng = np.random.default_rng(20261123)
+    rows = []
+    for trial in range(50):
+        seed = 1000 + trial
+        factors = tuple(float(f) for f in np.exp(rng.uniform(math.log(0.8), math.log(1.25), size=4)))
+        result, seconds = arm.fit(seed, factors)
+        rows.append(_trial_row(trial, seed, factors, result, seconds))
+        print(describe(result, seconds, f"trial {trial:2d} seed {seed}:"), flush=True)
+    print(_table(rows))
+    coverage = {n: np.mean([r["in_ci"][n] for r in rows]) for n in TRUTH}
+    accurate = np.mean([r["ok"] for r in rows])
+    print("coverage of the 95% CI:", {n: f"{100 * c:.0f}%" for n, c in coverage.items()})
+    print(f"within the accuracy bars: {100 * accurate:.0f}%; converged: {sum(r['converged'] for r in rows)}/50")
+    print("iterations: median", np.median([r["iters"] for r in rows]), "max", max(r["iters"] for r in rows))
+    for n, c in coverage.items():
+        assert c >= 0.90, f"{n}: 95% CI covered the truth in only {100 * c:.0f}% of 50 trials"
+    assert accurate >= 0.95, f"only {100 * accurate:.0f}% of trials within the accuracy bars"
+
+
+@pytest.mark.slow
+def test_far_off_guess_convergence(arm):
+    """24 seeded trials from far-off guesses: the 16 corners of [-50 %, +100 %]^4 (every
+    parameter at -50 % or +100 %) and 8 guesses drawn log-uniformly in [0.5, 2] x truth.
+    >= 95 % must converge to within the accuracy bars; iteration counts are printed."""
+    rng = np.random.default_rng(99)
+    guesses = [tuple(2.0 if (c >> j) & 1 else 0.5 for j in range(4)) for c in range(16)]
+    guesses += [tuple(float(f) for f in 2.0 ** rng.uniform(-1, 1, size=4)) for _ in range(8)]
+    rows = []
+    for trial, factors in enumerate(guesses):
+        seed = 2000 + trial
+        result, seconds = arm.fit(seed, factors)
+        rows.append(_trial_row(trial, seed, factors, result, seconds))
+        print(describe(result, seconds, f"trial {trial:2d} guess {factors}:"), flush=True)
+    print(_table(rows))
+    rate = np.mean([r["ok"] for r in rows])
+    its = [r["iters"] for r in rows]
+    print(f"converged within the bars: {sum(r['ok'] for r in rows)}/{len(rows)} ({100 * rate:.0f}%)")
+    print(f"iterations: min {min(its)}, median {np.median(its):.0f}, max {max(its)}")
+    assert rate >= 0.95, f"only {100 * rate:.0f}% of far-off guesses converged"
