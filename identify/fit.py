@@ -523,6 +523,7 @@ def fit(
     start_spread: float = 2.0,
     early_max_steps: int = 60,
     max_restarts: int = 2,
+    frequency_init: bool = True,
     progress=None,
 ) -> FitResult:
     """Fit the free parameters (and per-log nuisances) of `problem`.
@@ -550,11 +551,18 @@ def fit(
       growing horizon is run again from up to this many next-best starts.
     - `early_max_steps`: iteration budget of the stages before the last (they only need
       to land in the right basin).
+    - `frequency_init`: before fitting, rescale the guess of every free `link<i>.EI` whose
+      link's tip deflection or root curvature is recorded so that the model's flexural
+      frequency matches the dominant frequency of that channel in the data (frequency ~
+      sqrt(EI)): a frequency-domain initialisation that puts the first stage in the
+      right basin when EI is far off (`_frequency_initialise`).
     - `progress`: callable taking a message string (e.g. `print`), or None.
     """
     start = time.perf_counter()
     say = progress or (lambda msg: None)
     x0 = _x_from_theta(problem, [p.guess for p in parameters])
+    if frequency_init:
+        x0 = _frequency_initialise(problem, x0, say)
     z = {
         "phys": jnp.asarray(_z_from_x(problem, x0)),
         "y0": jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float),
@@ -846,6 +854,98 @@ def _result_name(result) -> str:
         if name in optx.RESULTS._name_to_item and result == getattr(optx.RESULTS, name):
             return "max_steps_reached"
     return "failed"
+
+
+def _dominant_frequency(problem: Problem, channel: str, f_lo: float, f_hi: float) -> float | None:
+    """Frequency (Hz) of the largest periodogram peak of a recorded channel in
+    [f_lo, f_hi], summed over the logs that record it (Hann window, mean removed)."""
+    j = problem.channels.index(channel)
+    total, freqs = None, None
+    valid, present = np.asarray(problem.valid), np.asarray(problem.present)
+    for l in range(valid.shape[0]):
+        if not present[l, j]:
+            continue
+        t = np.asarray(problem.t[l])[valid[l]]
+        y = np.asarray(problem.measured[l, :, j])[valid[l]]
+        if len(t) < 16:
+            continue
+        dt = float(np.median(np.diff(t)))
+        grid = np.arange(t[0], t[-1], dt)
+        y = np.interp(grid, t, y)  # non-uniform sampling and gaps
+        y = (y - y.mean()) * np.hanning(len(y))
+        n = 4 * len(y)  # zero padding for a finer frequency grid
+        power = np.abs(np.fft.rfft(y, n)) ** 2
+        f = np.fft.rfftfreq(n, dt)
+        if freqs is None or len(f) > len(freqs):
+            power_i = np.interp(f, freqs, total) if freqs is not None else 0.0
+            total, freqs = power + power_i, f
+        else:
+            total = total + np.interp(freqs, f, power)
+    if freqs is None:
+        return None
+    band = (freqs >= f_lo) & (freqs <= f_hi)
+    if not np.any(band) or np.max(total[band]) <= 0:
+        return None
+    return float(freqs[band][np.argmax(total[band])])
+
+
+def _frequency_initialise(problem: Problem, x0: np.ndarray, say) -> np.ndarray:
+    """Rescale free `link<i>.EI` guesses so that the model's flexural frequency of link i
+    matches the dominant frequency of its recorded tip deflection / root curvature."""
+    import re
+
+    x0 = np.asarray(x0, float).copy()
+    chain = _chain(problem, jnp.asarray(_theta_from_x(problem, jnp.asarray(x0))))
+    g = np.asarray(chain.gravity, float)
+    lay = chain.layout
+    Q0 = np.zeros(lay.n_dof)
+    if np.linalg.norm(g) > 0:  # about the hanging equilibrium
+        Q0[lay.theta[0]] = np.arctan2(g[1], g[0])
+        if lay.rotor[0] is not None:
+            Q0[lay.rotor[0]] = Q0[lay.theta[0]]
+    modes = None
+    for k, name in enumerate(problem.names):
+        m = re.fullmatch(r"link(\d+)\.EI", name)
+        if m is None:
+            continue
+        i = int(m[1]) - 1
+        channel = next((c for c in (f"tip{i + 1}", f"curvature{i + 1}") if c in problem.channels), None)
+        if channel is None or not lay.modal[i]:
+            continue
+        if modes is None:
+            modes = fd.modal_analysis(chain, jnp.asarray(Q0))
+            M = np.asarray(fd.mass_matrix(chain, jnp.asarray(Q0)))
+        freqs, shapes = np.asarray(modes.natural_frequency), np.asarray(modes.shapes)
+        idx = list(lay.modal[i])
+        share = np.array(
+            [
+                (np.diag(M)[idx] * shapes[idx, r] ** 2).sum() / (np.diag(M) * shapes[:, r] ** 2).sum()
+                for r in range(shapes.shape[1])
+            ]
+        )
+        candidates = [r for r in range(len(freqs)) if freqs[r] > 0 and share[r] > 0.3]
+        if not candidates:
+            continue
+        f_model = float(freqs[candidates[0]])
+        f_data = _dominant_frequency(problem, channel, 0.25 * f_model, 4.0 * f_model)
+        if f_data is None:
+            continue
+        scale = (f_data / f_model) ** 2
+        lo, hi = float(problem.lower[k]), float(problem.upper[k])
+        new = x0[k] + np.log(scale) if problem.log_scale[k] else x0[k] * scale
+        new = float(
+            np.clip(
+                new,
+                lo + 1e-3 * (hi - lo) if np.isfinite(hi - lo) else lo,
+                hi - 1e-3 * (hi - lo) if np.isfinite(hi - lo) else hi,
+            )
+        )
+        say(
+            f"  frequency initialisation: {channel} peaks at {f_data:.3g} Hz, the model at {f_model:.3g} Hz: "
+            f"{name} guess x{scale:.3g}"
+        )
+        x0[k] = new
+    return x0
 
 
 def _starts(problem: Problem, x0: np.ndarray, n_starts: int, spread: float) -> np.ndarray:
