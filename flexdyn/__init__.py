@@ -11,7 +11,7 @@ import jax as _jax
 if not _os.environ.get("FLEXDYN_NO_X64"):
     _jax.config.update("jax_enable_x64", True)
 
-from . import modes as modes, rigs as rigs
+from . import denoc as denoc, modes as modes, params as params, rigs as rigs
 from .chain import (
     AssembledChain as AssembledChain,
     Chain as Chain,
