@@ -1,5 +1,6 @@
 """Shared test set-up: float64, strict dtype promotion, a seeded RNG, helpers."""
 
+import gc
 import os
 import sys
 
@@ -23,3 +24,13 @@ def tree_allclose(x, y, *, rtol, atol):
     """True when every leaf of two pytrees agrees within the given tolerances."""
     lx, ly = jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)
     return len(lx) == len(ly) and all(np.allclose(a, b, rtol=rtol, atol=atol) for a, b in zip(lx, ly))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after each test module. A full run compiles hundreds of
+    programs in one process; keeping them all was followed by a segfault inside XLA's
+    compiler late in the run (seen once on a fresh clone), so each module starts clean."""
+    yield
+    jax.clear_caches()
+    gc.collect()
