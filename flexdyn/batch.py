@@ -1,0 +1,132 @@
+"""Batches of independent runs (payload sweeps, per-log fits) spread over all devices.
+
+A batch is any pytree whose array leaves share a leading axis `B` (one entry per run:
+stacked chains, initial states, parameter vectors). `sweep(fn, batch)` evaluates `fn` on
+every entry, vectorised with `vmap` on each device and split across the devices of a 1-D
+`Mesh` of `jax.devices()` with `shard_map`: the batch is padded to a multiple of the device
+count (by repeating its last entry, so the padding is a valid input), each device runs its
+share, and the padding is dropped. One device (a laptop, CI) is the plain vmapped call;
+several GPUs, or a CPU split with `XLA_FLAGS=--xla_force_host_platform_device_count=N`,
+need no code change.
+
+Each device runs its own vmapped program, so an adaptive solver's lockstep (every entry
+waits for the slowest, see `vmap` of `diffrax.diffeqsolve`) is per device, not global.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+BATCH_AXIS = "batch"
+
+try:  # jax >= 0.6 exports shard_map at the top level (`check_vma`); older ones under experimental
+    _shard_map = functools.partial(jax.shard_map, check_vma=False)
+except AttributeError:  # pragma: no cover - old jax
+    from jax.experimental.shard_map import shard_map as _old_shard_map
+
+    _shard_map = functools.partial(_old_shard_map, check_rep=False)
+
+
+def batch_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
+    """A 1-D mesh (axis `"batch"`) over `devices` (default: all of `jax.devices()`)."""
+    devices = jax.devices() if devices is None else list(devices)
+    if not devices:
+        raise ValueError("batch_mesh: expected at least one device")
+    return Mesh(np.array(devices), (BATCH_AXIS,))
+
+
+def batch_size(batch) -> int:
+    """The common leading dimension of the array leaves of `batch`."""
+    sizes = {int(jnp.shape(x)[0]) for x in jax.tree_util.tree_leaves(batch) if eqx.is_array(x) and jnp.ndim(x) > 0}
+    if len(sizes) != 1:
+        raise ValueError(
+            f"batch: expected array leaves sharing one leading (batch) dimension, got leading sizes {sorted(sizes)}"
+        )
+    return sizes.pop()
+
+
+def pad_batch(batch, multiple: int):
+    """`(padded, n)`: the batch padded along its leading axis to a multiple of `multiple` by
+    repeating its last entry, and the original size `n`."""
+    n = batch_size(batch)
+    extra = -n % multiple
+
+    def pad(x):
+        if not eqx.is_array(x) or extra == 0:
+            return x
+        return jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)], axis=0)
+
+    return jax.tree_util.tree_map(pad, batch), n
+
+
+def unpad_batch(tree, n: int):
+    """The first `n` entries of every array leaf (undoes `pad_batch`)."""
+    return jax.tree_util.tree_map(lambda x: x[:n] if eqx.is_array(x) else x, tree)
+
+
+def shard_batch(batch, mesh: Mesh | None = None):
+    """`(sharded, n)`: the batch padded to a multiple of the mesh's device count and placed
+    with a `NamedSharding` that splits its leading axis over the mesh (a no-op split on one
+    device). Feed it to a `jit`ted, `vmap`ped function: XLA partitions the batch. `n` is
+    the size before padding (drop the rest with `unpad_batch`)."""
+    mesh = batch_mesh() if mesh is None else mesh
+    padded, n = pad_batch(batch, mesh.size)
+    sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
+    return jax.tree_util.tree_map(lambda x: jax.device_put(x, sharding) if eqx.is_array(x) else x, padded), n
+
+
+@functools.lru_cache(maxsize=64)
+def _sharded_vmap(fn: Callable, mesh: Mesh) -> Callable:
+    """`jit(shard_map(vmap(fn)))`: batched first argument split over the mesh, the other
+    arguments replicated. Cached per (fn, mesh) so repeated sweeps reuse the compiled program."""
+    batched_spec, replicated = PartitionSpec(BATCH_AXIS), PartitionSpec()
+
+    @eqx.filter_jit
+    def run(batch, shared):
+        dyn_b, static_b = eqx.partition(batch, eqx.is_array)
+        dyn_s, static_s = eqx.partition(shared, eqx.is_array)
+
+        def per_device(db, ds):
+            s = eqx.combine(ds, static_s)
+            f = lambda element: fn(eqx.combine(element, static_b), *s)
+            out = jax.vmap(f)(db)
+            return out
+
+        in_specs = (
+            jax.tree_util.tree_map(lambda _: batched_spec, dyn_b),
+            jax.tree_util.tree_map(lambda _: replicated, dyn_s),
+        )
+        return _shard_map(per_device, mesh=mesh, in_specs=in_specs, out_specs=batched_spec)(dyn_b, dyn_s)
+
+    return run
+
+
+def sweep(fn: Callable, batch, *shared: Any, devices: Sequence[jax.Device] | None = None):
+    """`fn` applied to every entry of `batch`, vmapped and sharded over the devices.
+
+    **Arguments:**
+    - `fn`: `fn(entry, *shared) -> pytree of arrays`, written for one entry (one chain,
+      one initial state, ...). Pass the same function object each time to reuse the
+      compiled program.
+    - `batch`: pytree whose array leaves have a leading batch axis `B` (non-array leaves
+      are held static, as `eqx.filter_jit` does).
+    - `shared`: further arguments given to every entry unchanged (replicated on every device).
+    - `devices`: the devices to split over (default: all of `jax.devices()`).
+
+    Returns the outputs stacked along a leading axis of size `B`, sharded over the devices
+    (a `jax.Array`; `np.asarray` gathers it). The same values as `jax.vmap(fn)` up to
+    rounding: each device runs the same program on its share.
+    """
+    mesh = batch_mesh(devices)
+    sharded, n = shard_batch(batch, mesh)
+    shared = tuple(shared)
+    out = _sharded_vmap(fn, mesh)(sharded, shared)
+    return unpad_batch(out, n)
