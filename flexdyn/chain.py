@@ -72,6 +72,7 @@ from jaxtyping import Array, Float
 
 from ._checks import as_float_array, checked
 from .modes import GAUSS_W, GAUSS_X, evaluate_shapes, mode_shapes
+from .nonlinear import backlash_energy, has_nonlinear_forces, nonlinear_forces
 from .parts import ElasticJoint, FlexibleLink, Hub, Payload, RigidJoint, RigidLink
 
 Link = RigidLink | FlexibleLink
@@ -442,7 +443,11 @@ def potential_energy(asm: AssembledChain, Q):
         V = V + 0.5 * q @ lm.stiffness @ q
         joint = chain.joints[i]
         if joint.elastic:
-            V = V + 0.5 * joint.stiffness * (Q[lay.rotor[i]] - Q[lay.theta[i]]) ** 2
+            delta = Q[lay.rotor[i]] - Q[lay.theta[i]]
+            if joint.backlash is None:
+                V = V + 0.5 * joint.stiffness * delta**2
+            else:
+                V = V + backlash_energy(joint.stiffness, delta, joint.backlash)
     weighted = weighted + chain.payload.mass * f.end
     return V - chain.gravity @ weighted
 
@@ -504,12 +509,16 @@ def input_matrix(asm: AssembledChain | Chain) -> Float[Array, "n n_joints"]:
 
 
 def generalised_forces(asm: AssembledChain, Q, Qd, torque):
-    """F - dV/dQ - dR/dQ_dot for joint torques `torque` [N m]."""
-    return (
+    """F - dV/dQ - dR/dQ_dot (+ dry friction and drag, `flexdyn.nonlinear`) for joint
+    torques `torque` [N m]."""
+    F = (
         input_matrix(asm) @ torque
         - jax.grad(potential_energy, argnums=1)(asm, Q)
         - jax.grad(dissipation, argnums=1)(asm, Qd)
     )
+    if has_nonlinear_forces(asm.chain):
+        F = F + nonlinear_forces(asm, Q, Qd)
+    return F
 
 
 def accelerations(asm: AssembledChain | Chain, Q, Qd, torque) -> Float[Array, " n"]:
@@ -520,10 +529,12 @@ def accelerations(asm: AssembledChain | Chain, Q, Qd, torque) -> Float[Array, " 
 
 
 def inverse_dynamics(asm: AssembledChain | Chain, Q, Qd, Qdd):
-    """Generalised force that produces `Qdd`: M Qdd + h + dV/dQ + dR/dQ_dot."""
+    """Generalised force that produces `Qdd`: M Qdd + h + dV/dQ + dR/dQ_dot (- dry
+    friction and drag)."""
     asm = assemble(asm)
     M, h = mass_and_velocity_terms(asm, Q, Qd)
-    return M @ Qdd + h + jax.grad(potential_energy, argnums=1)(asm, Q) + jax.grad(dissipation, argnums=1)(asm, Qd)
+    zero = jnp.zeros(len(asm.layout.actuated), dtype=Q.dtype)
+    return M @ Qdd + h - generalised_forces(asm, Q, Qd, zero)
 
 
 def end_point(asm: AssembledChain | Chain, Q):

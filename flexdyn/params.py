@@ -21,25 +21,31 @@ from .parts import ElasticJoint, FlexibleLink, Hub, Payload, RigidJoint, RigidLi
 
 #: Fields that are physical parameters, per part type, with their SI unit.
 PARAMETER_FIELDS: dict[type, dict[str, str]] = {
-    RigidLink: {"length": "m", "mass": "kg", "com": "m", "inertia": "kg m^2"},
+    RigidLink: {"length": "m", "mass": "kg", "com": "m", "inertia": "kg m^2", "drag": "kg/m^2"},
     FlexibleLink: {
         "length": "m",
         "rho": "kg/m",
         "EI": "N m^2",
         "damping_ratio": "1",
         "sqrt_stiffness_damping": "kg^0.5",
+        "drag": "kg/m^2",
     },
-    RigidJoint: {"damping": "N m s/rad", "rotor_inertia": "kg m^2", "gear_ratio": "1"},
+    RigidJoint: {"damping": "N m s/rad", "rotor_inertia": "kg m^2", "gear_ratio": "1", "coulomb": "N m"},
     ElasticJoint: {
         "stiffness": "N m/rad",
         "rotor_inertia": "kg m^2",
         "gear_ratio": "1",
         "damping": "N m s/rad",
         "spring_damping": "N m s/rad",
+        "coulomb": "N m",
+        "backlash": "rad",
     },
     Hub: {"mass": "kg", "inertia": "kg m^2"},
     Payload: {"mass": "kg", "inertia": "kg m^2"},
 }
+
+#: Optional fields (`None` on a part: the term is absent and so is the parameter).
+OPTIONAL = {"drag", "coulomb", "backlash"}
 
 #: Parameters that may take any sign (all others are >= 0 and are fitted in log space).
 SIGNED = {"com", "gravity"}
@@ -62,6 +68,8 @@ def parameter_names(chain: Chain) -> list[str]:
         for i, part in enumerate(parts, start=1):
             for field in PARAMETER_FIELDS[type(part)]:
                 value = getattr(part, field)
+                if value is None:
+                    continue
                 if np.ndim(value) == 0:
                     names.append(f"{kind}{i}.{field}")
                 else:
@@ -91,6 +99,11 @@ def _locate(chain: Chain, name: str):
     fields = PARAMETER_FIELDS[type(part)]
     if field not in fields:
         raise KeyError(_unknown(chain, name))
+    if getattr(part, field) is None:
+        raise KeyError(
+            f"parameter {name!r}: {kind} {index} has no {field} term ({type(part).__name__}({field}=None)); "
+            f"build it with {type(part).__name__}(..., {field}=0.0) to make it a parameter"
+        )
     k = None if m["k"] is None else int(m["k"])
     ndim = np.ndim(getattr(part, field))
     if (k is None) != (ndim == 0) or (k is not None and k >= np.shape(getattr(part, field))[0]):

@@ -17,6 +17,16 @@ from ._checks import as_float_array, check_parameter
 Scalar = Float[Array, ""]
 
 
+def _smoothing(owner: str, name: str, value) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{owner}.{name}: expected a number > 0 (a static smoothing scale), got {value!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise ValueError(f"{owner}.{name}: expected a finite number > 0, got {value!r}")
+    return value
+
+
 class RigidLink(eqx.Module):
     """A rigid link of the chain.
 
@@ -27,24 +37,33 @@ class RigidLink(eqx.Module):
       (default `length / 2`, a uniform rod; negative for a counterweighted link).
     - `inertia`: rotary inertia about the centre of mass, kg m^2 (default
       `mass * length^2 / 12`, a uniform slender rod).
+    - `drag`: aerodynamic (quadratic) drag per unit length, kg/m^2: the air pushes on
+      the link with `f(x) = -drag |v_n(x)| v_n(x)` N/m (`drag = rho_air C_d w / 2` for a
+      strip of width `w`), `v_n` the velocity normal to the link; see
+      `flexdyn.nonlinear.aerodynamic_drag`. `None` (default): no drag term at all
+      (structure: the right-hand side does not compute it); `0.0`: present, switched off.
     """
 
     length: Scalar
     mass: Scalar
     com: Scalar
     inertia: Scalar
+    drag: Scalar | None
 
-    def __init__(self, length, mass, com=None, inertia=None):
+    def __init__(self, length, mass, com=None, inertia=None, drag=None):
         self.length = as_float_array(length)
         self.mass = as_float_array(mass)
         self.com = 0.5 * self.length if com is None else as_float_array(com)
         self.inertia = self.mass * self.length**2 / 12.0 if inertia is None else as_float_array(inertia)
+        self.drag = None if drag is None else as_float_array(drag)
 
     def __check_init__(self):
         check_parameter("RigidLink", "length", self.length, positive=True, shape=())
         check_parameter("RigidLink", "mass", self.mass, positive=True, shape=())
         check_parameter("RigidLink", "inertia", self.inertia, shape=())
         check_parameter("RigidLink", "com", self.com, signed=True, shape=())
+        if self.drag is not None:
+            check_parameter("RigidLink", "drag", self.drag, shape=())
 
     @property
     def n_modes(self) -> int:
@@ -65,6 +84,8 @@ class FlexibleLink(eqx.Module):
     - `sqrt_stiffness_damping`: coefficient `c` of paper 002's structural damping
       `D_j = c sqrt(K_j)` (paper: `c = 0.1`), in sqrt(kg), with our normalisation of
       the shapes (unit mean square, `q` in metres; see `flexdyn.modes`).
+    - `drag`: aerodynamic drag per unit length, kg/m^2, as for `RigidLink` (the
+      normal velocity includes the elastic rate `v_dot(x)`).
     """
 
     length: Scalar
@@ -72,9 +93,10 @@ class FlexibleLink(eqx.Module):
     EI: Scalar
     damping_ratio: Float[Array, " n_modes"]
     sqrt_stiffness_damping: Scalar
+    drag: Scalar | None
     n_modes: int = eqx.field(static=True)
 
-    def __init__(self, length, rho, EI, n_modes: int = 2, damping_ratio=0.0, sqrt_stiffness_damping=0.0):
+    def __init__(self, length, rho, EI, n_modes: int = 2, damping_ratio=0.0, sqrt_stiffness_damping=0.0, drag=None):
         if isinstance(n_modes, bool) or not isinstance(n_modes, int) or n_modes < 1:
             raise ValueError(f"FlexibleLink.n_modes: expected an integer >= 1, got {n_modes!r}")
         self.n_modes = n_modes
@@ -89,8 +111,11 @@ class FlexibleLink(eqx.Module):
             )
         self.damping_ratio = jnp.broadcast_to(damping_ratio, (n_modes,))
         self.sqrt_stiffness_damping = as_float_array(sqrt_stiffness_damping)
+        self.drag = None if drag is None else as_float_array(drag)
 
     def __check_init__(self):
+        if self.drag is not None:
+            check_parameter("FlexibleLink", "drag", self.drag, shape=())
         check_parameter("FlexibleLink", "length", self.length, positive=True, shape=())
         check_parameter("FlexibleLink", "rho", self.rho, positive=True, shape=())
         check_parameter("FlexibleLink", "EI", self.EI, positive=True, shape=())
@@ -112,20 +137,39 @@ class RigidJoint(eqx.Module):
     - `spong_approximation`: if True the rotor's kinetic energy is `1/2 G^2 I_r
       theta_dot^2` (its carrier's rotation neglected, as paper 004 eq. 7 does);
       otherwise the exact `1/2 I_r (Omega_carrier + G theta_dot)^2`.
+    - `coulomb`: dry (Coulomb) friction torque, N m, smoothed so that gradients exist:
+      `-coulomb tanh(theta_dot / coulomb_velocity)` (`flexdyn.nonlinear`). `None`
+      (default): no friction term (structure); `0.0`: present, switched off.
+    - `coulomb_velocity`: smoothing rate of the friction law, rad/s (a numerical
+      choice, static; the law is within 1 % of `sign(theta_dot)` above 2.65x this rate).
     """
 
     damping: Scalar
     rotor_inertia: Scalar
     gear_ratio: Scalar
+    coulomb: Scalar | None
     spong_approximation: bool = eqx.field(static=True)
+    coulomb_velocity: float = eqx.field(static=True)
 
-    def __init__(self, damping=0.0, rotor_inertia=0.0, gear_ratio=1.0, spong_approximation: bool = False):
+    def __init__(
+        self,
+        damping=0.0,
+        rotor_inertia=0.0,
+        gear_ratio=1.0,
+        spong_approximation: bool = False,
+        coulomb=None,
+        coulomb_velocity: float = 0.01,
+    ):
         self.damping = as_float_array(damping)
         self.rotor_inertia = as_float_array(rotor_inertia)
         self.gear_ratio = as_float_array(gear_ratio)
         self.spong_approximation = bool(spong_approximation)
+        self.coulomb = None if coulomb is None else as_float_array(coulomb)
+        self.coulomb_velocity = _smoothing("RigidJoint", "coulomb_velocity", coulomb_velocity)
 
     def __check_init__(self):
+        if self.coulomb is not None:
+            check_parameter("RigidJoint", "coulomb", self.coulomb, shape=())
         check_parameter("RigidJoint", "damping", self.damping, shape=())
         check_parameter("RigidJoint", "rotor_inertia", self.rotor_inertia, shape=())
         check_parameter("RigidJoint", "gear_ratio", self.gear_ratio, positive=True, shape=())
@@ -149,6 +193,11 @@ class ElasticJoint(eqx.Module):
     - `damping`: viscous damping on the rotor rate (bearing, motor), N m s/rad.
     - `spring_damping`: viscous damping across the spring, on `alpha_dot - theta_dot`, N m s/rad.
     - `spong_approximation`: as for `RigidJoint`.
+    - `coulomb`, `coulomb_velocity`: dry friction on the rotor rate, as for `RigidJoint`.
+    - `backlash`: half-width `b` of the gear's dead zone, rad: the spring acts on the
+      smoothed dead zone `dz(delta) = delta - b tanh(delta / b)` of the deflection
+      `delta = alpha - theta` (`flexdyn.nonlinear.backlash_deflection`). `None`
+      (default): a linear spring (structure); `0.0`: present, switched off.
     """
 
     stiffness: Scalar
@@ -156,7 +205,10 @@ class ElasticJoint(eqx.Module):
     gear_ratio: Scalar
     damping: Scalar
     spring_damping: Scalar
+    coulomb: Scalar | None
+    backlash: Scalar | None
     spong_approximation: bool = eqx.field(static=True)
+    coulomb_velocity: float = eqx.field(static=True)
 
     def __init__(
         self,
@@ -166,6 +218,9 @@ class ElasticJoint(eqx.Module):
         damping=0.0,
         spring_damping=0.0,
         spong_approximation: bool = False,
+        coulomb=None,
+        coulomb_velocity: float = 0.01,
+        backlash=None,
     ):
         self.stiffness = as_float_array(stiffness)
         self.rotor_inertia = as_float_array(rotor_inertia)
@@ -173,8 +228,14 @@ class ElasticJoint(eqx.Module):
         self.damping = as_float_array(damping)
         self.spring_damping = as_float_array(spring_damping)
         self.spong_approximation = bool(spong_approximation)
+        self.coulomb = None if coulomb is None else as_float_array(coulomb)
+        self.backlash = None if backlash is None else as_float_array(backlash)
+        self.coulomb_velocity = _smoothing("ElasticJoint", "coulomb_velocity", coulomb_velocity)
 
     def __check_init__(self):
+        for name in ("coulomb", "backlash"):
+            if getattr(self, name) is not None:
+                check_parameter("ElasticJoint", name, getattr(self, name), shape=())
         check_parameter("ElasticJoint", "stiffness", self.stiffness, positive=True, shape=())
         check_parameter("ElasticJoint", "rotor_inertia", self.rotor_inertia, positive=True, shape=())
         check_parameter("ElasticJoint", "gear_ratio", self.gear_ratio, positive=True, shape=())

@@ -1,0 +1,254 @@
+"""The catalogue of model extensions `identify.diagnose` tries: each entry is a real model
+component with its own physical parameters (`flexdyn.nonlinear`, `identify.measurement`,
+the chain's parts), switched on at a neutral value that reproduces the baseline exactly.
+
+| name                 | component                                          | parameters (SI)                     |
+| -------------------- | -------------------------------------------------- | ----------------------------------- |
+| `coulomb_friction`   | smoothed dry friction of joint i                   | `joint<i>.coulomb` (N m)            |
+| `quadratic_damping`  | aerodynamic drag on link i                         | `link<i>.drag` (kg/m^2)             |
+| `missing_mode`       | one more assumed mode on flexible link i           | (structure; refits the baseline)    |
+| `joint_elasticity`   | rigid joint i made elastic (rotor + spring)        | `joint<i>.stiffness`, `.rotor_inertia` |
+| `sensor_delay`       | delay of an output channel                         | `sensor.<ch>.delay` (s)             |
+| `sensor_gain_offset` | calibration error of an output channel             | `sensor.<ch>.gain`, `.offset`       |
+| `sensor_highpass`    | AC-coupled channel (first-order high-pass)         | `sensor.<ch>.highpass` (Hz)         |
+| `actuator_lag`       | first-order lag of joint i's applied torque        | `actuator<i>.lag` (s)               |
+| `backlash`           | smoothed dead zone in elastic joint i's gear       | `joint<i>.backlash` (rad)           |
+| `base_tilt`          | a horizontal-plane rig tilted: in-plane gravity    | `gravity[0]`, `gravity[1]` (m/s^2)  |
+
+`candidates(...)` lists the entries that apply to a rig and its logs (friction on every
+joint, drag on every link, sensor effects on every recorded channel, actuator lag on
+every driven joint, backlash on elastic joints, tilt on a rig without gravity, a
+missing mode on flexible links, elasticity on driven rigid joints), with starting values
+scaled to the rig (several per parameter: the extension fits are multi-start).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import numpy as np
+
+import flexdyn as fd
+from flexdyn._checks import as_float_array
+
+from . import measurement as meas
+
+NAMES = (
+    "coulomb_friction",
+    "quadratic_damping",
+    "missing_mode",
+    "joint_elasticity",
+    "sensor_delay",
+    "sensor_gain_offset",
+    "sensor_highpass",
+    "actuator_lag",
+    "backlash",
+    "base_tilt",
+)
+
+DESCRIPTION = {
+    "coulomb_friction": "dry (Coulomb) friction in the joint",
+    "quadratic_damping": "aerodynamic (quadratic) drag on the link",
+    "missing_mode": "one more assumed mode on the flexible link",
+    "joint_elasticity": "an elastic joint (rotor inertia on a torsional spring) instead of a rigid one",
+    "sensor_delay": "a delay in the sensor channel",
+    "sensor_gain_offset": "a calibration (gain/offset) error of the sensor channel",
+    "sensor_highpass": "an AC-coupled (high-passed) sensor channel",
+    "actuator_lag": "a first-order lag between commanded and applied torque",
+    "backlash": "backlash (a dead zone) in the joint's gear",
+    "base_tilt": "a tilted base: gravity acts in the plane of a horizontal rig",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """One catalogue entry applied at one place of a rig.
+
+    - `name`: the catalogue name (`NAMES`); `where`: the joint, link or channel.
+    - `params`: its named parameters (chain or measurement), `log_scale` per parameter
+      (positive parameters are fitted as logs), `starts`: starting values (SI), one tuple
+      per start.
+    - `structural`: it changes the model's coordinates (`missing_mode`,
+      `joint_elasticity`), so it is fitted as a model of its own.
+    """
+
+    name: str
+    where: str
+    params: tuple[str, ...]
+    log_scale: tuple[bool, ...]
+    starts: tuple[tuple[float, ...], ...]
+    structural: bool = False
+
+    @property
+    def label(self) -> str:
+        return f"{self.name}:{self.where}"
+
+
+def _none(x):
+    return x is None
+
+
+def set_field(chain: fd.Chain, getter, value) -> fd.Chain:
+    """`chain` with a (possibly absent, None) field set to `value`."""
+    return eqx.tree_at(getter, chain, as_float_array(value) if value is not None else None, is_leaf=_none)
+
+
+def characteristic_torque(chain: fd.Chain, torque_rms: float) -> float:
+    """A torque scale for starting values, N m: the RMS applied torque of the logs, or the
+    gravity moment of the whole chain held horizontal."""
+    g = float(np.linalg.norm(np.asarray(chain.gravity)))
+    moment = 0.0
+    if g > 0:
+        x = 0.0
+        for link, hub in zip(chain.links, chain.hubs):
+            m = float(link.mass) if isinstance(link, fd.RigidLink) else float(link.rho * link.length)
+            com = float(link.com) if isinstance(link, fd.RigidLink) else 0.5 * float(link.length)
+            moment += float(hub.mass) * x + m * (x + com)
+            x += float(link.length)
+        moment += float(chain.payload.mass) * x
+    return max(torque_rms, g * moment, 1e-6)
+
+
+def superset(chain: fd.Chain, measurement: meas.Measurement, channels, driven_joints) -> tuple:
+    """`(chain, measurement)` with every applicable continuous extension present at its
+    neutral value (identical equations, now with the parameters to fit)."""
+    for i, joint in enumerate(chain.joints):
+        if joint.coulomb is None:
+            chain = set_field(chain, lambda c, i=i: c.joints[i].coulomb, 0.0)
+        if joint.elastic and joint.backlash is None:
+            chain = set_field(chain, lambda c, i=i: c.joints[i].backlash, 0.0)
+    for i, link in enumerate(chain.links):
+        if link.drag is None:
+            chain = set_field(chain, lambda c, i=i: c.links[i].drag, 0.0)
+    for c in channels:
+        s = measurement.sensors.get(c, meas.Sensor())
+        for f in ("gain", "offset", "delay", "highpass"):
+            if getattr(s, f) is None:
+                measurement = meas.with_effect(measurement, f"sensor.{c}.{f}")
+    for j in driven_joints:
+        if measurement.lag(j) is None:
+            measurement = meas.with_effect(measurement, f"actuator{j + 1}.lag")
+    return chain, measurement
+
+
+def candidates(
+    chain: fd.Chain,
+    channels,
+    driven_joints,
+    *,
+    torque_rms: float,
+    rate_rms: float,
+    sample_interval: float,
+    channel_rms: dict,
+    offsets_fitted: set,
+    max_frequency_hz: float,
+) -> list[Candidate]:
+    """The catalogue entries that apply to this rig and these logs, with starting values."""
+    tau = characteristic_torque(chain, torque_rms)
+    w = max(rate_rms, 1e-3)
+    out = []
+    for i, joint in enumerate(chain.joints):
+        out.append(
+            Candidate(
+                "coulomb_friction",
+                f"joint{i + 1}",
+                (f"joint{i + 1}.coulomb",),
+                (True,),
+                ((0.003 * tau,), (0.03 * tau,)),
+            )
+        )
+    for i, link in enumerate(chain.links):
+        length = float(link.length)
+        # drag whose moment at the typical rate is ~1 % / 10 % of the torque scale
+        c0 = 4.0 * tau / (w**2 * length**4)
+        out.append(
+            Candidate("quadratic_damping", f"link{i + 1}", (f"link{i + 1}.drag",), (True,), ((0.01 * c0,), (0.1 * c0,)))
+        )
+    dt = max(sample_interval, 1e-4)
+    for c in channels:
+        out.append(Candidate("sensor_delay", c, (f"sensor.{c}.delay",), (True,), ((0.5 * dt,), (3.0 * dt,))))
+        if c in offsets_fitted:
+            out.append(Candidate("sensor_gain_offset", c, (f"sensor.{c}.gain",), (True,), ((1.0,),)))
+        else:
+            out.append(
+                Candidate(
+                    "sensor_gain_offset",
+                    c,
+                    (f"sensor.{c}.gain", f"sensor.{c}.offset"),
+                    (True, False),
+                    ((1.0, 0.0),),
+                )
+            )
+        out.append(Candidate("sensor_highpass", c, (f"sensor.{c}.highpass",), (True,), ((0.05,), (0.5,))))
+    for j in driven_joints:
+        out.append(
+            Candidate("actuator_lag", f"joint{j + 1}", (f"actuator{j + 1}.lag",), (True,), ((0.5 * dt,), (5 * dt,)))
+        )
+    for i, joint in enumerate(chain.joints):
+        if joint.elastic:
+            k = float(joint.stiffness)
+            defl = max(tau / k, 1e-5)
+            out.append(
+                Candidate(
+                    "backlash", f"joint{i + 1}", (f"joint{i + 1}.backlash",), (True,), ((0.3 * defl,), (2 * defl,))
+                )
+            )
+    if float(np.linalg.norm(np.asarray(chain.gravity))) == 0.0:
+        out.append(Candidate("base_tilt", "base", ("gravity[0]", "gravity[1]"), (False, False), ((0.0, 0.0),)))
+    for i, link in enumerate(chain.links):
+        if link.n_modes > 0 and link.n_modes < fd.modes.MAX_MODES:
+            out.append(Candidate("missing_mode", f"link{i + 1}", (), (), ((),), structural=True))
+    for j in driven_joints:
+        if not chain.joints[j].elastic:
+            out.append(
+                Candidate(
+                    "joint_elasticity",
+                    f"joint{j + 1}",
+                    (f"joint{j + 1}.stiffness", f"joint{j + 1}.rotor_inertia"),
+                    (True, True),
+                    ((),),
+                    structural=True,
+                )
+            )
+    return out
+
+
+def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: float) -> tuple[fd.Chain, dict]:
+    """The chain of a structural candidate and the guesses of its new parameters."""
+    kind, index = cand.where.rstrip("0123456789"), int(cand.where.lstrip("linkjoint"))
+    i = index - 1
+    if cand.name == "missing_mode":
+        link = chain.links[i]
+        fields = {f: getattr(link, f) for f in ("length", "rho", "EI", "sqrt_stiffness_damping", "drag")}
+        ratio = np.asarray(link.damping_ratio)
+        new = fd.FlexibleLink(n_modes=link.n_modes + 1, damping_ratio=np.concatenate([ratio, ratio[-1:]]), **fields)
+        links = list(chain.links)
+        links[i] = new
+        return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity), {}
+    if cand.name == "joint_elasticity":
+        joint, hub = chain.joints[i], chain.hubs[i]
+        # The motor's inertia (the hub's, if the rigid joint had no rotor) moves to the rotor
+        # side of the spring; the spring's first guess puts the joint mode 2x above the
+        # highest frequency the logs resolve.
+        rotor = float(joint.rotor_inertia) * float(joint.gear_ratio) ** 2 or 0.5 * float(hub.inertia) or 1e-5
+        k = rotor * (2 * np.pi * 2.0 * max_frequency_hz) ** 2
+        new = fd.ElasticJoint(
+            stiffness=k,
+            rotor_inertia=rotor,
+            gear_ratio=1.0,
+            damping=joint.damping,
+            spong_approximation=joint.spong_approximation,
+            coulomb=joint.coulomb,
+            coulomb_velocity=joint.coulomb_velocity,
+        )
+        joints = list(chain.joints)
+        joints[i] = new
+        hubs = list(chain.hubs)
+        if not float(joint.rotor_inertia):
+            hubs[i] = fd.Hub(hub.mass, float(hub.inertia) - rotor)
+        return fd.Chain(chain.links, joints, hubs, chain.payload, chain.gravity), {
+            f"joint{index}.stiffness": k,
+            f"joint{index}.rotor_inertia": rotor,
+        }
+    raise ValueError(f"{cand.name} is not structural")

@@ -1,0 +1,915 @@
+r"""Model discrepancy: show what the fitted simulation gets wrong, name the cause, extend
+the model, and measure the gain on held-out data.
+
+`diagnose(experiment)` (or `diagnose_logs(...)` on in-memory logs):
+
+1. **Baseline.** Fit the experiment's model (`identify.fit`), holding data out: the
+   experiment's validation logs; else, with several logs, the last one; else a time split
+   (the last 30 % of the log is a held-out segment whose initial state is estimated).
+2. **Evidence** (`identify.evidence`): residual RMS per channel and time window, residual
+   spectrum peaks against the model's modes, decay envelope law, frequency drift,
+   whiteness, correlation of the residual with features of the motion.
+3. **Candidates** (`identify.catalogue`): every applicable catalogue entry is fitted
+   starting from the baseline optimum (the baseline's parameters and nuisances refitted
+   with it; several starting magnitudes per entry). The continuous entries share one
+   model in which every extension is present at its neutral value, so they are fitted
+   together in one `vmap`ped Levenberg-Marquardt call (one compilation for all of them);
+   the structural ones (`missing_mode`, `joint_elasticity`) are models of their own.
+4. **Scores.** For each candidate with `k` new parameters, on the fit data (`N` weighted
+   residuals, noise levels fixed at the baseline's): the Bayesian information criterion
+   change `dBIC = N ln(RSS_c / RSS_0) + k ln N`, and the F-test p-value of the
+   nested-model comparison; on the held-out data (parameters fixed, only each held-out
+   log's own initial state/offsets re-estimated): the RMS gain `RMS_0 / RMS_c`.
+   A candidate is **accepted** when `dBIC < -bic_threshold` (default 10: "very strong"
+   evidence on Kass and Raftery's scale) **and** its held-out gain is at least
+   `min_gain` (default 1.1); the accepted candidate with the lowest dBIC wins. If none
+   is accepted, no cause is named and the evidence is shown.
+5. **Stacking.** After a win, the search runs again from the extended model (the
+   accepted effect's parameters stay free), up to `max_effects` effects.
+
+The result (`Diagnosis`) holds the baseline fit, the evidence, every candidate's scores,
+the accepted causes with their parameters and 95 % intervals (from the exact Jacobian
+of the final extended fit), and the gain per channel. `identify.report_diagnosis`
+writes the JSON and Markdown report with plots.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import types
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from scipy import stats
+
+import flexdyn as fd
+
+from . import catalogue as cat, evidence as ev, measurement as meas
+from .fit import (
+    Z95,
+    FitResult,
+    LogData,
+    Parameter,
+    Problem,
+    _initial_states,
+    _offsets,
+    _residuals_from,
+    _x_from_z,
+    _z_from_x,
+    fit,
+    make_problem,
+    predict,
+)
+
+# ---------------------------------------------------------------------------
+# Held-out split
+# ---------------------------------------------------------------------------
+
+
+def split_logs(fit_logs, validation_logs, fraction: float = 0.7):
+    """`(fit_logs, held_out_logs, description)`: the validation logs if any; else the last
+    of several logs; else a time split of the single log at `fraction` of its length."""
+    fit_logs, validation_logs = list(fit_logs), list(validation_logs)
+    if validation_logs:
+        names = ", ".join(v.name for v in validation_logs)
+        return fit_logs, validation_logs, f"whole logs held out (the experiment's validation logs: {names})"
+    if len(fit_logs) >= 2:
+        return fit_logs[:-1], fit_logs[-1:], f"whole log held out (the last log, {fit_logs[-1].name})"
+    (log,) = fit_logs
+    k = int(fraction * len(log.t))
+    t = np.asarray(log.t, float)
+    first = dataclasses.replace(
+        log,
+        t=t[:k],
+        outputs={c: np.asarray(v)[:k] for c, v in log.outputs.items()},
+        torque=None if log.torque is None else np.asarray(log.torque)[:k],
+        name=f"{log.name}[:{k}]",
+    )
+    rest_initial = _segment_initial(t[k:], {c: np.asarray(v)[k:] for c, v in log.outputs.items()})
+    second = dataclasses.replace(
+        log,
+        t=t[k:],
+        outputs={c: np.asarray(v)[k:] for c, v in log.outputs.items()},
+        torque=None if log.torque is None else np.asarray(log.torque)[k:],
+        initial=rest_initial,
+        fit_initial=tuple(rest_initial),
+        name=f"{log.name}[{k}:]",
+    )
+    desc = f"time split: the first {100 * fraction:.0f} % of {log.name} fits, the last {100 * (1 - fraction):.0f} % (t >= {t[k]:.3g} s) is held out, its initial state estimated"
+    return [first], [second], desc
+
+
+def _segment_initial(t, outputs) -> dict:
+    """Initial-state guesses of a segment from its measured link angles (and their rates)."""
+    init = {}
+    for c, v in outputs.items():
+        if c.startswith("theta") or c.startswith("alpha"):
+            init[c] = float(np.mean(v[:3]))
+            n = min(len(t), 7)
+            init[f"{c}_rate"] = float(np.polyfit(t[:n] - t[0], v[:n], 1)[0])
+    return init
+
+
+# ---------------------------------------------------------------------------
+# The joint model of all continuous candidates
+# ---------------------------------------------------------------------------
+
+SLOTS = 4  # extension parameters one fit can free at a time (accepted + candidate)
+
+
+class _Joint(eqx.Module):
+    """The superset problem and the layout of its parameter vector: the baseline's free
+    parameters (first `nb`), then every extension parameter."""
+
+    problem: Problem
+    neutral: jax.Array  # (n_ext,) neutral values of the extension parameters
+    nb: int = eqx.field(static=True)
+
+
+def _theta(j: _Joint, xb, xe, idx, logf):
+    p = j.problem
+    tb = [jnp.exp(xb[i]) if p.log_scale[i] else xb[i] for i in range(j.nb)]
+    tb = jnp.stack(tb) if tb else jnp.zeros((0,))
+    safe = jnp.where(logf, xe, 0.0)
+    ve = jnp.where(logf, jnp.exp(safe), xe)
+    te = jnp.concatenate([j.neutral, jnp.zeros(1)]).at[idx].set(ve)[:-1]
+    return jnp.concatenate([tb, te])
+
+
+def _bounds(j: _Joint):
+    return types.SimpleNamespace(lower=j.problem.lower[: j.nb], upper=j.problem.upper[: j.nb])
+
+
+def _residual(v, args):
+    j, idx, logf, sigma, step = args
+    xb = _x_from_z(_bounds(j), v["zb"])
+    theta = _theta(j, xb, v["xe"], idx, logf)
+    return _residuals_from(j.problem, theta, v["y0"], v["offset"], sigma, None, step)[0]
+
+
+@eqx.filter_jit
+def _fit_batch(j: _Joint, v0, idx, logf, sigma, step, max_steps: int):
+    """Levenberg-Marquardt for a batch of (start, slot layout) pairs, vmapped."""
+    solver = optx.LevenbergMarquardt(rtol=1e-4, atol=1e-10, norm=optx.rms_norm)
+
+    def one(v0, idx, logf):
+        args = (j, idx, logf, sigma, step)
+        sol = optx.least_squares(_residual, solver, v0, args=args, max_steps=max_steps, throw=False)
+        r = _residual(sol.value, args)
+        return sol.value, jnp.sum(r**2), sol.stats["num_steps"]
+
+    return jax.vmap(one)(v0, idx, logf)
+
+
+@eqx.filter_jit
+def _jacobian(j: _Joint, xb, xe, y0, off, idx, logf, sigma, step):
+    def fn(w):
+        return _residuals_from(
+            j.problem, _theta(j, w["xb"], w["xe"], idx, logf), w["y0"], w["offset"], sigma, None, step
+        )[0]
+
+    w = {"xb": xb, "xe": xe, "y0": y0, "offset": off}
+    J = jax.jacfwd(fn)(w)
+    return fn(w), jnp.concatenate([J["xb"], J["xe"], J["y0"], J["offset"]], axis=1)
+
+
+def _held_residual(v, args):
+    problem, theta, sigma, step = args
+    return _residuals_from(problem, theta, v["y0"], v["offset"], sigma, None, step)[0]
+
+
+@eqx.filter_jit
+def _held_out_batch(problem: Problem, thetas, v0, sigma, step, max_steps: int):
+    """Weighted held-out residuals for a batch of parameter vectors, each held-out log's
+    own nuisances (initial state entries, offsets) re-estimated."""
+    solver = optx.LevenbergMarquardt(rtol=1e-4, atol=1e-10, norm=optx.rms_norm)
+
+    def one(theta):
+        args = (problem, theta, sigma, step)
+        if v0["y0"].size + v0["offset"].size:
+            v = optx.least_squares(_held_residual, solver, v0, args=args, max_steps=max_steps, throw=False).value
+        else:
+            v = v0
+        return _held_residual(v, args), v
+
+    return jax.vmap(one)(thetas)
+
+
+# ---------------------------------------------------------------------------
+# Results
+# ---------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Score:
+    """One candidate's fit and scores (SI)."""
+
+    name: str
+    where: str
+    params: dict  # name -> value
+    cost: float
+    delta_bic: float
+    p_value: float
+    held_out_rms: dict  # channel -> RMS (SI)
+    held_out_gain: float
+    accepted: bool
+    k: int
+
+    @property
+    def label(self) -> str:
+        return f"{self.name}:{self.where}"
+
+
+@dataclasses.dataclass
+class Cause:
+    """An accepted model extension with its fitted parameters and 95 % intervals."""
+
+    name: str
+    where: str
+    description: str
+    parameters: dict  # name -> {value, std_error, ci95, unit}
+    delta_bic: float
+    held_out_gain: float
+
+
+@dataclasses.dataclass
+class Diagnosis:
+    """What `diagnose` found (see `summary()` and `to_dict()`)."""
+
+    split: str
+    baseline: FitResult
+    evidence: dict
+    rounds: list  # per round: list of Score (sorted by dBIC)
+    causes: list  # Cause, in the order accepted
+    held_out: dict  # {'baseline': {ch: rms}, 'extended': {ch: rms}, 'gain': {ch: ratio}, 'gain_total': ...}
+    delta_bic_total: float
+    fraction_explained: float
+    fraction_of_excess_explained: float
+    extended_chain: fd.Chain
+    extended_measurement: meas.Measurement
+    extended_parameters: dict
+    outputs: dict  # per held-out and fit log: t, measured, baseline, extended
+    modal_frequencies_hz: list
+    wall_time: float
+
+    @property
+    def named(self) -> list[str]:
+        return [c.name for c in self.causes]
+
+    def summary(self) -> str:
+        lines = [f"held-out data: {self.split}", ""]
+        if self.causes:
+            lines.append("accepted causes:")
+            for c in self.causes:
+                lines.append(
+                    f"  {c.name} at {c.where} ({c.description}): dBIC {c.delta_bic:.1f}, held-out gain {c.held_out_gain:.2f}x"
+                )
+                for n, p in c.parameters.items():
+                    lines.append(
+                        f"    {n} = {p['value']:.4g} {p['unit']} (SE {p['std_error']:.2g}, 95 % CI [{p['ci95'][0]:.4g}, {p['ci95'][1]:.4g}])"
+                    )
+        else:
+            lines.append("no catalogue entry explains the residual significantly (see the evidence and the scores)")
+        lines.append("")
+        lines.append("held-out RMS per channel (baseline -> extended, gain):")
+        for c in self.held_out["baseline"]:
+            lines.append(
+                f"  {c}: {self.held_out['baseline'][c]:.4g} -> {self.held_out['extended'][c]:.4g} ({self.held_out['gain'][c]:.2f}x)"
+            )
+        lines.append(
+            f"total dBIC {self.delta_bic_total:.1f}; fraction of the held-out residual explained "
+            f"{self.fraction_explained:.3f} (of its excess over the noise: {self.fraction_of_excess_explained:.3f})"
+        )
+        for r, scores in enumerate(self.rounds, start=1):
+            lines.append("")
+            lines.append(f"round {r}: candidates (best first)")
+            lines.append(f"  {'candidate':<34} {'dBIC':>10} {'p-value':>9} {'held-out gain':>14}  accepted")
+            for s in scores:
+                lines.append(
+                    f"  {s.label:<34} {s.delta_bic:>10.1f} {s.p_value:>9.2g} {s.held_out_gain:>13.3f}x  {'yes' if s.accepted else ''}"
+                )
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        return {
+            "split": self.split,
+            "baseline": self.baseline.to_dict(),
+            "evidence": self.evidence,
+            "rounds": [[dataclasses.asdict(s) for s in scores] for scores in self.rounds],
+            "causes": [dataclasses.asdict(c) for c in self.causes],
+            "named": self.named,
+            "held_out": self.held_out,
+            "delta_bic_total": self.delta_bic_total,
+            "fraction_explained": self.fraction_explained,
+            "fraction_of_excess_explained": self.fraction_of_excess_explained,
+            "extended_parameters": self.extended_parameters,
+            "modal_frequencies_hz": self.modal_frequencies_hz,
+            "wall_time_s": self.wall_time,
+        }
+
+
+# ---------------------------------------------------------------------------
+# The search
+# ---------------------------------------------------------------------------
+
+
+def _used(problem: Problem) -> np.ndarray:
+    return np.asarray(problem.valid[:, :, None] & problem.present[:, None, :]).reshape(-1)
+
+
+def _rms_per_channel(problem: Problem, r: np.ndarray, sigma: np.ndarray) -> dict:
+    """Per-channel RMS (SI) of weighted residuals `r` (flattened (L, T, C))."""
+    L, T, C = problem.measured.shape
+    r = np.asarray(r).reshape(L, T, C) * sigma[None, None, :]
+    mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
+    return {c: float(np.sqrt(np.mean(r[:, :, k][mask[:, :, k]] ** 2))) for k, c in enumerate(problem.channels)}
+
+
+def _modal_frequencies(chain: fd.Chain) -> list[float]:
+    try:
+        from .cli import modal_configuration
+
+        modes = fd.modal_analysis(chain, jnp.asarray(modal_configuration(chain)))
+        return [float(f) for f in np.asarray(modes.natural_frequency)]
+    except Exception:  # a rig without a stable equilibrium has no modal table
+        return []
+
+
+def diagnose_logs(
+    chain: fd.Chain,
+    parameters,
+    fit_logs,
+    held_out_logs,
+    noise: dict | None = None,
+    *,
+    split: str = "",
+    catalogue=cat.NAMES,
+    max_effects: int = 3,
+    bic_threshold: float = 10.0,
+    min_gain: float = 1.1,
+    max_steps: int = 40,
+    fit_options: dict | None = None,
+    progress=None,
+) -> Diagnosis:
+    """Diagnose in-memory logs (`LogData`); see the module docstring. `parameters` are the
+    baseline's free `Parameter`s; `noise` maps channels to known standard deviations."""
+    start = time.perf_counter()
+    say = progress or (lambda msg: None)
+    unknown = set(catalogue) - set(cat.NAMES)
+    if unknown:
+        raise ValueError(f"diagnose: unknown catalogue entries {sorted(unknown)}; the catalogue has {list(cat.NAMES)}")
+    if not held_out_logs:
+        raise ValueError("diagnose: no held-out data (give validation logs, or at least one log to split)")
+    noise = dict(noise or {})
+    parameters = list(parameters)
+    say("baseline fit ...")
+    base_problem = make_problem(chain, parameters, fit_logs, noise)
+    estimate = [c for c in base_problem.channels if noise.get(c) is None]
+    options = dict(fit_options or {})
+    base = fit(base_problem, parameters, estimate_noise=estimate or False, progress=progress, **options)
+    sigma = np.asarray([base.sigma[c] for c in base_problem.channels])
+    sigma_j = jnp.asarray(sigma)
+    step = base.step
+    fitted_chain = fd.with_parameters(chain, base.value)
+    modal = _modal_frequencies(fitted_chain)
+
+    # evidence from the baseline fit
+    from .fit import fitted_outputs
+
+    outs = fitted_outputs(base)
+    torques = {
+        name: np.asarray(base_problem.torque_v[l])[: len(outs[name]["t"]), 0]
+        for l, name in enumerate(base_problem.log_names)
+        if np.any(np.asarray(base_problem.torque_v[l]) != 0)
+    }
+    evidence = ev.evidence(outs, base.sigma, modal, torques)
+
+    # the joint model of every continuous candidate
+    channels = base_problem.channels
+    driven = sorted(
+        {
+            j
+            for log in list(fit_logs) + list(held_out_logs)
+            if log.torque is not None
+            for j in range(np.asarray(log.torque).reshape(len(log.t), -1).shape[1])
+            if np.any(np.asarray(log.torque).reshape(len(log.t), -1)[:, j] != 0)
+        }
+    )
+    t0 = np.asarray(fit_logs[0].t, float)
+    dt_sample = float(np.median(np.diff(t0)))
+    torque_rms = float(
+        np.sqrt(
+            np.mean(
+                np.concatenate(
+                    [np.asarray(log.torque, float).ravel() ** 2 for log in fit_logs if log.torque is not None]
+                    or [np.zeros(1)]
+                )
+            )
+        )
+    )
+    rate_rms = 1.0
+    for c in channels:
+        if c.startswith("theta") or c.startswith("alpha"):
+            rate_rms = float(
+                np.sqrt(
+                    np.mean(
+                        [
+                            np.mean(np.gradient(np.asarray(log.outputs[c]), np.asarray(log.t)) ** 2)
+                            for log in fit_logs
+                            if c in log.outputs
+                        ]
+                    )
+                )
+            )
+            break
+    offsets_fitted = {c for c in channels if all(c in log.offsets for log in fit_logs if c in log.outputs)}
+    max_f = 0.5 / dt_sample
+    cands = [
+        c
+        for c in cat.candidates(
+            fitted_chain,
+            channels,
+            driven,
+            torque_rms=torque_rms,
+            rate_rms=rate_rms,
+            sample_interval=dt_sample,
+            channel_rms={},
+            offsets_fitted=offsets_fitted,
+            max_frequency_hz=max_f,
+        )
+        if c.name in catalogue
+    ]
+    sup_chain, sup_meas = cat.superset(chain, meas.Measurement(), channels, driven)
+    ext_names = []
+    for c in cands:
+        if not c.structural:
+            ext_names.extend(n for n in c.params if n not in ext_names)
+    ext_params = [
+        Parameter(
+            n, 0.0 if (meas.is_signed(n) if meas.is_measurement_parameter(n) else fd.is_signed(sup_chain, n)) else 1.0
+        )
+        for n in ext_names
+    ]
+    sup_problem = make_problem(
+        sup_chain, parameters + ext_params, fit_logs, dict(zip(channels, sigma)), measurement=sup_meas
+    )
+    neutral = []
+    for n in ext_names:
+        neutral.append(
+            float(meas.get_parameter(sup_meas, n))
+            if meas.is_measurement_parameter(n)
+            else float(fd.get_parameter(sup_chain, n))
+        )
+    joint = _Joint(sup_problem, jnp.asarray(neutral, dtype=float), len(parameters))
+    ho_problem = make_problem(
+        sup_chain, parameters + ext_params, held_out_logs, dict(zip(channels, sigma)), measurement=sup_meas
+    )
+    if ho_problem.channels != channels:
+        raise ValueError(f"diagnose: held-out logs record channels {ho_problem.channels}, the fit logs {channels}")
+    ho_v0 = {
+        "y0": jnp.asarray([ho_problem.y0_known[l, s] for l, s in ho_problem.y0_free], dtype=float),
+        "offset": jnp.zeros(len(ho_problem.offset_free)),
+    }
+    used = _used(sup_problem)
+    N = int(used.sum())
+    ho_used = _used(ho_problem)
+    n_ho = int(ho_used.sum())
+    zb0 = jnp.asarray(base.z["phys"])
+    v_base = {
+        "zb": zb0,
+        "xe": jnp.zeros(SLOTS),
+        "y0": jnp.asarray(base.z["y0"]),
+        "offset": jnp.asarray(base.z["offset"]),
+    }
+    dummy = len(ext_names)
+
+    def layout(names_vals):
+        """Slot index, log flags and starting natural values for [(name, value), ...]."""
+        idx = np.full(SLOTS, dummy, int)
+        logf = np.zeros(SLOTS, bool)
+        x = np.zeros(SLOTS)
+        for s, (n, val, is_log) in enumerate(names_vals):
+            idx[s] = ext_names.index(n)
+            logf[s] = is_log
+            x[s] = np.log(val) if is_log else val
+        return idx, logf, x
+
+    def theta_of(v, idx, logf):
+        xb = _x_from_z(_bounds(joint), v["zb"])
+        return _theta(joint, xb, v["xe"], jnp.asarray(idx), jnp.asarray(logf))
+
+    def held_out(thetas):
+        r, _ = _held_out_batch(ho_problem, thetas, ho_v0, sigma_j, step, max_steps)
+        r = np.asarray(r)[:, ho_used]
+        return r
+
+    # baseline in the joint model (all extensions neutral): its cost equals the baseline fit's
+    idx0, logf0, _ = layout([])
+    theta_base = theta_of(v_base, idx0, logf0)
+    r_fit0 = np.asarray(
+        _residuals_from(sup_problem, theta_base, v_base["y0"], v_base["offset"], sigma_j, None, step)[0]
+    )[used]
+    cost0 = float(r_fit0 @ r_fit0)
+    ho0 = held_out(theta_base[None])[0]
+    say(
+        f"baseline: cost {cost0:.6g} over {N} residuals (the fit's own: {base.cost:.6g}); held-out weighted RMS {np.sqrt(np.mean(ho0**2)):.4g}"
+    )
+
+    accepted: list[tuple[cat.Candidate, dict]] = []  # continuous causes and their fitted values
+    current = {"v": v_base, "cost": cost0, "ho": ho0, "layout": [], "k": 0}
+    rounds = []
+    causes_scores = []
+    for rnd in range(max_effects):
+        remaining = [c for c in cands if c.label not in {a.label for a, _ in accepted} and not c.structural]
+        if not remaining:
+            break
+        batch, owners = [], []
+        for c in remaining:
+            for s in c.starts:
+                names_vals = list(current["layout"]) + [(n, val, lg) for n, val, lg in zip(c.params, s, c.log_scale)]
+                if len(names_vals) > SLOTS:
+                    continue
+                batch.append(layout(names_vals))
+                owners.append(c)
+        if not batch:
+            break
+        idx = jnp.asarray(np.stack([b[0] for b in batch]))
+        logf = jnp.asarray(np.stack([b[1] for b in batch]))
+        xe = np.stack([b[2] for b in batch])
+        # accepted effects start from their fitted values
+        B = len(batch)
+        v0 = {
+            "zb": jnp.tile(current["v"]["zb"], (B, 1)),
+            "xe": jnp.asarray(xe),
+            "y0": jnp.tile(current["v"]["y0"], (B, 1)),
+            "offset": jnp.tile(current["v"]["offset"], (B, 1)),
+        }
+        say(f"round {rnd + 1}: fitting {len(remaining)} candidates ({B} starts) in one vmapped call ...")
+        vs, costs, steps = _fit_batch(joint, v0, idx, logf, sigma_j, step, max_steps)
+        costs = np.asarray(costs)
+        # best start per candidate
+        best = {}
+        for b, c in enumerate(owners):
+            if np.isfinite(costs[b]) and (c.label not in best or costs[b] < costs[best[c.label]]):
+                best[c.label] = b
+        labels = [c.label for c in remaining if c.label in best]
+        bs = [best[lab] for lab in labels]
+        thetas = jnp.stack(
+            [theta_of({k: v[b] for k, v in vs.items()}, np.asarray(idx[b]), np.asarray(logf[b])) for b in bs]
+        )
+        ho = held_out(thetas)
+        scores = []
+        rms_cur = float(np.sqrt(np.mean(current["ho"] ** 2)))
+        for lab, b, r_ho in zip(labels, bs, ho):
+            c = next(x for x in remaining if x.label == lab)
+            k = len(c.params)
+            cost_c = float(costs[b])
+            dbic = N * math.log(max(cost_c, 1e-300) / current["cost"]) + k * math.log(N)
+            p_total = len(parameters) + current["k"] + k + len(sup_problem.y0_free) + len(sup_problem.offset_free)
+            dof = max(N - p_total, 1)
+            F = ((current["cost"] - cost_c) / k) / (cost_c / dof) if cost_c > 0 else np.inf
+            p_value = float(stats.f.sf(F, k, dof)) if np.isfinite(F) else 0.0
+            rms_c = float(np.sqrt(np.mean(r_ho**2)))
+            gain = rms_cur / rms_c if rms_c > 0 else np.inf
+            theta_b = np.asarray(thetas[bs.index(b)])
+            values = {n: float(theta_b[len(parameters) + ext_names.index(n)]) for n in c.params}
+            scores.append(
+                Score(
+                    c.name,
+                    c.where,
+                    values,
+                    cost_c,
+                    float(dbic),
+                    p_value,
+                    _rms_per_channel(ho_problem, _pad_used(r_ho, ho_used), sigma),
+                    float(gain),
+                    bool(dbic < -bic_threshold and gain >= min_gain),
+                    k,
+                )
+            )
+        # structural candidates of this round
+        for c in [x for x in cands if x.structural and x.label not in {a.label for a, _ in accepted}]:
+            s = _structural_score(
+                c,
+                chain,
+                sup_chain,
+                sup_meas,
+                parameters,
+                base,
+                current,
+                accepted,
+                joint,
+                ext_names,
+                fit_logs,
+                held_out_logs,
+                channels,
+                sigma,
+                N,
+                bic_threshold,
+                min_gain,
+                max_f,
+                rms_cur,
+                say,
+            )
+            if s is not None:
+                scores.append(s)
+        scores.sort(key=lambda s: s.delta_bic)
+        rounds.append(scores)
+        winners = [s for s in scores if s.accepted]
+        for s in scores[:5]:
+            say(
+                f"  {s.label:<32} dBIC {s.delta_bic:10.1f}  held-out gain {s.held_out_gain:6.3f}x {'ACCEPTED' if s.accepted else ''}"
+            )
+        if not winners:
+            break
+        w = winners[0]
+        wc = next(x for x in cands if x.label == w.label)
+        if wc.structural:
+            # A structural winner changes the model's coordinates: report it, stop stacking
+            # (a further search would need the superset rebuilt on the new structure).
+            accepted.append((wc, {"score": w}))
+            causes_scores.append(w)
+            break
+        b = best[w.label]
+        v_w = {k: v[b] for k, v in vs.items()}
+        current = {
+            "v": v_w,
+            "cost": w.cost,
+            "ho": ho[labels.index(w.label)],
+            "layout": list(current["layout"]) + [(n, w.params[n], lg) for n, lg in zip(wc.params, wc.log_scale)],
+            "k": current["k"] + w.k,
+            "idx": np.asarray(idx[b]),
+            "logf": np.asarray(logf[b]),
+        }
+        accepted.append((wc, {"score": w}))
+        causes_scores.append(w)
+
+    # the extended model: parameters, intervals, gain
+    causes = []
+    ext_values = {}
+    if current["layout"]:
+        v = current["v"]
+        idx_c, logf_c = current["idx"], current["logf"]
+        xb = _x_from_z(_bounds(joint), v["zb"])
+        r, J = _jacobian(
+            joint, xb, v["xe"], v["y0"], v["offset"], jnp.asarray(idx_c), jnp.asarray(logf_c), sigma_j, step
+        )
+        r, J = np.asarray(r)[used], np.asarray(J)[used]
+        nparam = J.shape[1]
+        s2 = float(r @ r) / max(N - nparam, 1)
+        U, S, Vt = np.linalg.svd(J, full_matrices=False)
+        tol = S[0] * max(J.shape) * np.finfo(float).eps
+        inv = np.where(S > tol, 1.0 / np.where(S > tol, S, 1.0) ** 2, 0.0)
+        cov = s2 * (Vt.T * inv) @ Vt
+        se_nat = np.sqrt(np.clip(np.diag(cov), 0, None))
+        nb = len(parameters)
+        for slot, (n, _, lg) in enumerate(current["layout"]):
+            x = float(v["xe"][slot])
+            se = float(se_nat[nb + slot])
+            val = math.exp(x) if lg else x
+            lo, hi = (math.exp(x - Z95 * se), math.exp(x + Z95 * se)) if lg else (x - Z95 * se, x + Z95 * se)
+            ext_values[n] = {
+                "value": val,
+                "std_error": val * se if lg else se,
+                "ci95": [lo, hi],
+                "unit": _unit(sup_problem, n),
+            }
+    for wc, info in accepted:
+        sc = info["score"]
+        if wc.structural:
+            params = {
+                n: {"value": val, "std_error": float("nan"), "ci95": [float("nan")] * 2, "unit": _unit_chain(n)}
+                for n, val in sc.params.items()
+            }
+        else:
+            params = {n: ext_values[n] for n in wc.params}
+        causes.append(Cause(wc.name, wc.where, cat.DESCRIPTION[wc.name], params, sc.delta_bic, sc.held_out_gain))
+    rms_base = _rms_per_channel(ho_problem, _pad_used(ho0, ho_used), sigma)
+    rms_ext = (
+        _rms_per_channel(ho_problem, _pad_used(current["ho"], ho_used), sigma)
+        if not (accepted and accepted[-1][0].structural)
+        else accepted[-1][1]["score"].held_out_rms
+    )
+    gain = {c: rms_base[c] / rms_ext[c] if rms_ext[c] > 0 else float("inf") for c in rms_base}
+    ho_cost0 = float(ho0 @ ho0)
+    if accepted and accepted[-1][0].structural:
+        ho_cost1 = sum((rms_ext[c] / sigma[k]) ** 2 for k, c in enumerate(channels)) / len(channels) * n_ho
+        cost_final = accepted[-1][1]["score"].cost
+    else:
+        ho_cost1 = float(current["ho"] @ current["ho"])
+        cost_final = current["cost"]
+    k_total = sum(s.k for s in causes_scores)
+    dbic_total = N * math.log(max(cost_final, 1e-300) / cost0) + k_total * math.log(N) if causes_scores else 0.0
+    frac = 1.0 - ho_cost1 / ho_cost0 if ho_cost0 > 0 else 0.0
+    excess = ho_cost0 - n_ho
+    frac_excess = (ho_cost0 - ho_cost1) / excess if excess > 0 else 0.0
+    extended_params = dict(base.value)
+    if current["layout"]:
+        theta_ext = np.asarray(theta_of(current["v"], current["idx"], current["logf"]))
+        extended_params = {n: float(theta_ext[i]) for i, n in enumerate([p.name for p in parameters])}
+        extended_params.update({n: d["value"] for n, d in ext_values.items()})
+    ext_chain = fd.with_parameters(
+        sup_chain, {n: v for n, v in extended_params.items() if not meas.is_measurement_parameter(n)}
+    )
+    ext_meas = meas.with_parameters(
+        sup_meas, {n: v for n, v in extended_params.items() if meas.is_measurement_parameter(n)}
+    )
+    traces = _traces(joint, ho_problem, base, v_base, current, theta_of, idx0, logf0, sigma_j, step, max_steps, ho_v0)
+    return Diagnosis(
+        split=split,
+        baseline=base,
+        evidence=evidence,
+        rounds=rounds,
+        causes=causes,
+        held_out={
+            "baseline": rms_base,
+            "extended": rms_ext,
+            "gain": gain,
+            "gain_total": math.sqrt(ho_cost0 / ho_cost1) if ho_cost1 > 0 else float("inf"),
+        },
+        delta_bic_total=float(dbic_total),
+        fraction_explained=float(frac),
+        fraction_of_excess_explained=float(frac_excess),
+        extended_chain=ext_chain,
+        extended_measurement=ext_meas,
+        extended_parameters=extended_params,
+        outputs=traces,
+        modal_frequencies_hz=modal,
+        wall_time=time.perf_counter() - start,
+    )
+
+
+def _pad_used(r_used, used):
+    full = np.zeros(used.shape[0])
+    full[used] = r_used
+    return full
+
+
+def _unit(problem: Problem, name: str) -> str:
+    from .fit import parameter_unit
+
+    return parameter_unit(problem, name)
+
+
+def _unit_chain(name: str) -> str:
+    return {"stiffness": "N m/rad", "rotor_inertia": "kg m^2"}.get(name.rsplit(".", 1)[-1], "")
+
+
+def _traces(joint, ho_problem, base, v_base, current, theta_of, idx0, logf0, sigma, step, max_steps, ho_v0) -> dict:
+    """Measured, baseline and extended outputs (SI) on the fit and held-out logs, for plots."""
+    out = {}
+    variants = [("baseline", v_base, idx0, logf0)]
+    if current["layout"]:
+        variants.append(("extended", current["v"], current["idx"], current["logf"]))
+    for role, problem in (("fit", joint.problem), ("held-out", ho_problem)):
+        for name, v, idx, logf in variants:
+            theta = theta_of(v, idx, logf)
+            if role == "fit":
+                y0s, off = _initial_states(problem, v["y0"]), _offsets(problem, v["offset"])
+            else:
+                _, w = _held_out_batch(problem, theta[None], ho_v0, sigma, step, max_steps)
+                y0s, off = _initial_states(problem, w["y0"][0]), _offsets(problem, w["offset"][0])
+            pred, _ = predict(problem, theta, y0s, None, step)
+            pred = np.asarray(pred + off[:, None, :])
+            valid, present = np.asarray(problem.valid), np.asarray(problem.present)
+            for l, log in enumerate(problem.log_names):
+                k = valid[l]
+                entry = out.setdefault(log, {"role": role, "t": np.asarray(problem.t[l])[k], "measured": {}})
+                for j, c in enumerate(problem.channels):
+                    if present[l, j]:
+                        entry["measured"][c] = np.asarray(problem.measured[l, k, j])
+                        entry.setdefault(name, {})[c] = pred[l, k, j]
+    return out
+
+
+def _structural_score(
+    c,
+    chain,
+    sup_chain,
+    sup_meas,
+    parameters,
+    base,
+    current,
+    accepted,
+    joint,
+    ext_names,
+    fit_logs,
+    held_out_logs,
+    channels,
+    sigma,
+    N,
+    bic_threshold,
+    min_gain,
+    max_f,
+    rms_cur,
+    say,
+):
+    """Fit a structural candidate as a model of its own (baseline parameters refitted from
+    the baseline's values, accepted continuous effects kept at their fitted values)."""
+    values = {n: val for n, val, _ in current["layout"]}
+    base_chain = fd.with_parameters(chain, base.value)
+    struct_chain, new = cat.structural_model(base_chain, c, max_frequency_hz=max_f)
+    m = sup_meas
+    if values:
+        chain_vals = {n: v for n, v in values.items() if not meas.is_measurement_parameter(n)}
+        meas_vals = {n: v for n, v in values.items() if meas.is_measurement_parameter(n)}
+        struct_chain, _ = cat.superset(struct_chain, meas.Measurement(), channels, [])
+        struct_chain = fd.with_parameters(struct_chain, chain_vals)
+        m = meas.with_parameters(sup_meas, meas_vals)
+    params = [
+        dataclasses.replace(p, guess=float(np.clip(base.value[p.name], p.lower or -np.inf, p.upper or np.inf)))
+        for p in parameters
+    ]
+    params += [Parameter(n, g) for n, g in new.items()]
+    noise = dict(zip(channels, sigma))
+    say(f"  structural candidate {c.label}: fitting its own model ...")
+    try:
+        problem = make_problem(struct_chain, params, _with_extra_state(fit_logs, struct_chain), noise, measurement=m)
+        res = fit(
+            problem,
+            params,
+            horizons=None,
+            n_stages=2,
+            n_starts=4 if new else 1,
+            estimate_noise=False,
+            frequency_init=False,
+            max_steps=60,
+        )
+        fitted = fd.with_parameters(struct_chain, {n: v for n, v in res.value.items()})
+        ho_problem = make_problem(fitted, [], _with_extra_state(held_out_logs, struct_chain), noise, measurement=m)
+        ho = fit(ho_problem, [], n_stages=1, n_starts=1, estimate_noise=False, frequency_init=False)
+    except (RuntimeError, ValueError) as e:
+        say(f"  structural candidate {c.label} failed: {e}")
+        return None
+    k = len(new)
+    k_eff = max(k, 1)
+    dbic = N * math.log(max(res.cost, 1e-300) / current["cost"]) + k * math.log(N)
+    dof = max(N - len(params) - len(problem.y0_free) - len(problem.offset_free), 1)
+    F = ((current["cost"] - res.cost) / k_eff) / (res.cost / dof)
+    p_value = float(stats.f.sf(F, k_eff, dof))
+    r_ho = np.asarray(ho.problem.measured)  # only for shape
+    del r_ho
+    rms_ch = {ch: float(np.sqrt(ho.cost / ho.n_residuals)) * float(s) for ch, s in zip(channels, sigma)}
+    from .fit import fitted_outputs
+
+    outs = fitted_outputs(ho)
+    per = {ch: [] for ch in channels}
+    for entry in outs.values():
+        for ch, rr in entry["residual"].items():
+            per[ch].append(rr)
+    rms_ch = {ch: float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for ch, v in per.items() if v}
+    rms_c = math.sqrt(ho.cost / ho.n_residuals)
+    gain = rms_cur / rms_c if rms_c > 0 else np.inf
+    vals = {n: float(v) for n, v in res.value.items() if n in new}
+    return Score(
+        c.name,
+        c.where,
+        vals,
+        float(res.cost),
+        float(dbic),
+        p_value,
+        rms_ch,
+        float(gain),
+        bool(dbic < -bic_threshold and gain >= min_gain),
+        k,
+    )
+
+
+def _with_extra_state(logs, chain):
+    """Logs whose initial-state names exist in `chain` (a structural change may add
+    coordinates; their initial values default to 0)."""
+    from .channels import state_names
+
+    names = set(state_names(chain))
+    out = []
+    for log in logs:
+        out.append(
+            dataclasses.replace(
+                log,
+                initial={k: v for k, v in log.initial.items() if k in names},
+                fit_initial=tuple(k for k in log.fit_initial if k in names),
+            )
+        )
+    return out
+
+
+def diagnose(experiment, *, progress=None, **options) -> Diagnosis:
+    """Diagnose an `Experiment` (see the module docstring); `options` go to `diagnose_logs`."""
+    from .run import log_data, parameters
+
+    n = experiment.chain.n_links
+    fit_logs = [log_data(s, n) for s in experiment.fit_logs]
+    val_logs = [log_data(s, n) for s in experiment.validation_logs]
+    fit_logs, held, desc = split_logs(fit_logs, val_logs)
+    noise = {c: v for c, v in experiment.noise.items() if v is not None}
+    return diagnose_logs(
+        experiment.chain, parameters(experiment), fit_logs, held, noise, split=desc, progress=progress, **options
+    )
+
+
+__all__ = ["Cause", "Diagnosis", "Score", "diagnose", "diagnose_logs", "split_logs", "_z_from_x"]

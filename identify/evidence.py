@@ -1,0 +1,228 @@
+"""Evidence of what a fitted model gets wrong, from its residuals: numbers a person can
+read and check, computed after the baseline fit by `identify.diagnose`.
+
+- `windows`: residual RMS per channel in consecutive time windows (does the miss grow
+  with time, as an unmodelled dissipation law makes it?).
+- `spectrum_peaks`: the largest peaks of the residual's periodogram, each with the
+  nearest natural frequency of the fitted model (a peak far from every mode is an
+  unmodelled mode or a sensor/drive effect).
+- `decay_law`: for a free oscillation, the envelope of successive peak amplitudes
+  `A_k` fitted three ways: exponential (`log A` linear in t: viscous damping), linear
+  (`A` linear in t: dry friction, losing `2 F_c / k` per half period) and hyperbolic
+  (`1/A` linear in t: quadratic drag, `dA/dt ~ -A^2`); R^2 of each, for the
+  measurement and the simulation.
+- `frequency_drift`: oscillation frequency from successive zero crossings against
+  amplitude (a pendulum's frequency falls with amplitude; a model that misses it
+  shows a drift the data do not have, or the other way round).
+- `feature_correlation`: correlation of the residual with features of the simulated
+  motion (sign of velocity, velocity |velocity|, position, velocity, acceleration, the
+  input): dry friction correlates with sign(v), drag with v|v|, a delay with v, a gain
+  error with the position itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import diagnostics
+
+
+def _uniform(t, y):
+    dt = float(np.median(np.diff(t)))
+    grid = np.arange(t[0], t[-1] + 0.5 * dt, dt)
+    return grid, np.interp(grid, t, y), dt
+
+
+def windows(t, residual, n: int = 5) -> list[dict]:
+    edges = np.linspace(t[0], t[-1], n + 1)
+    out = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        k = (t >= a) & (t <= b)
+        out.append(
+            {"t0": float(a), "t1": float(b), "rms": float(np.sqrt(np.mean(residual[k] ** 2))) if k.any() else 0.0}
+        )
+    return out
+
+
+def periodogram(t, y):
+    """One-sided periodogram (Hann window, mean removed): frequencies (Hz), power density."""
+    _, y, dt = _uniform(t, y)
+    w = np.hanning(len(y))
+    y = (y - y.mean()) * w
+    n = 4 * len(y)
+    p = np.abs(np.fft.rfft(y, n)) ** 2 * dt / np.sum(w**2)
+    return np.fft.rfftfreq(n, dt), p
+
+
+def spectrum_peaks(t, residual, modal_frequencies_hz, n_peaks: int = 3) -> list[dict]:
+    f, p = periodogram(t, residual)
+    if len(p) < 5:
+        return []
+    is_peak = (p[1:-1] > p[:-2]) & (p[1:-1] >= p[2:])
+    idx = np.nonzero(is_peak)[0] + 1
+    idx = idx[np.argsort(-p[idx])][:n_peaks]
+    modes = np.asarray([m for m in modal_frequencies_hz if m > 0], float)
+    total = float(np.sum(p)) or 1.0
+    out = []
+    for i in idx:
+        entry = {"frequency_hz": float(f[i]), "power_fraction": float(p[i] / total)}
+        if modes.size:
+            j = int(np.argmin(np.abs(modes - f[i])))
+            entry["nearest_mode_hz"] = float(modes[j])
+            entry["relative_distance"] = float(abs(modes[j] - f[i]) / modes[j])
+        out.append(entry)
+    return out
+
+
+def _peaks(t, y):
+    """Times and amplitudes of the local extrema of `y` about its final mean level."""
+    level = np.mean(y[int(0.8 * len(y)) :])
+    d = y - level
+    k = (
+        np.nonzero(
+            ((d[1:-1] > d[:-2]) & (d[1:-1] >= d[2:]) & (d[1:-1] > 0))
+            | ((d[1:-1] < d[:-2]) & (d[1:-1] <= d[2:]) & (d[1:-1] < 0))
+        )[0]
+        + 1
+    )
+    return t[k], np.abs(d[k])
+
+
+def _r2(x, y):
+    if len(x) < 3 or np.ptp(x) == 0:
+        return float("nan"), float("nan")
+    A = np.vstack([x, np.ones_like(x)]).T
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    resid = y - A @ coef
+    ss = np.sum((y - y.mean()) ** 2)
+    return float(1 - resid @ resid / ss) if ss > 0 else float("nan"), float(coef[0])
+
+
+def decay_law(t, y, noise: float = 0.0) -> dict | None:
+    """Envelope fits of a free oscillation (see the module docstring); None if the signal
+    has fewer than 6 peaks above 5x the noise."""
+    tp, a = _peaks(t, y)
+    keep = a > max(5 * noise, 1e-12)
+    tp, a = tp[keep], a[keep]
+    if len(a) < 6:
+        return None
+    r_exp, s_exp = _r2(tp, np.log(a))
+    r_lin, s_lin = _r2(tp, a)
+    r_hyp, s_hyp = _r2(tp, 1.0 / a)
+    fits = {"exponential": r_exp, "linear": r_lin, "hyperbolic": r_hyp}
+    return {
+        "n_peaks": int(len(a)),
+        "r2": fits,
+        "best": max(fits, key=lambda k: -np.inf if np.isnan(fits[k]) else fits[k]),
+        "exponential_rate_per_s": -s_exp,
+        "linear_slope_per_s": s_lin,
+        "amplitude_first_last": [float(a[0]), float(a[-1])],
+    }
+
+
+def frequency_drift(t, y) -> dict | None:
+    """Frequency from zero crossings of `y - mean` against the local amplitude."""
+    level = np.mean(y[int(0.8 * len(y)) :])
+    d = y - level
+    s = np.signbit(d)
+    k = np.nonzero(s[1:] != s[:-1])[0]
+    if len(k) < 6:
+        return None
+    tc = t[k] - d[k] * (t[k + 1] - t[k]) / (d[k + 1] - d[k])
+    half = np.diff(tc)
+    freq = 0.5 / half
+    amp = np.array([np.max(np.abs(d[a : b + 1])) for a, b in zip(k[:-1], k[1:])])
+    r2, slope = _r2(amp, freq)
+    return {
+        "frequency_hz_first_last": [float(freq[0]), float(freq[-1])],
+        "amplitude_first_last": [float(amp[0]), float(amp[-1])],
+        "slope_hz_per_unit": slope,
+        "r2": r2,
+    }
+
+
+def features(t, simulated, torque=None) -> dict:
+    """Features of the simulated motion of one channel (see the module docstring)."""
+    v = np.gradient(simulated, t)
+    acc = np.gradient(v, t)
+    scale = 0.05 * (np.std(v) or 1.0)
+    out = {
+        "sign(velocity)": np.tanh(v / scale),
+        "velocity|velocity|": v * np.abs(v),
+        "velocity": v,
+        "position": simulated - np.mean(simulated),
+        "acceleration": acc,
+    }
+    if torque is not None and np.any(torque != 0):
+        out["input"] = torque
+    return out
+
+
+def feature_correlation(residual, feats: dict) -> dict:
+    out = {}
+    for name, f in feats.items():
+        if np.std(f) == 0 or np.std(residual) == 0:
+            out[name] = 0.0
+        else:
+            out[name] = float(np.corrcoef(residual, f)[0, 1])
+    return out
+
+
+def evidence(outputs: dict, sigma: dict, modal_frequencies_hz, torques: dict | None = None) -> dict:
+    """All of the above for every log and channel of `fitted_outputs(...)`."""
+    report = {}
+    for log, entry in outputs.items():
+        t = entry["t"]
+        per = {}
+        for c, r in entry["residual"].items():
+            m, s = entry["measured"][c], entry["simulated"][c]
+            tq = None if not torques or log not in torques else torques[log]
+            item = {
+                "rms": float(np.sqrt(np.mean(r**2))),
+                "noise_sigma": float(sigma.get(c, 0.0)),
+                "windows": windows(t, r),
+                "spectrum_peaks": spectrum_peaks(t, r, modal_frequencies_hz),
+                "whiteness": {
+                    k: v for k, v in diagnostics.whiteness(r).items() if k in ("ljung_box_q", "p_value", "white")
+                },
+                "decay_law": {"measured": decay_law(t, m, sigma.get(c, 0.0)), "simulated": decay_law(t, s)},
+                "frequency_drift": {"measured": frequency_drift(t, m), "simulated": frequency_drift(t, s)},
+                "feature_correlation": feature_correlation(r, features(t, s, tq)),
+            }
+            per[c] = item
+        report[log] = per
+    return report
+
+
+def summary_lines(ev: dict) -> list[str]:
+    """A few readable lines per log and channel."""
+    lines = []
+    for log, per in ev.items():
+        for c, item in per.items():
+            w = ", ".join(f"{x['rms']:.3g}" for x in item["windows"])
+            lines.append(
+                f"- `{log}` / `{c}`: residual RMS {item['rms']:.3g} (noise {item['noise_sigma']:.3g}); by window: {w}"
+            )
+            dl = item["decay_law"]
+            if dl["measured"] and dl["simulated"]:
+                rm, rs = dl["measured"]["r2"], dl["simulated"]["r2"]
+                lines.append(
+                    f"  - decay envelope: measured best fit **{dl['measured']['best']}** "
+                    f"(R^2 exp {rm['exponential']:.4f}, lin {rm['linear']:.4f}, hyp {rm['hyperbolic']:.4f}); "
+                    f"simulated best **{dl['simulated']['best']}** (exp {rs['exponential']:.4f}, lin {rs['linear']:.4f})"
+                )
+            corr = item["feature_correlation"]
+            top = sorted(corr.items(), key=lambda kv: -abs(kv[1]))[:3]
+            lines.append("  - residual correlates with: " + ", ".join(f"{k} {v:+.2f}" for k, v in top))
+            peaks = item["spectrum_peaks"]
+            if peaks:
+                lines.append(
+                    "  - residual spectrum peaks: "
+                    + ", ".join(
+                        f"{p['frequency_hz']:.3g} Hz"
+                        + (f" (model mode {p['nearest_mode_hz']:.3g} Hz)" if "nearest_mode_hz" in p else "")
+                        for p in peaks
+                    )
+                )
+            lines.append(f"  - whiteness: Ljung-Box p = {item['whiteness']['p_value']:.3g}")
+    return lines
