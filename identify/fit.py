@@ -51,8 +51,9 @@ import optimistix as optx
 
 import flexdyn as fd
 
-from . import channels as ch
+from . import channels as ch, measurement as meas
 from .channels import state_names  # noqa: F401  (re-exported)
+from .measurement import Measurement
 
 Z95 = 1.959963984540054
 
@@ -95,6 +96,7 @@ class Problem(eqx.Module):
     common length (`valid` masks the padding)."""
 
     chain: fd.Chain
+    measurement: Measurement  # sensors' calibration/dynamics and actuator lags (identify.measurement)
     lower: jax.Array  # natural coordinates (log for positive parameters); -inf/inf if none
     upper: jax.Array
     t: jax.Array  # (L, T)
@@ -127,9 +129,14 @@ def make_problem(
     atol: float = 1e-12,
     dt: float | None = None,
     max_steps: int = 100_000,
+    measurement: Measurement | None = None,
 ) -> Problem:
     """Build a `Problem`. `noise` maps channels to their standard deviation (SI); channels
     not in it start at 1 % of the channel's measured RMS and are re-estimated by `fit`.
+
+    `measurement` (`identify.measurement.Measurement`): sensor gains, offsets, delays,
+    high-pass cut-offs and actuator lags between the model and the log; its parameters
+    (`sensor.tip1.gain`, `actuator1.lag`, ...) can be free parameters like the chain's.
 
     `rtol`, `atol` (adaptive Tsit5) or `dt` (fixed-step RK4) set the simulation. The
     default tolerances are tight on purpose: an adaptive solver's step choices make the
@@ -137,12 +144,14 @@ def make_problem(
     1e-7 on a flexible pendulum), which stalls Levenberg-Marquardt near the optimum."""
     if not logs:
         raise ValueError("make_problem: expected at least one log")
-    known = set(fd.parameter_names(chain))
+    measurement = Measurement() if measurement is None else measurement
+    chain_names = set(fd.parameter_names(chain))
+    known = chain_names | set(meas.parameter_names(measurement))
     names, log_scale, lower, upper = [], [], [], []
     for p in parameters:
         if p.name not in known:
             raise ValueError(f"free parameter {p.name!r} does not exist; this chain has: {', '.join(sorted(known))}")
-        signed = fd.is_signed(chain, p.name)
+        signed = fd.is_signed(chain, p.name) if p.name in chain_names else meas.is_signed(p.name)
         lo = -np.inf if p.lower is None else float(p.lower)
         hi = np.inf if p.upper is None else float(p.upper)
         if not lo <= p.guess <= hi or lo >= hi:
@@ -209,6 +218,7 @@ def make_problem(
             sigma.append(0.01 * rms if rms > 0 else 1.0)
     return Problem(
         chain=chain,
+        measurement=measurement,
         lower=jnp.asarray(lower),
         upper=jnp.asarray(upper),
         t=jnp.asarray(t),
@@ -283,8 +293,21 @@ def _x_from_theta(problem: Problem, theta):
 # ---------------------------------------------------------------------------
 
 
+def parameter_unit(problem: Problem, name: str) -> str:
+    """SI unit of a free parameter of `problem` (chain or measurement parameter)."""
+    if meas.is_measurement_parameter(name):
+        return meas.unit(name, ch.channel_unit)
+    return fd.parameter_unit(problem.chain, name)
+
+
 def _chain(problem: Problem, theta):
-    return fd.with_parameters(problem.chain, {n: theta[i] for i, n in enumerate(problem.names)})
+    values = {n: theta[i] for i, n in enumerate(problem.names) if not meas.is_measurement_parameter(n)}
+    return fd.with_parameters(problem.chain, values)
+
+
+def _measurement(problem: Problem, theta):
+    values = {n: theta[i] for i, n in enumerate(problem.names) if meas.is_measurement_parameter(n)}
+    return meas.with_parameters(problem.measurement, values)
 
 
 def _initial_states(problem: Problem, y0_free):
@@ -314,10 +337,13 @@ def predict(problem: Problem, theta, y0s, horizon=None, step=None, *, stats: boo
     the problem's fixed `dt` (RK4) or its adaptive tolerances are used. With `stats`,
     also return the number of accepted steps per log."""
     asm = fd.assemble(_chain(problem, theta))
+    sensors = _measurement(problem, theta)
+    rates = meas.needs_rates(sensors, problem.channels)
 
     def one(t, torque_v, y0):
         t_end = t[-1] if horizon is None else jnp.minimum(t[-1], t[0] + horizon)
         ts = jnp.minimum(t, t_end)
+        torque_v = meas.apply_actuators(sensors, t, torque_v)
         torque = fd.SampledTorque(_strictly_increasing(t), torque_v, hold="linear")
         field = fd.ChainVectorField(asm, torque)
         if step is not None:
@@ -341,7 +367,15 @@ def predict(problem: Problem, theta, y0s, horizon=None, step=None, *, stats: boo
         )
         ok = (sol.result == diffrax.RESULTS.successful) & jnp.all(jnp.isfinite(sol.ys))
         ys = jnp.where(ok, sol.ys, 0.0)
-        out = jax.vmap(lambda tk, yk: ch.evaluate(asm, problem.channels, tk, yk, torque))(ts, ys)
+        evaluate = lambda tk, yk: ch.evaluate(asm, problem.channels, tk, yk, torque)  # noqa: E731
+        out = jax.vmap(evaluate)(ts, ys)
+        if rates:
+            # time derivatives of the outputs (for delayed sensors): d out/dt = d out/dy . f(t, y)
+            ydot = jax.vmap(lambda tk, yk: field(tk, yk, None))(ts, ys)
+            dout = jax.vmap(lambda tk, yk, vk: jax.jvp(lambda y_: evaluate(tk, y_), (yk,), (vk,))[1])(ts, ys, ydot)
+        else:
+            dout = out
+        out = meas.apply_sensors(sensors, problem.channels, ts, out, dout)
         return (out, ok, sol.stats["num_accepted_steps"]) if stats else (out, ok)
 
     return jax.vmap(one)(problem.t, problem.torque_v, y0s)
@@ -480,7 +514,7 @@ class FitResult:
                     "std_error": float(self.std_errors[i]),
                     "ci95": [float(self.ci_low[i]), float(self.ci_high[i])],
                     "guess": float(self.guesses[i]),
-                    "unit": fd.parameter_unit(self.problem.chain, n),
+                    "unit": parameter_unit(self.problem, n),
                 }
                 for i, n in enumerate(self.names)
             ],
