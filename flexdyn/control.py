@@ -262,6 +262,7 @@ class FastSubsystem(eqx.Module):
         return jnp.concatenate([jnp.zeros_like(self.input_map), self.input_map])
 
 
+@eqx.filter_jit
 def fast_subsystem(chain: Chain | AssembledChain, theta=None) -> FastSubsystem:
     """The fast subsystem (paper 004 eq. 67) about the rigid configuration `P theta`
     (default: all link angles zero), from the library's mass and stiffness matrices
@@ -359,6 +360,7 @@ def _care_jvp(primals, tangents):
     return X, _lyapunov(A - G @ X, C)
 
 
+@jax.jit
 def solve_care(A, B, Q, R) -> Float[Array, "n n"]:
     """Stabilising solution `X = X^T >= 0` of the continuous algebraic Riccati equation
 
@@ -381,6 +383,7 @@ def solve_care(A, B, Q, R) -> Float[Array, "n n"]:
     return _care(A, B, 0.5 * (Q + Q.T), 0.5 * (R + R.T))
 
 
+@jax.jit
 def lqr(A, B, Q, R) -> tuple[Float[Array, "m n"], Float[Array, "n n"]]:
     """Continuous-time LQR: the gain `K = R^-1 B^T X` of `u = -K x` minimising
     `int x^T Q x + u^T R u dt` for `x_dot = A x + B u`, and the Riccati solution `X`
