@@ -105,12 +105,13 @@ class NumpyChain:
         self.B[list(self.actuated), np.arange(len(links))] = 1.0
 
     @classmethod
-    def from_flexdyn(cls, chain):
+    def from_flexdyn(cls, chain, assembled=None):
         """Read a flexdyn `Chain`'s parameters and assembled shape integrals (the only
-        use of flexdyn: the constants)."""
+        use of flexdyn: the constants). `assembled`: `fd.assemble(chain)` if already at hand
+        (e.g. from a jitted call: the clamped-mass mode shapes depend on the payload)."""
         import flexdyn as fd
 
-        asm = fd.assemble(chain)
+        asm = fd.assemble(chain) if assembled is None else assembled
         lay = chain.layout
         f = lambda x: np.asarray(x, float)  # noqa: E731
         links = [

@@ -835,6 +835,15 @@ def fit_independent(
         "y0": jnp.stack([jnp.asarray([q.y0_known[0, s] for _, s in q.y0_free], dtype=float) for q in singles]),
         "offset": jnp.tile(z1["offset"], (L, 1)),
     }
+    # Spread the logs over all devices (`flexdyn.batch`): the batch is padded to a multiple
+    # of the device count (repeating the last log) and placed with a NamedSharding over a
+    # 1-D mesh of `jax.devices()`, so XLA splits every vmapped stage across the devices. On
+    # one device nothing is padded and this is the plain vmapped call. Only the first L
+    # entries of each result are read.
+    from flexdyn import batch as fbatch
+
+    mesh = fbatch.batch_mesh()
+    (stacked, z), _ = fbatch.shard_batch((stacked, z), mesh)
     sigma = problem.sigma
     horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
     grid = eqx.filter_vmap(_grid_step, in_axes=(0, 0, None, None))
@@ -862,7 +871,7 @@ def fit_independent(
         else jnp.stack([_x_from_z(singles[k], z["phys"][k]) for k in range(L)])
     )
     jac = eqx.filter_vmap(_jacobian_natural, in_axes=(0, 0, 0, 0, None, 0))
-    r, J = jac(stacked, x, z["y0"], z["offset"], sigma, step)
+    r, J = jac(stacked, fbatch.shard_batch(x, mesh)[0], z["y0"], z["offset"], sigma, step)
     wall = (time.perf_counter() - start) / L
     return [
         _finish(
