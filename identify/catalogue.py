@@ -155,7 +155,7 @@ def candidates(
                 f"joint{i + 1}",
                 (f"joint{i + 1}.coulomb",),
                 (True,),
-                ((0.003 * tau,), (0.03 * tau,)),
+                ((1e-4 * tau,), (0.003 * tau,), (0.03 * tau,)),
             )
         )
     for i, link in enumerate(chain.links):
@@ -163,11 +163,19 @@ def candidates(
         # drag whose moment at the typical rate is ~1 % / 10 % of the torque scale
         c0 = 4.0 * tau / (w**2 * length**4)
         out.append(
-            Candidate("quadratic_damping", f"link{i + 1}", (f"link{i + 1}.drag",), (True,), ((0.01 * c0,), (0.1 * c0,)))
+            Candidate(
+                "quadratic_damping",
+                f"link{i + 1}",
+                (f"link{i + 1}.drag",),
+                (True,),
+                ((1e-4 * c0,), (0.01 * c0,), (0.1 * c0,)),
+            )
         )
     dt = max(sample_interval, 1e-4)
     for c in channels:
-        out.append(Candidate("sensor_delay", c, (f"sensor.{c}.delay",), (True,), ((0.5 * dt,), (3.0 * dt,))))
+        out.append(
+            Candidate("sensor_delay", c, (f"sensor.{c}.delay",), (True,), ((0.01 * dt,), (0.5 * dt,), (3.0 * dt,)))
+        )
         if c in offsets_fitted:
             out.append(Candidate("sensor_gain_offset", c, (f"sensor.{c}.gain",), (True,), ((1.0,),)))
         else:
@@ -180,10 +188,16 @@ def candidates(
                     ((1.0, 0.0),),
                 )
             )
-        out.append(Candidate("sensor_highpass", c, (f"sensor.{c}.highpass",), (True,), ((0.05,), (0.5,))))
+        out.append(Candidate("sensor_highpass", c, (f"sensor.{c}.highpass",), (True,), ((0.005,), (0.1,), (1.0,))))
     for j in driven_joints:
         out.append(
-            Candidate("actuator_lag", f"joint{j + 1}", (f"actuator{j + 1}.lag",), (True,), ((0.5 * dt,), (5 * dt,)))
+            Candidate(
+                "actuator_lag",
+                f"joint{j + 1}",
+                (f"actuator{j + 1}.lag",),
+                (True,),
+                ((0.01 * dt,), (0.5 * dt,), (5 * dt,)),
+            )
         )
     for i, joint in enumerate(chain.joints):
         if joint.elastic:
@@ -191,7 +205,11 @@ def candidates(
             defl = max(tau / k, 1e-5)
             out.append(
                 Candidate(
-                    "backlash", f"joint{i + 1}", (f"joint{i + 1}.backlash",), (True,), ((0.3 * defl,), (2 * defl,))
+                    "backlash",
+                    f"joint{i + 1}",
+                    (f"joint{i + 1}.backlash",),
+                    (True,),
+                    ((0.01 * defl,), (0.3 * defl,), (2 * defl,)),
                 )
             )
     if float(np.linalg.norm(np.asarray(chain.gravity))) == 0.0:

@@ -178,6 +178,33 @@ def _jacobian(j: _Joint, xb, xe, y0, off, idx, logf, sigma, step):
     return fn(w), jnp.concatenate([J["xb"], J["xe"], J["y0"], J["offset"]], axis=1)
 
 
+_predict = eqx.filter_jit(predict)
+
+
+def _pad(tree, size: int):
+    """Pad the leading axis of every leaf to `size` by repeating its first row."""
+
+    def pad(a):
+        a = jnp.asarray(a)
+        n = a.shape[0]
+        if n >= size:
+            return a
+        return jnp.concatenate([a, jnp.repeat(a[:1], size - n, axis=0)], axis=0)
+
+    return jax.tree_util.tree_map(pad, tree)
+
+
+@eqx.filter_jit
+def _cost(j: _Joint, v, idx, logf, sigma, step):
+    return _residual(v, (j, idx, logf, sigma, step))
+
+
+@eqx.filter_jit
+def _screen(j: _Joint, xb, xes, y0, off, idx, logf, sigma, step):
+    """Residuals and exact Jacobians at a batch of starting points (vmapped)."""
+    return jax.vmap(lambda xe, i, lf: _jacobian(j, xb, xe, y0, off, i, lf, sigma, step))(xes, idx, logf)
+
+
 def _held_residual(v, args):
     problem, theta, sigma, step = args
     return _residuals_from(problem, theta, v["y0"], v["offset"], sigma, None, step)[0]
@@ -219,6 +246,7 @@ class Score:
     held_out_gain: float
     accepted: bool
     k: int
+    screened: bool = False  # not fitted: its predicted cost (one Gauss-Newton step) ranked it out
 
     @property
     def label(self) -> str:
@@ -290,6 +318,11 @@ class Diagnosis:
             lines.append(f"round {r}: candidates (best first)")
             lines.append(f"  {'candidate':<34} {'dBIC':>10} {'p-value':>9} {'held-out gain':>14}  accepted")
             for s in scores:
+                if s.screened:
+                    lines.append(
+                        f"  {s.label:<34} {s.delta_bic:>10.1f}   (screened out: predicted by one Gauss-Newton step)"
+                    )
+                    continue
                 lines.append(
                     f"  {s.label:<34} {s.delta_bic:>10.1f} {s.p_value:>9.2g} {s.held_out_gain:>13.3f}x  {'yes' if s.accepted else ''}"
                 )
@@ -332,10 +365,9 @@ def _rms_per_channel(problem: Problem, r: np.ndarray, sigma: np.ndarray) -> dict
 
 def _modal_frequencies(chain: fd.Chain) -> list[float]:
     try:
-        from .cli import modal_configuration
+        from .cli import natural_frequencies
 
-        modes = fd.modal_analysis(chain, jnp.asarray(modal_configuration(chain)))
-        return [float(f) for f in np.asarray(modes.natural_frequency)]
+        return natural_frequencies(chain)[0]
     except Exception:  # a rig without a stable equilibrium has no modal table
         return []
 
@@ -353,6 +385,8 @@ def diagnose_logs(
     bic_threshold: float = 10.0,
     min_gain: float = 1.1,
     max_steps: int = 40,
+    n_fit: int | None = 4,
+    rtol: float = 1e-8,
     fit_options: dict | None = None,
     progress=None,
 ) -> Diagnosis:
@@ -368,7 +402,7 @@ def diagnose_logs(
     noise = dict(noise or {})
     parameters = list(parameters)
     say("baseline fit ...")
-    base_problem = make_problem(chain, parameters, fit_logs, noise)
+    base_problem = make_problem(chain, parameters, fit_logs, noise, rtol=rtol, atol=1e-2 * rtol)
     estimate = [c for c in base_problem.channels if noise.get(c) is None]
     options = dict(fit_options or {})
     base = fit(base_problem, parameters, estimate_noise=estimate or False, progress=progress, **options)
@@ -503,17 +537,19 @@ def diagnose_logs(
         xb = _x_from_z(_bounds(joint), v["zb"])
         return _theta(joint, xb, v["xe"], jnp.asarray(idx), jnp.asarray(logf))
 
-    def held_out(thetas):
-        r, _ = _held_out_batch(ho_problem, thetas, ho_v0, sigma_j, step, max_steps)
-        r = np.asarray(r)[:, ho_used]
-        return r
+    # Batches are padded to fixed sizes so that every round reuses the compiled programs.
+    ho_batch = (n_fit or len(cands)) + 1
+
+    def held_out(thetas, *, nuisances=False):
+        n = thetas.shape[0]
+        r, w = _held_out_batch(ho_problem, _pad(thetas, ho_batch), ho_v0, sigma_j, step, max_steps)
+        r = np.asarray(r)[:n][:, ho_used]
+        return (r, {k: v[:n] for k, v in w.items()}) if nuisances else r
 
     # baseline in the joint model (all extensions neutral): its cost equals the baseline fit's
     idx0, logf0, _ = layout([])
     theta_base = theta_of(v_base, idx0, logf0)
-    r_fit0 = np.asarray(
-        _residuals_from(sup_problem, theta_base, v_base["y0"], v_base["offset"], sigma_j, None, step)[0]
-    )[used]
+    r_fit0 = np.asarray(_cost(joint, v_base, jnp.asarray(idx0), jnp.asarray(logf0), sigma_j, step))[used]
     cost0 = float(r_fit0 @ r_fit0)
     ho0 = held_out(theta_base[None])[0]
     say(
@@ -524,6 +560,7 @@ def diagnose_logs(
     current = {"v": v_base, "cost": cost0, "ho": ho0, "layout": [], "k": 0}
     rounds = []
     causes_scores = []
+    screen_size = None
     for rnd in range(max_effects):
         remaining = [c for c in cands if c.label not in {a.label for a, _ in accepted} and not c.structural]
         if not remaining:
@@ -541,8 +578,77 @@ def diagnose_logs(
         idx = jnp.asarray(np.stack([b[0] for b in batch]))
         logf = jnp.asarray(np.stack([b[1] for b in batch]))
         xe = np.stack([b[2] for b in batch])
+        if n_fit is not None and len(remaining) > n_fit:
+            # Screening: one Gauss-Newton step from every start (exact Jacobians, all the
+            # free parameters), predicting each candidate's cost; only the `n_fit` most
+            # promising candidates get the full multi-start fit.
+            xb_cur = _x_from_z(_bounds(joint), current["v"]["zb"])
+            B = len(batch)
+            screen_size = screen_size or B
+            rs, Js = _screen(
+                joint,
+                xb_cur,
+                _pad(jnp.asarray(xe), screen_size),
+                current["v"]["y0"],
+                current["v"]["offset"],
+                _pad(idx, screen_size),
+                _pad(logf, screen_size),
+                sigma_j,
+                step,
+            )
+            rs, Js = np.asarray(rs)[:B, used], np.asarray(Js)[:B, used, :]
+            predicted = {}
+            for b, c in enumerate(owners):
+                delta, *_ = np.linalg.lstsq(Js[b], -rs[b], rcond=None)
+                pred = float(np.sum((rs[b] + Js[b] @ delta) ** 2))
+                predicted[c.label] = min(predicted.get(c.label, np.inf), pred)
+            # fully fit the most promising, and only those predicted to pass the BIC test
+            promising = [
+                lab
+                for lab in predicted
+                if N * math.log(max(predicted[lab], 1e-300) / current["cost"])
+                + len(next(c for c in remaining if c.label == lab).params) * math.log(N)
+                < 0.0
+            ]
+            keep = sorted(promising, key=predicted.get)[:n_fit]
+            say(
+                "  screening (one Gauss-Newton step per start), predicted costs: "
+                + ", ".join(f"{lab} {predicted[lab]:.6g}" for lab in sorted(predicted, key=predicted.get))
+            )
+            sel = [b for b, c in enumerate(owners) if c.label in keep]
+            screened_out = [c for c in remaining if c.label not in keep]
+            owners = [owners[b] for b in sel]
+            sel_i = np.asarray(sel, dtype=int)
+            idx, logf, xe = idx[sel_i], logf[sel_i], xe[sel_i]
+            remaining = [c for c in remaining if c.label in keep]
+        else:
+            screened_out, predicted = [], {}
         # accepted effects start from their fitted values
-        B = len(batch)
+        B = len(owners)
+        if B == 0:
+            scores = [
+                Score(
+                    c.name,
+                    c.where,
+                    {},
+                    min(predicted[c.label], current["cost"]),
+                    float(
+                        N * math.log(max(min(predicted[c.label], current["cost"]), 1e-300) / current["cost"])
+                        + len(c.params) * math.log(N)
+                    ),
+                    float("nan"),
+                    {},
+                    float("nan"),
+                    False,
+                    len(c.params),
+                    screened=True,
+                )
+                for c in screened_out
+            ]
+            scores.sort(key=lambda s: s.delta_bic)
+            rounds.append(scores)
+            say("  no candidate is predicted to improve the fit significantly: stop")
+            break
         v0 = {
             "zb": jnp.tile(current["v"]["zb"], (B, 1)),
             "xe": jnp.asarray(xe),
@@ -550,8 +656,12 @@ def diagnose_logs(
             "offset": jnp.tile(current["v"]["offset"], (B, 1)),
         }
         say(f"round {rnd + 1}: fitting {len(remaining)} candidates ({B} starts) in one vmapped call ...")
-        vs, costs, steps = _fit_batch(joint, v0, idx, logf, sigma_j, step, max_steps)
-        costs = np.asarray(costs)
+        size = next(b for b in (3, 6, 12, 24, 10**9) if b >= B) if B <= 24 else B
+        vs, costs, steps = _fit_batch(
+            joint, _pad(v0, size), _pad(idx, size), _pad(logf, size), sigma_j, step, max_steps
+        )
+        vs = {k: v[:B] for k, v in vs.items()}
+        costs = np.asarray(costs)[:B]
         # best start per candidate
         best = {}
         for b, c in enumerate(owners):
@@ -592,9 +702,17 @@ def diagnose_logs(
                     k,
                 )
             )
+        for c in screened_out:
+            k = len(c.params)
+            cost_c = min(predicted[c.label], current["cost"])
+            dbic = N * math.log(max(cost_c, 1e-300) / current["cost"]) + k * math.log(N)
+            scores.append(
+                Score(c.name, c.where, {}, cost_c, float(dbic), float("nan"), {}, float("nan"), False, k, screened=True)
+            )
         # structural candidates of this round
         for c in [x for x in cands if x.structural and x.label not in {a.label for a, _ in accepted}]:
             s = _structural_score(
+                rtol,
                 c,
                 chain,
                 sup_chain,
@@ -719,7 +837,7 @@ def diagnose_logs(
     ext_meas = meas.with_parameters(
         sup_meas, {n: v for n, v in extended_params.items() if meas.is_measurement_parameter(n)}
     )
-    traces = _traces(joint, ho_problem, base, v_base, current, theta_of, idx0, logf0, sigma_j, step, max_steps, ho_v0)
+    traces = _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, held_out)
     return Diagnosis(
         split=split,
         baseline=base,
@@ -760,7 +878,7 @@ def _unit_chain(name: str) -> str:
     return {"stiffness": "N m/rad", "rotor_inertia": "kg m^2"}.get(name.rsplit(".", 1)[-1], "")
 
 
-def _traces(joint, ho_problem, base, v_base, current, theta_of, idx0, logf0, sigma, step, max_steps, ho_v0) -> dict:
+def _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, held_out) -> dict:
     """Measured, baseline and extended outputs (SI) on the fit and held-out logs, for plots."""
     out = {}
     variants = [("baseline", v_base, idx0, logf0)]
@@ -772,9 +890,9 @@ def _traces(joint, ho_problem, base, v_base, current, theta_of, idx0, logf0, sig
             if role == "fit":
                 y0s, off = _initial_states(problem, v["y0"]), _offsets(problem, v["offset"])
             else:
-                _, w = _held_out_batch(problem, theta[None], ho_v0, sigma, step, max_steps)
+                _, w = held_out(theta[None], nuisances=True)
                 y0s, off = _initial_states(problem, w["y0"][0]), _offsets(problem, w["offset"][0])
-            pred, _ = predict(problem, theta, y0s, None, step)
+            pred, _ = _predict(problem, theta, y0s, None, step)
             pred = np.asarray(pred + off[:, None, :])
             valid, present = np.asarray(problem.valid), np.asarray(problem.present)
             for l, log in enumerate(problem.log_names):
@@ -788,6 +906,7 @@ def _traces(joint, ho_problem, base, v_base, current, theta_of, idx0, logf0, sig
 
 
 def _structural_score(
+    rtol,
     c,
     chain,
     sup_chain,
@@ -829,7 +948,15 @@ def _structural_score(
     noise = dict(zip(channels, sigma))
     say(f"  structural candidate {c.label}: fitting its own model ...")
     try:
-        problem = make_problem(struct_chain, params, _with_extra_state(fit_logs, struct_chain), noise, measurement=m)
+        problem = make_problem(
+            struct_chain,
+            params,
+            _with_extra_state(fit_logs, struct_chain),
+            noise,
+            measurement=m,
+            rtol=rtol,
+            atol=1e-2 * rtol,
+        )
         res = fit(
             problem,
             params,
@@ -841,7 +968,15 @@ def _structural_score(
             max_steps=60,
         )
         fitted = fd.with_parameters(struct_chain, {n: v for n, v in res.value.items()})
-        ho_problem = make_problem(fitted, [], _with_extra_state(held_out_logs, struct_chain), noise, measurement=m)
+        ho_problem = make_problem(
+            fitted,
+            [],
+            _with_extra_state(held_out_logs, struct_chain),
+            noise,
+            measurement=m,
+            rtol=rtol,
+            atol=1e-2 * rtol,
+        )
         ho = fit(ho_problem, [], n_stages=1, n_starts=1, estimate_noise=False, frequency_init=False)
     except (RuntimeError, ValueError) as e:
         say(f"  structural candidate {c.label} failed: {e}")

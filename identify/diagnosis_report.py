@@ -1,0 +1,253 @@
+"""The report of `identify diagnose`: `diagnosis.json` (everything, machine-readable) and
+`report.md` (for a person) with its plots: measured vs baseline vs extended model,
+residuals, residual spectra with the model's modes, decay envelopes, candidate scores."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from . import evidence as ev  # noqa: E402
+from .report import display_unit  # noqa: E402
+
+JSON_FILE = "diagnosis.json"
+REPORT_FILE = "report.md"
+PLOT_FILES = (
+    "diagnosis_traces.png",
+    "diagnosis_residuals.png",
+    "diagnosis_spectra.png",
+    "diagnosis_envelopes.png",
+    "diagnosis_scores.png",
+)
+FILES = (JSON_FILE, REPORT_FILE, *PLOT_FILES)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return _jsonable(x.item())
+    if isinstance(x, float) and not np.isfinite(x):
+        return None if np.isnan(x) else ("inf" if x > 0 else "-inf")
+    return x
+
+
+def _panels(diag):
+    rows = []
+    for log, entry in diag.outputs.items():
+        for c in entry["measured"]:
+            rows.append((log, c, entry))
+    return rows
+
+
+def _fig(n, title):
+    fig, axes = plt.subplots(n, 1, figsize=(9, 2.4 * n + 0.6), squeeze=False)
+    fig.suptitle(title)
+    return fig, axes[:, 0]
+
+
+def plot_traces(diag, folder: Path) -> Path:
+    rows = _panels(diag)
+    fig, axes = _fig(len(rows), "measured vs baseline vs extended model")
+    for ax, (log, c, e) in zip(axes, rows):
+        s, unit = display_unit(c)
+        t = e["t"]
+        ax.plot(t, s * e["measured"][c], ".", ms=2, color="0.4", label="measured")
+        ax.plot(t, s * e["baseline"][c], "-", lw=1, color="tab:red", label="baseline")
+        if "extended" in e:
+            ax.plot(t, s * e["extended"][c], "-", lw=1, color="tab:blue", label="extended")
+        ax.set_ylabel(f"{c} [{unit}]")
+        ax.set_title(f"{log} ({e['role']})", fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
+    axes[-1].set_xlabel("t [s]")
+    fig.tight_layout()
+    path = folder / PLOT_FILES[0]
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_residuals(diag, folder: Path) -> Path:
+    rows = _panels(diag)
+    fig, axes = _fig(len(rows), "residuals (model - measured)")
+    for ax, (log, c, e) in zip(axes, rows):
+        s, unit = display_unit(c)
+        t = e["t"]
+        ax.plot(t, s * (e["baseline"][c] - e["measured"][c]), lw=0.8, color="tab:red", label="baseline")
+        if "extended" in e:
+            ax.plot(t, s * (e["extended"][c] - e["measured"][c]), lw=0.8, color="tab:blue", label="extended")
+        ax.set_ylabel(f"{c} [{unit}]")
+        ax.set_title(f"{log} ({e['role']})", fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
+    axes[-1].set_xlabel("t [s]")
+    fig.tight_layout()
+    path = folder / PLOT_FILES[1]
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_spectra(diag, folder: Path) -> Path:
+    rows = _panels(diag)
+    fig, axes = _fig(len(rows), "residual spectra (dashed: the fitted model's natural frequencies)")
+    for ax, (log, c, e) in zip(axes, rows):
+        t = e["t"]
+        for name, color in (("baseline", "tab:red"), ("extended", "tab:blue")):
+            if name in e:
+                f, p = ev.periodogram(t, e[name][c] - e["measured"][c])
+                ax.semilogy(f[1:], p[1:], lw=0.8, color=color, label=name)
+        for fm in diag.modal_frequencies_hz:
+            if fm > 0:
+                ax.axvline(fm, ls="--", color="0.5", lw=0.8)
+        ax.set_ylabel(f"{c} PSD")
+        ax.set_title(f"{log} ({e['role']})", fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
+    axes[-1].set_xlabel("frequency [Hz]")
+    fig.tight_layout()
+    path = folder / PLOT_FILES[2]
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_envelopes(diag, folder: Path) -> Path:
+    rows = _panels(diag)
+    fig, axes = _fig(
+        len(rows), "decay envelopes: peak amplitudes (a straight line in the upper-left panel = dry friction)"
+    )
+    for ax, (log, c, e) in zip(axes, rows):
+        s, unit = display_unit(c)
+        for name, style in (("measured", "o"), ("baseline", "-"), ("extended", "--")):
+            if name in e and name != "measured" or name == "measured":
+                y = e["measured"][c] if name == "measured" else e.get(name, {}).get(c)
+                if y is None:
+                    continue
+                tp, a = ev._peaks(e["t"], y)
+                ax.plot(tp, s * a, style, ms=3, label=name)
+        ax.set_ylabel(f"|{c}| peaks [{unit}]")
+        ax.set_title(f"{log} ({e['role']})", fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
+    axes[-1].set_xlabel("t [s]")
+    fig.tight_layout()
+    path = folder / PLOT_FILES[3]
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_scores(diag, folder: Path) -> Path:
+    n = max(len(diag.rounds), 1)
+    fig, axes = plt.subplots(
+        1, n, figsize=(6 * n, 0.4 * max((len(r) for r in diag.rounds), default=1) + 1.5), squeeze=False
+    )
+    for k, (ax, scores) in enumerate(zip(axes[0], diag.rounds or [[]])):
+        labels = [s.label for s in scores]
+        vals = [s.delta_bic for s in scores]
+        colors = ["tab:green" if s.accepted else ("0.7" if s.screened else "tab:gray") for s in scores]
+        ax.barh(range(len(vals)), vals, color=colors)
+        ax.set_yticks(range(len(vals)), labels, fontsize=7)
+        ax.set_xscale("symlog", linthresh=10)
+        ax.axvline(0, color="k", lw=0.5)
+        ax.invert_yaxis()
+        ax.set_xlabel("dBIC (negative = better than the model it extends)")
+        ax.set_title(f"round {k + 1} (green: accepted, light: screened out)", fontsize=9)
+    fig.tight_layout()
+    path = folder / PLOT_FILES[4]
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def markdown(diag, title: str = "") -> str:
+    lines = [f"# Diagnosis{': ' + title if title else ''}", ""]
+    lines.append(f"**Held-out data:** {diag.split}.")
+    lines.append("")
+    if diag.causes:
+        lines.append("## Causes found")
+        lines.append("")
+        for c in diag.causes:
+            lines.append(
+                f"- **{c.name}** at `{c.where}`: {c.description} (dBIC {c.delta_bic:.1f}, held-out RMS gain "
+                f"{c.held_out_gain:.2f}x)"
+            )
+            for n, p in c.parameters.items():
+                lines.append(
+                    f"  - `{n}` = {p['value']:.4g} {p['unit']} +- {p['std_error']:.2g} "
+                    f"(95 % CI [{p['ci95'][0]:.4g}, {p['ci95'][1]:.4g}])"
+                )
+    else:
+        lines.append("## No cause named")
+        lines.append("")
+        lines.append(
+            "No catalogue entry explains the residual significantly (each needs dBIC < -10 on the fit data and "
+            "a held-out RMS gain of at least 1.1x). The evidence below shows what the residual looks like."
+        )
+    lines.append("")
+    lines.append("## Gain on held-out data")
+    lines.append("")
+    lines.append("| channel | baseline RMS | extended RMS | gain |")
+    lines.append("| --- | ---: | ---: | ---: |")
+    for c in diag.held_out["baseline"]:
+        lines.append(
+            f"| {c} | {diag.held_out['baseline'][c]:.4g} | {diag.held_out['extended'][c]:.4g} | {diag.held_out['gain'][c]:.2f}x |"
+        )
+    lines.append("")
+    lines.append(
+        f"Total dBIC {diag.delta_bic_total:.1f}; fraction of the held-out residual (sum of squares) explained "
+        f"{diag.fraction_explained:.3f}, of its excess over the noise {diag.fraction_of_excess_explained:.3f}."
+    )
+    lines.append("")
+    lines.append("## Evidence (baseline fit)")
+    lines.append("")
+    lines.extend(ev.summary_lines(diag.evidence))
+    lines.append("")
+    lines.append("## Candidates")
+    for r, scores in enumerate(diag.rounds, start=1):
+        lines.append("")
+        lines.append(f"Round {r} ({'from the baseline' if r == 1 else 'from the model extended so far'}):")
+        lines.append("")
+        lines.append("| candidate | parameters | dBIC | F-test p | held-out gain | accepted |")
+        lines.append("| --- | --- | ---: | ---: | ---: | --- |")
+        for s in scores:
+            params = ", ".join(f"`{n}` = {v:.3g}" for n, v in s.params.items()) or (
+                "(screened out)" if s.screened else ""
+            )
+            gain = "" if s.screened else f"{s.held_out_gain:.3f}x"
+            p = "" if s.screened else f"{s.p_value:.2g}"
+            lines.append(f"| {s.label} | {params} | {s.delta_bic:.1f} | {p} | {gain} | {'yes' if s.accepted else ''} |")
+    lines.append("")
+    lines.append("## Baseline fit")
+    lines.append("")
+    lines.append("```")
+    lines.append(diag.baseline.summary())
+    lines.append("```")
+    lines.append("")
+    lines.append("## Plots")
+    lines.append("")
+    for name in PLOT_FILES:
+        lines.append(f"![{name}]({name})")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_report(diag, folder, title: str = "", extra: dict | None = None) -> list[Path]:
+    """Write `diagnosis.json`, `report.md` and the plots into `folder` (created)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    doc = diag.to_dict()
+    doc.update(extra or {})
+    (folder / JSON_FILE).write_text(json.dumps(_jsonable(doc), indent=1) + "\n")
+    (folder / REPORT_FILE).write_text(markdown(diag, title) + "\n")
+    plots = [plot_traces(diag, folder), plot_residuals(diag, folder), plot_spectra(diag, folder)]
+    plots += [plot_envelopes(diag, folder), plot_scores(diag, folder)]
+    return [folder / JSON_FILE, folder / REPORT_FILE, *plots]
