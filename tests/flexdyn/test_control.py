@@ -74,7 +74,7 @@ def test_care_matches_scipy(rng, n, m):
 
 
 def test_care_fast_subsystem_of_paper004_arm(arm):
-    sub = control.fast_subsystem(arm)
+    sub = control.fast_subsystem(arm, jnp.zeros(2))
     A, B = np.asarray(sub.A), np.asarray(sub.B)
     # open loop: undamped, eigenvalues on the imaginary axis (what LQR has to move)
     assert np.abs(np.linalg.eigvals(A).real).max() < 1e-6
@@ -183,7 +183,9 @@ def flexible_arm(spong: bool, gravity=(0.0, 0.0)) -> fd.Chain:
     )
 
 
-@pytest.mark.parametrize("spong, gravity", [(True, (0.0, 0.0)), (False, (0.0, -9.81))])
+@pytest.mark.parametrize(
+    "spong, gravity", [(True, (0.0, 0.0)), pytest.param(False, (0.0, -9.81), marks=pytest.mark.slow)]
+)
 def test_slow_model_is_the_rigid_arm(rng, spong, gravity):
     flexible = flexible_arm(spong, gravity)
     rigid = rigid_twin(flexible, spong)
@@ -256,6 +258,7 @@ def test_composite_stabilises_the_fast_subsystem_over_the_workspace(arm, design)
     assert np.all(np.asarray(slow.fast_gain) == 0.0)
 
 
+@pytest.mark.slow
 def test_composite_torque_at_rest_on_the_reference_is_zero(arm, design):
     # same controller, a constant reference (new array values: no new compilation of the design)
     ctrl = eqx.tree_at(lambda c: c.reference, design, fd.QuinticReference([0.2, -0.1], [0.2, -0.1], 1.0))
@@ -307,6 +310,7 @@ def test_gain_design_does_not_recompile(design):
     assert float(a) != float(b)
 
 
+@pytest.mark.slow
 def test_gain_design_forward_derivative_matches_finite_differences():
     k0 = jnp.asarray(100.0)
     h = 1e-3
