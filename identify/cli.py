@@ -1,6 +1,12 @@
 """The `identify` command line (also `python -m identify`).
 
     identify fit EXPERIMENT.toml [--out DIR] [--stages N] [--quiet] [--force]
+    identify diagnose EXPERIMENT.toml [--out DIR] [--only NAME,...] [--max-effects N] [--quiet] [--force]
+
+`diagnose` fits the experiment's model, shows what it gets wrong, tries the catalogue of
+model extensions (`identify.catalogue`), names the cause(s) whose gain is significant and
+writes `diagnosis.json`, `report.md` and plots (default folder
+`./<experiment file stem>-diagnosis/`; see `identify.diagnose`).
 
 loads the experiment (see `identify/FORMAT.md`), fits its free parameters to its fit
 logs, checks the fit on its validation logs, prints the parameter table, the
@@ -74,6 +80,26 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="write our files into --out even if it holds other files (they are never deleted or overwritten)",
     )
+    dg = sub.add_parser(
+        "diagnose",
+        help="find what the model gets wrong, name the cause, extend the model, measure the gain",
+        description="Fit the experiment's model holding data out, show the residual evidence, fit every "
+        "applicable model extension of the catalogue, name the significant cause(s) and write diagnosis.json, "
+        "report.md and plots.",
+    )
+    dg.add_argument("experiment", type=Path, help="the experiment file (TOML)")
+    dg.add_argument("--out", type=Path, default=None, help="output folder (default: ./<experiment stem>-diagnosis)")
+    dg.add_argument(
+        "--only",
+        default=None,
+        metavar="NAMES",
+        help="comma-separated catalogue entries to try (default: all that apply): "
+        "coulomb_friction, quadratic_damping, missing_mode, joint_elasticity, sensor_delay, sensor_gain_offset, "
+        "sensor_highpass, actuator_lag, backlash, base_tilt",
+    )
+    dg.add_argument("--max-effects", type=int, default=3, metavar="N", help="effects to stack at most (default 3)")
+    dg.add_argument("--quiet", action="store_true", help="print no progress, only the results")
+    dg.add_argument("--force", action="store_true", help="as for fit")
     return parser
 
 
@@ -84,6 +110,8 @@ def main(argv=None) -> int:
         return int(e.code or 0) if not isinstance(e.code, str) else 2
     if args.command == "fit":
         return _fit_command(args)
+    if args.command == "diagnose":
+        return _diagnose_command(args)
     return 2  # pragma: no cover (argparse requires a command)
 
 
@@ -93,10 +121,11 @@ def main(argv=None) -> int:
 
 
 def output_files() -> tuple[str, ...]:
-    """Every file name this command writes into its output folder."""
+    """Every file name the commands write into their output folders."""
+    from .diagnosis_report import FILES
     from .report import PLOT_FILES
 
-    return (MARKER, RESULT_FILE, *PLOT_FILES)
+    return (MARKER, RESULT_FILE, *PLOT_FILES, *FILES)
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -138,7 +167,7 @@ def check_output_folder(out: Path, inputs: list[Path], force: bool) -> None:
         )
     if not (out / MARKER).is_file():
         raise _Refused(
-            f"refusing to write into {out}: it exists and is not the output of a previous `identify fit` "
+            f"refusing to write into {out}: it exists and is not the output of a previous `identify` command "
             f"(no {MARKER} file). Choose another folder with --out, or pass --force."
         )
 
@@ -452,6 +481,81 @@ def _fit_command(args) -> int:
     for p in written:
         if p.name != MARKER:
             print(f"  {p}")
+    return 0
+
+
+def _diagnose_command(args) -> int:
+    start = time.perf_counter()
+
+    def say(msg=""):
+        if not args.quiet:
+            print(msg, flush=True)
+
+    def error(msg: str) -> int:
+        print(f"identify diagnose: {msg}", file=sys.stderr, flush=True)
+        return 2
+
+    from .catalogue import NAMES
+    from .experiment import ExperimentError, load_experiment
+    from .logs import LogError
+
+    catalogue = NAMES
+    if args.only:
+        catalogue = tuple(x.strip() for x in args.only.split(",") if x.strip())
+        bad = [x for x in catalogue if x not in NAMES]
+        if bad:
+            return error(f"--only: unknown catalogue entries {bad}; expected some of {', '.join(NAMES)}")
+    if args.max_effects < 1:
+        return error(f"--max-effects expects an integer >= 1, got {args.max_effects}")
+    try:
+        exp = load_experiment(args.experiment)
+    except (ExperimentError, LogError) as e:
+        return error(str(e))
+    inputs = [Path(exp.path)] + [Path(spec.file) for spec in exp.logs]
+    out = args.out if args.out is not None else Path.cwd() / f"{Path(exp.path).stem}-diagnosis"
+    try:
+        check_output_folder(out, inputs, args.force)
+    except _Refused as e:
+        return error(str(e))
+
+    from .diagnose import diagnose
+    from .diagnosis_report import write_report
+
+    say(f"identify diagnose: experiment {exp.name!r} ({exp.path})")
+    say(f"  catalogue: {', '.join(catalogue)}; compiling takes most of the first minutes")
+    last = [time.perf_counter()]
+
+    def progress(msg: str):
+        now = time.perf_counter()
+        say(f"[{now - start:6.1f} s, +{now - last[0]:5.1f} s] {msg.strip()}")
+        last[0] = now
+
+    try:
+        diag = diagnose(exp, catalogue=catalogue, max_effects=args.max_effects, progress=progress)
+    except (RuntimeError, ValueError) as e:
+        print(f"identify diagnose: failed: {e}", file=sys.stderr, flush=True)
+        return 1
+    print()
+    print(diag.summary())
+    try:
+        check_output_folder(out, inputs, args.force)
+    except _Refused as e:
+        return error(str(e))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / MARKER).write_text(
+        "Written by `identify` (flexdyn). This folder holds its outputs; a new run may overwrite these "
+        f"files: {', '.join(output_files())}.\n"
+    )
+    extra = {
+        "experiment": {"name": exp.name, "path": str(Path(exp.path).resolve())},
+        "command": ["identify", "diagnose", str(args.experiment)],
+        "versions": _versions(),
+    }
+    written = write_report(diag, out, title=exp.name, extra=extra)
+    print()
+    print(f"total {time.perf_counter() - start:.1f} s. Report: {out / 'report.md'} (open it; plots beside it)")
+    for p in written:
+        print(f"  {p}")
     return 0
 
 

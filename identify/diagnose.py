@@ -384,8 +384,8 @@ def diagnose_logs(
     max_effects: int = 3,
     bic_threshold: float = 10.0,
     min_gain: float = 1.1,
-    max_steps: int = 40,
-    n_fit: int | None = 4,
+    max_steps: int = 25,
+    n_fit: int | None = 3,
     rtol: float = 1e-8,
     fit_options: dict | None = None,
     progress=None,
@@ -411,17 +411,6 @@ def diagnose_logs(
     step = base.step
     fitted_chain = fd.with_parameters(chain, base.value)
     modal = _modal_frequencies(fitted_chain)
-
-    # evidence from the baseline fit
-    from .fit import fitted_outputs
-
-    outs = fitted_outputs(base)
-    torques = {
-        name: np.asarray(base_problem.torque_v[l])[: len(outs[name]["t"]), 0]
-        for l, name in enumerate(base_problem.log_names)
-        if np.any(np.asarray(base_problem.torque_v[l]) != 0)
-    }
-    evidence = ev.evidence(outs, base.sigma, modal, torques)
 
     # the joint model of every continuous candidate
     channels = base_problem.channels
@@ -549,8 +538,8 @@ def diagnose_logs(
     # baseline in the joint model (all extensions neutral): its cost equals the baseline fit's
     idx0, logf0, _ = layout([])
     theta_base = theta_of(v_base, idx0, logf0)
-    r_fit0 = np.asarray(_cost(joint, v_base, jnp.asarray(idx0), jnp.asarray(logf0), sigma_j, step))[used]
-    cost0 = float(r_fit0 @ r_fit0)
+    # (the joint model with every extension neutral is the baseline model: same cost)
+    cost0 = float(base.cost)
     ho0 = held_out(theta_base[None])[0]
     say(
         f"baseline: cost {cost0:.6g} over {N} residuals (the fit's own: {base.cost:.6g}); held-out weighted RMS {np.sqrt(np.mean(ho0**2)):.4g}"
@@ -597,10 +586,11 @@ def diagnose_logs(
                 step,
             )
             rs, Js = np.asarray(rs)[:B, used], np.asarray(Js)[:B, used, :]
-            predicted = {}
+            predicted, per_start = {}, []
             for b, c in enumerate(owners):
                 delta, *_ = np.linalg.lstsq(Js[b], -rs[b], rcond=None)
                 pred = float(np.sum((rs[b] + Js[b] @ delta) ** 2))
+                per_start.append(pred)
                 predicted[c.label] = min(predicted.get(c.label, np.inf), pred)
             # fully fit the most promising, and only those predicted to pass the BIC test
             promising = [
@@ -610,12 +600,21 @@ def diagnose_logs(
                 + len(next(c for c in remaining if c.label == lab).params) * math.log(N)
                 < 0.0
             ]
+            # ... and among those, the ones promising at least 10 % of the best one's reduction
+            # (a second, smaller effect is searched for in the next round)
+            if promising:
+                best_drop = current["cost"] - min(predicted[lab] for lab in promising)
+                promising = [lab for lab in promising if current["cost"] - predicted[lab] >= 0.1 * best_drop]
             keep = sorted(promising, key=predicted.get)[:n_fit]
             say(
                 "  screening (one Gauss-Newton step per start), predicted costs: "
                 + ", ".join(f"{lab} {predicted[lab]:.6g}" for lab in sorted(predicted, key=predicted.get))
             )
-            sel = [b for b, c in enumerate(owners) if c.label in keep]
+            # the two most promising starts of each kept candidate
+            sel = []
+            for lab in keep:
+                mine = sorted((b for b, c in enumerate(owners) if c.label == lab), key=lambda b: per_start[b])
+                sel.extend(mine[:2])
             screened_out = [c for c in remaining if c.label not in keep]
             owners = [owners[b] for b in sel]
             sel_i = np.asarray(sel, dtype=int)
@@ -838,6 +837,23 @@ def diagnose_logs(
         sup_meas, {n: v for n, v in extended_params.items() if meas.is_measurement_parameter(n)}
     )
     traces = _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, held_out)
+    # evidence: what the baseline gets wrong, on the fit and the held-out logs
+    outs = {
+        name: {
+            "t": e["t"],
+            "measured": e["measured"],
+            "simulated": e["baseline"],
+            "residual": {c: e["baseline"][c] - e["measured"][c] for c in e["measured"]},
+        }
+        for name, e in traces.items()
+    }
+    torques = {}
+    for problem in (sup_problem, ho_problem):
+        for l, name in enumerate(problem.log_names):
+            tv = np.asarray(problem.torque_v[l])[: len(traces[name]["t"]), 0]
+            if np.any(tv != 0):
+                torques[name] = tv
+    evidence = ev.evidence(outs, base.sigma, modal, torques)
     return Diagnosis(
         split=split,
         baseline=base,

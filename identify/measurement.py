@@ -201,12 +201,23 @@ def highpass(t, y, cutoff_hz):
 
 def lag(t, u, time_constant):
     """First-order lag `T u_a' = u - u_a`, `u_a(t_0) = u(t_0)`, of samples `u` (T, ...)
-    (`time_constant = 0` returns `u`)."""
+    (`time_constant = 0` returns `u`). Written with `r = T / h` so that it and its
+    derivative in `T` are exact at `T = 0` too (`u_a ~ u - T u'` to first order)."""
+    h = jnp.diff(t)
     positive = time_constant > 0
     T = jnp.where(positive, time_constant, 1.0)
-    rate = jnp.where(positive, 1.0 / T, 0.0)
-    lagged = _first_order(t, u, rate, u[0])
-    return jnp.where(positive, lagged, u)
+    hs = jnp.where(h > 0, h, 1.0)
+    decay = jnp.where(positive & (h > 0), jnp.exp(-hs / T), jnp.where(h > 0, 0.0, 1.0))
+    r = time_constant / hs
+    psi = jnp.where(h > 0, r * (1.0 - decay), 0.0)
+
+    def step(ua, k):
+        u0, u1 = u[k], u[k + 1]
+        ua1 = u1 + (ua - u0) * decay[k] - (u1 - u0) * psi[k]
+        return ua1, ua1
+
+    _, rest = jax.lax.scan(step, u[0], jnp.arange(t.shape[0] - 1))
+    return jnp.concatenate([u[:1], rest], axis=0)
 
 
 def delayed(t, y, ydot, delay):

@@ -13,7 +13,7 @@ import numpy as np
 
 import flexdyn as fd
 
-from . import channels as ch
+from . import channels as ch, measurement as meas
 from .channels import state_names
 from .fit import LogData
 
@@ -33,6 +33,7 @@ def simulate_log(
     name: str = "synthetic",
     rtol: float = 1e-11,
     atol: float = 1e-13,
+    measurement=None,
 ) -> LogData:
     """A `LogData` of `chain` sampled at `t` (s).
 
@@ -44,6 +45,10 @@ def simulate_log(
     - `noise`: channel -> standard deviation of additive white Gaussian noise (SI).
     - `true_offsets`: channel -> constant sensor offset added to the record.
     - `fit_initial`, `offsets`: passed through to the `LogData` (what a fit estimates).
+    - `measurement`: an `identify.measurement.Measurement` between the rig and the log
+      (sensor gains, offsets, delays, high-pass filters, actuator lags): the torque in
+      the returned log is the commanded one, the rig is driven by the lagged one, and
+      the recorded channels pass through the sensors before the noise is added.
     """
     t = np.asarray(t, float)
     initial = dict(initial or {})
@@ -56,11 +61,22 @@ def simulate_log(
     inp = None
     if torque is not None:
         torque = np.asarray(torque, float).reshape(len(t), -1)
-        inp = fd.SampledTorque(t, torque, hold="linear")
+        applied = torque
+        if measurement is not None:
+            applied = np.asarray(meas.apply_actuators(measurement, jnp.asarray(t), jnp.asarray(torque)))
+        inp = fd.SampledTorque(t, applied, hold="linear")
     traj = fd.simulate(chain, jnp.asarray(y0), jnp.asarray(t), inp, rtol=rtol, atol=atol)
     asm = fd.assemble(chain)
     inp_eval = inp if inp is not None else fd.ZeroTorque(chain.n_links)
-    values = jax.vmap(lambda tk, yk: ch.evaluate(asm, tuple(channels), tk, yk, inp_eval))(traj.ts, traj.y)
+    evaluate = lambda tk, yk: ch.evaluate(asm, tuple(channels), tk, yk, inp_eval)  # noqa: E731
+    values = jax.vmap(evaluate)(traj.ts, traj.y)
+    if measurement is not None:
+        field = fd.ChainVectorField(asm, inp_eval)
+        ydot = jax.vmap(lambda tk, yk: field(tk, yk, None))(traj.ts, traj.y)
+        dvalues = jax.vmap(lambda tk, yk, vk: jax.jvp(lambda y_: evaluate(tk, y_), (yk,), (vk,))[1])(
+            traj.ts, traj.y, ydot
+        )
+        values = meas.apply_sensors(measurement, tuple(channels), traj.ts, values, dvalues)
     values = np.asarray(values)
     rng = rng or np.random.default_rng(0)
     outputs = {}

@@ -1,0 +1,85 @@
+"""The measurement model (identify.measurement) against closed forms: first-order
+high-pass and lag responses, Hermite-interpolated delay, neutral values, derivatives."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from identify import measurement as meas
+
+
+def test_highpass_of_a_ramp_is_the_closed_form():
+    # l' = wc (y - l), l(0) = 0, y = t  ->  m = y - l = (1 - e^{-wc t}) / wc
+    fc = 0.7
+    wc = 2 * math.pi * fc
+    t = np.linspace(0.0, 3.0, 301)
+    m = np.asarray(meas.highpass(jnp.asarray(t), jnp.asarray(t), fc))
+    np.testing.assert_allclose(m, (1 - np.exp(-wc * t)) / wc, rtol=1e-12, atol=1e-14)
+
+
+def test_highpass_of_a_sine_has_the_first_order_gain_in_steady_state():
+    fc, f = 2.0, 5.0
+    t = np.linspace(0.0, 4.0, 40001)
+    y = np.sin(2 * math.pi * f * t)
+    m = np.asarray(meas.highpass(jnp.asarray(t), jnp.asarray(y), fc))
+    tail = t > 2.0
+    gain = np.sqrt(2 * np.mean(m[tail] ** 2))
+    assert gain == pytest.approx(f / math.hypot(f, fc), rel=1e-4)
+
+
+def test_lag_of_a_ramp_is_the_closed_form_and_zero_lag_is_the_identity():
+    # T u_a' = u - u_a, u = t, u_a(0) = 0  ->  u_a = t - T (1 - e^{-t/T})
+    T = 0.05
+    t = np.linspace(0.0, 0.5, 101)
+    ua = np.asarray(meas.lag(jnp.asarray(t), jnp.asarray(t), T))
+    np.testing.assert_allclose(ua, t - T * (1 - np.exp(-t / T)), rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(np.asarray(meas.lag(jnp.asarray(t), jnp.asarray(np.sin(t)), 0.0)), np.sin(t))
+
+
+def test_delay_by_hermite_interpolation():
+    f, d = 1.3, 0.0137
+    t = np.linspace(0.0, 2.0, 201)  # 77 samples per period
+    w = 2 * math.pi * f
+    y, ydot = np.sin(w * t), w * np.cos(w * t)
+    out = np.asarray(meas.delayed(jnp.asarray(t), jnp.asarray(y), jnp.asarray(ydot), d))
+    late = t >= d
+    # cubic Hermite error <= h^4 max|y''''| / 384
+    bound = (t[1] - t[0]) ** 4 * w**4 / 384
+    np.testing.assert_allclose(out[late], np.sin(w * (t[late] - d)), atol=1.01 * bound)
+    np.testing.assert_array_equal(out[~late], y[0])
+    np.testing.assert_allclose(
+        np.asarray(meas.delayed(jnp.asarray(t), jnp.asarray(y), jnp.asarray(ydot), 0.0)), y, atol=1e-15
+    )
+
+
+@pytest.mark.parametrize(
+    "fn, neutral",
+    [
+        (lambda p, t, y: meas.highpass(t, y, p), 0.0),
+        (lambda p, t, y: meas.lag(t, y, p), 0.0),
+        (lambda p, t, y: meas.delayed(t, y, jnp.cos(t), p), 0.0),
+    ],
+)
+def test_derivative_at_the_neutral_value_is_finite_and_nonzero(fn, neutral):
+    t = jnp.linspace(0.0, 2.0, 201)
+    y = jnp.sin(t)
+    d = np.asarray(jax.jacfwd(lambda p: fn(p, t, y))(jnp.asarray(neutral)))
+    assert np.all(np.isfinite(d)) and np.max(np.abs(d)) > 0
+
+
+def test_apply_sensors_gain_offset_and_names():
+    m = meas.Measurement({"theta1": meas.Sensor(gain=1.0, offset=0.0)}, actuator_lag=[0.0])
+    assert meas.parameter_names(m) == ["sensor.theta1.gain", "sensor.theta1.offset", "actuator1.lag"]
+    m = meas.with_parameters(m, {"sensor.theta1.gain": 1.1, "sensor.theta1.offset": 0.02})
+    t = jnp.linspace(0.0, 1.0, 11)
+    out = jnp.stack([jnp.sin(t), jnp.cos(t)], axis=1)
+    rec = np.asarray(meas.apply_sensors(m, ("theta1", "tip1"), t, out, out))
+    np.testing.assert_allclose(rec[:, 0], 1.1 * np.sin(t) + 0.02, rtol=1e-14)
+    np.testing.assert_array_equal(rec[:, 1], np.cos(t))
+    with pytest.raises(KeyError, match="not in this model"):
+        meas.get_parameter(m, "sensor.tip1.delay")
+    with pytest.raises(ValueError, match="Sensor.delay"):
+        meas.Sensor(delay=-1.0)
