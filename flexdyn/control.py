@@ -433,13 +433,17 @@ class CompositeController(AbstractInput):
         idx = jnp.asarray(lay.theta)
         return y[:n], y[n:], y[idx], y[n + idx]
 
+    def commanded_acceleration(self, t, theta, theta_dot):
+        """`v = theta_d_ddot + K_ps (theta_d - theta) + K_vs (theta_d_dot - theta_dot)`, rad/s^2 (eq. 69)."""
+        ref = self.reference
+        return ref.acceleration(t) + self.kp * (ref.position(t) - theta) + self.kd * (ref.velocity(t) - theta_dot)
+
     def slow_torque(self, t, y):
         """`(tau_bar, v, z_bar)`: slow torque (N m), commanded slow acceleration (rad/s^2)
         and quasi-steady fast coordinates, eq. (64), (65), (69)."""
         asm = self.model
         _, _, theta, theta_dot = self._split(y)
-        ref = self.reference
-        v = ref.acceleration(t) + self.kp * (ref.position(t) - theta) + self.kd * (ref.velocity(t) - theta_dot)
+        v = self.commanded_acceleration(t, theta, theta_dot)
         P, E = jnp.asarray(rigid_embedding(asm)), jnp.asarray(fast_embedding(asm))
         G = inverse_dynamics(asm, P @ theta, P @ theta_dot, P @ v)
         tau_bar = P.T @ G
@@ -466,9 +470,9 @@ class CompositeController(AbstractInput):
         if self.rate_correction:
             # z_bar_dot along the slow motion (theta_ddot = v): one forward-mode pass
             t = jnp.asarray(t, dtype=float)
-            _, v0, _ = self.slow_torque(t, y)
+            v = self.commanded_acceleration(t, theta, theta_dot)
             z_bar, z_bar_dot, (tau_bar, _) = jax.jvp(
-                slow_part, (t, theta, theta_dot), (jnp.ones_like(t), theta_dot, v0), has_aux=True
+                slow_part, (t, theta, theta_dot), (jnp.ones_like(t), theta_dot, v), has_aux=True
             )
         else:
             (z_bar, (tau_bar, _)), z_bar_dot = slow_part(t, theta, theta_dot), jnp.zeros_like(z)

@@ -272,6 +272,31 @@ def test_composite_torque_at_rest_on_the_reference_is_zero(arm, design):
     assert float(torque(ctrl, jnp.asarray(0.5), y_def)[0]) < 0.0
 
 
+@pytest.mark.slow
+def test_fast_state_rate_is_the_rate_of_the_quasi_steady_deflection(arm, design, rng):
+    """x_f's second half is sqrt(k_c) (z_dot - z_bar_dot), z_bar_dot along the commanded slow
+    motion (theta_dot, theta_ddot = v): compared with a central difference of z_bar."""
+    lay = arm.layout
+    idx = np.asarray(lay.theta)
+    y = np.array(fd.initial_state(arm, joint_angles=[0.4, 0.2], joint_rates=[0.8, -0.3]))
+    y[8:] += 0.01 * rng.normal(size=8)
+    t = jnp.asarray(0.7)
+    parts = eqx.filter_jit(lambda c, t, y: (c.fast_state(t, y)[0], c.slow_torque(t, y)))
+    x_f, (_, v, _) = parts(design, t, jnp.asarray(y))
+
+    def z_bar_at(s):
+        yy = y.copy()
+        yy[idx] += s * y[8 + idx]
+        yy[8 + idx] += s * np.asarray(v)
+        return np.asarray(parts(design, t + s, jnp.asarray(yy))[1][2])
+
+    h = 1e-5
+    z_bar_dot = (z_bar_at(h) - z_bar_at(-h)) / (2 * h)
+    z_dot = np.asarray(control.fast_coordinates(arm, y[8:]))
+    expected = np.sqrt(float(design.scale)) * (z_dot - z_bar_dot)
+    np.testing.assert_allclose(np.asarray(x_f)[6:], expected, rtol=1e-6, atol=1e-8 * np.abs(expected).max())
+
+
 class _LogCounter(logging.Handler):
     def __init__(self):
         super().__init__(level=logging.DEBUG)
