@@ -11,7 +11,16 @@ import jax as _jax
 if not _os.environ.get("FLEXDYN_NO_X64"):
     _jax.config.update("jax_enable_x64", True)
 
-from . import denoc as denoc, modes as modes, params as params, rigs as rigs
+from . import (
+    batch as batch,
+    control as control,
+    denoc as denoc,
+    modes as modes,
+    nonlinear as nonlinear,
+    params as params,
+    response as response,
+    rigs as rigs,
+)
 from .chain import (
     AssembledChain as AssembledChain,
     Chain as Chain,

@@ -47,7 +47,8 @@ class BangBang(AbstractInput):
     `-amplitude` on `[start + width, start + 2 width)`, zero otherwise.
 
     **Arguments:** `amplitude` (N m, per joint), `width` (s, duration of each
-    pulse: 1 s in paper 002, 0.5 s in paper 004), `start` (s).
+    pulse: 0.5 s in paper 004; paper 002's "1 s width" is the whole +/- pair, i.e. 0.5 s per
+    pulse, as `notebooks/paper002_two_link.ipynb` explains), `start` (s).
     """
 
     amplitude: Float[Array, " n_joints"]

@@ -5,9 +5,24 @@
   standard errors, confidence intervals and identifiability warnings.
 - `make_problem` / `fit`: the same on in-memory logs (`LogData`).
 - `residual_report`: residual whiteness and input cross-correlation (MATLAB `resid`).
+- `diagnose(experiment)` / `diagnose_logs(...)`: what the fitted model gets wrong, which
+  catalogue extension (`identify.catalogue`) explains it, the extended model and its gain
+  on held-out data; `write_report` writes the JSON/Markdown report with plots.
+- `Measurement`, `Sensor`: sensor gain/offset/delay/high-pass and actuator lag between the
+  model and the log (`identify.measurement`), fittable by name like the chain's parameters.
 """
 
+from . import catalogue as catalogue, evidence as evidence, measurement as measurement
 from .channels import check_channel as check_channel, state_names as state_names
+from .diagnose import (
+    Cause as Cause,
+    Diagnosis as Diagnosis,
+    Score as Score,
+    diagnose as diagnose,
+    diagnose_logs as diagnose_logs,
+    split_logs as split_logs,
+)
+from .diagnosis_report import write_report as write_report
 from .experiment import (
     Experiment as Experiment,
     ExperimentError as ExperimentError,
@@ -27,6 +42,7 @@ from .fit import (
     predict as predict,
 )
 from .logs import Log as Log, LogError as LogError, load_log as load_log
+from .measurement import Measurement as Measurement, Sensor as Sensor
 from .run import (
     evaluate_held_out as evaluate_held_out,
     fit_experiment as fit_experiment,

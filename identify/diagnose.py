@@ -53,14 +53,12 @@ from . import catalogue as cat, evidence as ev, measurement as meas
 from .fit import (
     Z95,
     FitResult,
-    LogData,
     Parameter,
     Problem,
     _initial_states,
     _offsets,
     _residuals_from,
     _x_from_z,
-    _z_from_x,
     fit,
     make_problem,
     predict,
@@ -1063,4 +1061,4 @@ def diagnose(experiment, *, progress=None, **options) -> Diagnosis:
     )
 
 
-__all__ = ["Cause", "Diagnosis", "Score", "diagnose", "diagnose_logs", "split_logs", "_z_from_x"]
+__all__ = ["Cause", "Diagnosis", "Score", "diagnose", "diagnose_logs", "split_logs"]

@@ -13,62 +13,24 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from pathlib import Path
 
 import numpy as np
-import pytest
 
-import flexdyn as fd
+from diagnose_cases import diagnose_pendulum, pendulum, pendulum_logs  # tests/ is on sys.path
+
 from identify import measurement as meas
 from identify.cli import main
-from identify.diagnose import diagnose_logs, split_logs
-from identify.fit import Parameter
-from identify.synthetic import simulate_log
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "identify" / "examples" / "pendulum_friction"
-NOISE = math.radians(0.1)
-RELEASES_DEG = (0.0, -30.0, -60.0)
-T = np.arange(801) / 100.0  # 8 s at 100 Hz, as the example
-PARAMS = [Parameter("joint1.damping", 1e-3, 1e-6, 1e-1), Parameter("hub1.inertia", 4e-5, 1e-7, 1e-2)]
-
-
-def pendulum(coulomb=None, drag=None, damping=0.8e-3):
-    rig = fd.rigs.rigid_pendulum()
-    return fd.Chain(
-        [fd.RigidLink(0.30, 0.180, drag=drag)],
-        [fd.RigidJoint(damping=damping, coulomb=coulomb)],
-        rig.hubs,
-        rig.payload,
-        rig.gravity,
-    )
 
 
 def logs_of(truth, seed, measurement=None):
-    rng = np.random.default_rng(seed)
-    offsets = rng.normal(0.0, math.radians(0.2), 3)
-    return [
-        simulate_log(
-            truth,
-            T,
-            initial={"theta1": math.radians(a)},
-            channels=("theta1",),
-            noise={"theta1": NOISE},
-            true_offsets={"theta1": float(o)},
-            rng=rng,
-            fit_initial=("theta1",),
-            offsets=("theta1",),
-            name=f"drop_{k}",
-            measurement=measurement,
-        )
-        for k, (a, o) in enumerate(zip(RELEASES_DEG, offsets))
-    ]
+    return pendulum_logs(truth, seed, measurement)
 
 
-def run(logs, **kw):
-    fit_logs, held, desc = split_logs(logs[:2], logs[2:])
-    return diagnose_logs(fd.rigs.rigid_pendulum(), PARAMS, fit_logs, held, {"theta1": NOISE}, split=desc, **kw)
+run = diagnose_pendulum
 
 
 def assert_found(diag, name, param, truth):
