@@ -80,6 +80,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--duration", type=float, default=10.0, help="log length, s (1 kHz samples)")
     parser.add_argument("--repeats", type=int, default=3, help="warm runs per case (median)")
+    parser.add_argument("--solvers", default=",".join(SOLVERS), help="comma-separated subset of: " + ", ".join(SOLVERS))
     parser.add_argument("--json", default=None, help="also write the results as JSON to this path")
     args = parser.parse_args(argv)
     env = environment()
@@ -88,7 +89,8 @@ def main(argv=None):
     nominal4 = jnp.asarray([float(fd.get_parameter(chain, n)) for n in PARAMS_4]) * 1.05
 
     rows = []
-    for solver_name, kw in SOLVERS.items():
+    for solver_name in args.solvers.split(","):
+        kw = SOLVERS[solver_name]
         # Steps this solve takes (sets the checkpoint budget of the variants below).
         probe = fd.with_parameters(chain, dict(zip(PARAMS_10, nominal10)))
         n_steps = int(fd.simulate(probe, y0, ts, torque, **kw).num_steps)

@@ -206,7 +206,8 @@ def main(argv=None):
                 f"Fixed-step sweep of {r['size']}: the batched right-hand side alone costs "
                 f"{per_state[r['size']] * 1e6:.2f} us per state, so {r['steps']} steps x 4 stages take "
                 f">= {bound:.1f} s; the sweep took {r['warm_s']:.1f} s "
-                f"({r['warm_s'] / bound:.2f}x that: the rest is diffrax's per-step machinery under vmap)."
+                f"({r['warm_s'] / bound:.2f}x that; above 1, the excess is diffrax's per-step machinery under vmap, "
+                "near 1 the sweep is bound by the right-hand side)."
             )
         if r["run"].startswith("flexdyn Tsit5"):
             print(
