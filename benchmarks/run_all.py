@@ -31,6 +31,7 @@ COLUMNS = [
     ("cold_s", "cold [s]", ".3f"),
     ("warm_s", "warm [s]", ".4f"),
     ("ratio", "warm / ref. run", ".2f"),
+    ("speedup", "speed-up vs peer", ".1f"),
     ("steps", "steps", "d"),
     ("error_Q", "error", ".2e"),
 ]
