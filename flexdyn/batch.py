@@ -45,7 +45,13 @@ def batch_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
 
 def batch_size(batch) -> int:
     """The common leading dimension of the array leaves of `batch`."""
-    sizes = {int(jnp.shape(x)[0]) for x in jax.tree_util.tree_leaves(batch) if eqx.is_array(x) and jnp.ndim(x) > 0}
+    arrays = [x for x in jax.tree_util.tree_leaves(batch) if eqx.is_array(x)]
+    if any(jnp.ndim(x) == 0 for x in arrays):
+        raise ValueError(
+            "batch: every array leaf needs a leading (batch) dimension; got a scalar leaf "
+            "(pass values shared by every entry as `shared` arguments instead)"
+        )
+    sizes = {int(jnp.shape(x)[0]) for x in arrays}
     if len(sizes) != 1:
         raise ValueError(
             f"batch: expected array leaves sharing one leading (batch) dimension, got leading sizes {sorted(sizes)}"

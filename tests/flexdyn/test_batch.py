@@ -101,3 +101,5 @@ def test_pad_and_unpad_batch():
 def test_mismatched_batch_sizes_are_an_error():
     with pytest.raises(ValueError, match="leading"):
         fb.batch_size({"a": jnp.zeros(3), "b": jnp.zeros(4)})
+    with pytest.raises(ValueError, match="scalar leaf"):
+        fb.batch_size({"a": jnp.zeros(3), "b": jnp.zeros(())})
