@@ -234,7 +234,7 @@ def candidates(
 
 def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: float) -> tuple[fd.Chain, dict]:
     """The chain of a structural candidate and the guesses of its new parameters."""
-    kind, index = cand.where.rstrip("0123456789"), int(cand.where.lstrip("linkjoint"))
+    index = int(cand.where.lstrip("linkjoint"))
     i = index - 1
     if cand.name == "missing_mode":
         link = chain.links[i]

@@ -98,7 +98,10 @@ def split_logs(fit_logs, validation_logs, fraction: float = 0.7):
         fit_initial=tuple(rest_initial),
         name=f"{log.name}[{k}:]",
     )
-    desc = f"time split: the first {100 * fraction:.0f} % of {log.name} fits, the last {100 * (1 - fraction):.0f} % (t >= {t[k]:.3g} s) is held out, its initial state estimated"
+    desc = (
+        f"time split: the first {100 * fraction:.0f} % of {log.name} fits, the last {100 * (1 - fraction):.0f} % "
+        f"(t >= {t[k]:.3g} s) is held out, its initial state estimated"
+    )
     return [first], [second], desc
 
 
@@ -293,11 +296,13 @@ class Diagnosis:
             lines.append("accepted causes:")
             for c in self.causes:
                 lines.append(
-                    f"  {c.name} at {c.where} ({c.description}): dBIC {c.delta_bic:.1f}, held-out gain {c.held_out_gain:.2f}x"
+                    f"  {c.name} at {c.where} ({c.description}): dBIC {c.delta_bic:.1f}, "
+                    f"held-out gain {c.held_out_gain:.2f}x"
                 )
                 for n, p in c.parameters.items():
                     lines.append(
-                        f"    {n} = {p['value']:.4g} {p['unit']} (SE {p['std_error']:.2g}, 95 % CI [{p['ci95'][0]:.4g}, {p['ci95'][1]:.4g}])"
+                        f"    {n} = {p['value']:.4g} {p['unit']} (SE {p['std_error']:.2g}, "
+                        f"95 % CI [{p['ci95'][0]:.4g}, {p['ci95'][1]:.4g}])"
                     )
         else:
             lines.append("no catalogue entry explains the residual significantly (see the evidence and the scores)")
@@ -305,7 +310,8 @@ class Diagnosis:
         lines.append("held-out RMS per channel (baseline -> extended, gain):")
         for c in self.held_out["baseline"]:
             lines.append(
-                f"  {c}: {self.held_out['baseline'][c]:.4g} -> {self.held_out['extended'][c]:.4g} ({self.held_out['gain'][c]:.2f}x)"
+                f"  {c}: {self.held_out['baseline'][c]:.4g} -> {self.held_out['extended'][c]:.4g} "
+                f"({self.held_out['gain'][c]:.2f}x)"
             )
         lines.append(
             f"total dBIC {self.delta_bic_total:.1f}; fraction of the held-out residual explained "
@@ -322,7 +328,8 @@ class Diagnosis:
                     )
                     continue
                 lines.append(
-                    f"  {s.label:<34} {s.delta_bic:>10.1f} {s.p_value:>9.2g} {s.held_out_gain:>13.3f}x  {'yes' if s.accepted else ''}"
+                    f"  {s.label:<34} {s.delta_bic:>10.1f} {s.p_value:>9.2g} {s.held_out_gain:>13.3f}x  "
+                    f"{'yes' if s.accepted else ''}"
                 )
         return "\n".join(lines)
 
@@ -539,15 +546,14 @@ def diagnose_logs(
     # (the joint model with every extension neutral is the baseline model: same cost)
     cost0 = float(base.cost)
     ho0 = held_out(theta_base[None])[0]
-    say(
-        f"baseline: cost {cost0:.6g} over {N} residuals (the fit's own: {base.cost:.6g}); held-out weighted RMS {np.sqrt(np.mean(ho0**2)):.4g}"
-    )
+    say(f"baseline: cost {cost0:.6g} over {N} residuals; held-out weighted RMS {np.sqrt(np.mean(ho0**2)):.4g}")
 
     accepted: list[tuple[cat.Candidate, dict]] = []  # continuous causes and their fitted values
     current = {"v": v_base, "cost": cost0, "ho": ho0, "layout": [], "k": 0}
     rounds = []
     causes_scores = []
     screen_size = None
+    struct_promising: set = set()
     for rnd in range(max_effects):
         remaining = [c for c in cands if c.label not in {a.label for a, _ in accepted} and not c.structural]
         if not remaining:
@@ -622,83 +628,62 @@ def diagnose_logs(
             screened_out, predicted = [], {}
         # accepted effects start from their fitted values
         B = len(owners)
-        if B == 0:
-            scores = [
-                Score(
-                    c.name,
-                    c.where,
-                    {},
-                    min(predicted[c.label], current["cost"]),
-                    float(
-                        N * math.log(max(min(predicted[c.label], current["cost"]), 1e-300) / current["cost"])
-                        + len(c.params) * math.log(N)
-                    ),
-                    float("nan"),
-                    {},
-                    float("nan"),
-                    False,
-                    len(c.params),
-                    screened=True,
-                )
-                for c in screened_out
-            ]
-            scores.sort(key=lambda s: s.delta_bic)
-            rounds.append(scores)
-            say("  no candidate is predicted to improve the fit significantly: stop")
-            break
-        v0 = {
-            "zb": jnp.tile(current["v"]["zb"], (B, 1)),
-            "xe": jnp.asarray(xe),
-            "y0": jnp.tile(current["v"]["y0"], (B, 1)),
-            "offset": jnp.tile(current["v"]["offset"], (B, 1)),
-        }
-        say(f"round {rnd + 1}: fitting {len(remaining)} candidates ({B} starts) in one vmapped call ...")
-        size = next(b for b in (3, 6, 12, 24, 10**9) if b >= B) if B <= 24 else B
-        vs, costs, steps = _fit_batch(
-            joint, _pad(v0, size), _pad(idx, size), _pad(logf, size), sigma_j, step, max_steps
-        )
-        vs = {k: v[:B] for k, v in vs.items()}
-        costs = np.asarray(costs)[:B]
-        # best start per candidate
-        best = {}
-        for b, c in enumerate(owners):
-            if np.isfinite(costs[b]) and (c.label not in best or costs[b] < costs[best[c.label]]):
-                best[c.label] = b
-        labels = [c.label for c in remaining if c.label in best]
-        bs = [best[lab] for lab in labels]
-        thetas = jnp.stack(
-            [theta_of({k: v[b] for k, v in vs.items()}, np.asarray(idx[b]), np.asarray(logf[b])) for b in bs]
-        )
-        ho = held_out(thetas)
         scores = []
         rms_cur = float(np.sqrt(np.mean(current["ho"] ** 2)))
-        for lab, b, r_ho in zip(labels, bs, ho):
-            c = next(x for x in remaining if x.label == lab)
-            k = len(c.params)
-            cost_c = float(costs[b])
-            dbic = N * math.log(max(cost_c, 1e-300) / current["cost"]) + k * math.log(N)
-            p_total = len(parameters) + current["k"] + k + len(sup_problem.y0_free) + len(sup_problem.offset_free)
-            dof = max(N - p_total, 1)
-            F = ((current["cost"] - cost_c) / k) / (cost_c / dof) if cost_c > 0 else np.inf
-            p_value = float(stats.f.sf(F, k, dof)) if np.isfinite(F) else 0.0
-            rms_c = float(np.sqrt(np.mean(r_ho**2)))
-            gain = rms_cur / rms_c if rms_c > 0 else np.inf
-            theta_b = np.asarray(thetas[bs.index(b)])
-            values = {n: float(theta_b[len(parameters) + ext_names.index(n)]) for n in c.params}
-            scores.append(
-                Score(
-                    c.name,
-                    c.where,
-                    values,
-                    cost_c,
-                    float(dbic),
-                    p_value,
-                    _rms_per_channel(ho_problem, _pad_used(r_ho, ho_used), sigma),
-                    float(gain),
-                    bool(dbic < -bic_threshold and gain >= min_gain),
-                    k,
-                )
+        if B == 0:
+            say("  no continuous candidate is predicted to improve the fit significantly")
+        else:
+            v0 = {
+                "zb": jnp.tile(current["v"]["zb"], (B, 1)),
+                "xe": jnp.asarray(xe),
+                "y0": jnp.tile(current["v"]["y0"], (B, 1)),
+                "offset": jnp.tile(current["v"]["offset"], (B, 1)),
+            }
+            say(f"round {rnd + 1}: fitting {len(remaining)} candidates ({B} starts) in one vmapped call ...")
+            size = next(b for b in (3, 6, 12, 24, 10**9) if b >= B) if B <= 24 else B
+            vs, costs, steps = _fit_batch(
+                joint, _pad(v0, size), _pad(idx, size), _pad(logf, size), sigma_j, step, max_steps
             )
+            vs = {k: v[:B] for k, v in vs.items()}
+            costs = np.asarray(costs)[:B]
+            # best start per candidate
+            best = {}
+            for b, c in enumerate(owners):
+                if np.isfinite(costs[b]) and (c.label not in best or costs[b] < costs[best[c.label]]):
+                    best[c.label] = b
+            labels = [c.label for c in remaining if c.label in best]
+            bs = [best[lab] for lab in labels]
+            thetas = jnp.stack(
+                [theta_of({k: v[b] for k, v in vs.items()}, np.asarray(idx[b]), np.asarray(logf[b])) for b in bs]
+            )
+            ho = held_out(thetas)
+            for lab, b, r_ho in zip(labels, bs, ho):
+                c = next(x for x in remaining if x.label == lab)
+                k = len(c.params)
+                cost_c = float(costs[b])
+                dbic = N * math.log(max(cost_c, 1e-300) / current["cost"]) + k * math.log(N)
+                p_total = len(parameters) + current["k"] + k + len(sup_problem.y0_free) + len(sup_problem.offset_free)
+                dof = max(N - p_total, 1)
+                F = ((current["cost"] - cost_c) / k) / (cost_c / dof) if cost_c > 0 else np.inf
+                p_value = float(stats.f.sf(F, k, dof)) if np.isfinite(F) else 0.0
+                rms_c = float(np.sqrt(np.mean(r_ho**2)))
+                gain = rms_cur / rms_c if rms_c > 0 else np.inf
+                theta_b = np.asarray(thetas[bs.index(b)])
+                values = {n: float(theta_b[len(parameters) + ext_names.index(n)]) for n in c.params}
+                scores.append(
+                    Score(
+                        c.name,
+                        c.where,
+                        values,
+                        cost_c,
+                        float(dbic),
+                        p_value,
+                        _rms_per_channel(ho_problem, _pad_used(r_ho, ho_used), sigma),
+                        float(gain),
+                        bool(dbic < -bic_threshold and gain >= min_gain),
+                        k,
+                    )
+                )
         for c in screened_out:
             k = len(c.params)
             cost_c = min(predicted[c.label], current["cost"])
@@ -706,8 +691,16 @@ def diagnose_logs(
             scores.append(
                 Score(c.name, c.where, {}, cost_c, float(dbic), float("nan"), {}, float("nan"), False, k, screened=True)
             )
-        # structural candidates of this round
-        for c in [x for x in cands if x.structural and x.label not in {a.label for a, _ in accepted}]:
+        # structural candidates of this round: all of them from the baseline; in later
+        # rounds only those that improved on the model of the previous round (each is a
+        # model of its own, compiled and fitted separately: the expensive part)
+        for c in [
+            x
+            for x in cands
+            if x.structural
+            and x.label not in {a.label for a, _ in accepted}
+            and (rnd == 0 or x.label in struct_promising)
+        ]:
             s = _structural_score(
                 rtol,
                 c,
@@ -735,10 +728,14 @@ def diagnose_logs(
                 scores.append(s)
         scores.sort(key=lambda s: s.delta_bic)
         rounds.append(scores)
+        struct_promising = {
+            s.label for s in scores if s.delta_bic < 0 and any(c.label == s.label and c.structural for c in cands)
+        }
         winners = [s for s in scores if s.accepted]
         for s in scores[:5]:
             say(
-                f"  {s.label:<32} dBIC {s.delta_bic:10.1f}  held-out gain {s.held_out_gain:6.3f}x {'ACCEPTED' if s.accepted else ''}"
+                f"  {s.label:<32} dBIC {s.delta_bic:10.1f}  held-out gain {s.held_out_gain:6.3f}x "
+                f"{'ACCEPTED' if s.accepted else ''}"
             )
         if not winners:
             break
@@ -991,7 +988,11 @@ def _structural_score(
             rtol=rtol,
             atol=1e-2 * rtol,
         )
-        ho = fit(ho_problem, [], n_stages=1, n_starts=1, estimate_noise=False, frequency_init=False)
+        v0 = {
+            "y0": jnp.asarray([ho_problem.y0_known[l, s] for l, s in ho_problem.y0_free], dtype=float),
+            "offset": jnp.zeros(len(ho_problem.offset_free)),
+        }
+        r_ho, _ = _held_out_batch(ho_problem, jnp.zeros((1, 0)), v0, jnp.asarray(sigma), res.step, 25)
     except (RuntimeError, ValueError) as e:
         say(f"  structural candidate {c.label} failed: {e}")
         return None
@@ -1001,18 +1002,10 @@ def _structural_score(
     dof = max(N - len(params) - len(problem.y0_free) - len(problem.offset_free), 1)
     F = ((current["cost"] - res.cost) / k_eff) / (res.cost / dof)
     p_value = float(stats.f.sf(F, k_eff, dof))
-    r_ho = np.asarray(ho.problem.measured)  # only for shape
-    del r_ho
-    rms_ch = {ch: float(np.sqrt(ho.cost / ho.n_residuals)) * float(s) for ch, s in zip(channels, sigma)}
-    from .fit import fitted_outputs
-
-    outs = fitted_outputs(ho)
-    per = {ch: [] for ch in channels}
-    for entry in outs.values():
-        for ch, rr in entry["residual"].items():
-            per[ch].append(rr)
-    rms_ch = {ch: float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for ch, v in per.items() if v}
-    rms_c = math.sqrt(ho.cost / ho.n_residuals)
+    used = _used(ho_problem)
+    r_ho = np.asarray(r_ho[0])
+    rms_ch = _rms_per_channel(ho_problem, r_ho, np.asarray(sigma))
+    rms_c = float(np.sqrt(np.mean(r_ho[used] ** 2)))
     gain = rms_cur / rms_c if rms_c > 0 else np.inf
     vals = {n: float(v) for n, v in res.value.items() if n in new}
     return Score(

@@ -199,7 +199,8 @@ def markdown(diag, title: str = "") -> str:
     lines.append("| --- | ---: | ---: | ---: |")
     for c in diag.held_out["baseline"]:
         lines.append(
-            f"| {c} | {diag.held_out['baseline'][c]:.4g} | {diag.held_out['extended'][c]:.4g} | {diag.held_out['gain'][c]:.2f}x |"
+            f"| {c} | {diag.held_out['baseline'][c]:.4g} | {diag.held_out['extended'][c]:.4g} "
+            f"| {diag.held_out['gain'][c]:.2f}x |"
         )
     lines.append("")
     lines.append(

@@ -209,7 +209,8 @@ def summary_lines(ev: dict) -> list[str]:
                 lines.append(
                     f"  - decay envelope: measured best fit **{dl['measured']['best']}** "
                     f"(R^2 exp {rm['exponential']:.4f}, lin {rm['linear']:.4f}, hyp {rm['hyperbolic']:.4f}); "
-                    f"simulated best **{dl['simulated']['best']}** (exp {rs['exponential']:.4f}, lin {rs['linear']:.4f})"
+                    f"simulated best **{dl['simulated']['best']}** "
+                    f"(exp {rs['exponential']:.4f}, lin {rs['linear']:.4f})"
                 )
             corr = item["feature_correlation"]
             top = sorted(corr.items(), key=lambda kv: -abs(kv[1]))[:3]

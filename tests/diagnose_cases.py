@@ -32,6 +32,9 @@ from identify.synthetic import simulate_log
 
 PENDULUM_NOISE = math.radians(0.1)
 RELEASES_DEG = (0.0, -30.0, -60.0)
+# the shipped example's log names: a problem's log names are part of its compiled structure,
+# so logs named alike reuse the programs compiled for the example
+LOG_NAMES = ("drop_0deg", "drop_m30deg", "drop_m60deg")
 PENDULUM_T = np.arange(801) / 100.0
 PENDULUM_PARAMS = [Parameter("joint1.damping", 1e-3, 1e-6, 1e-1), Parameter("hub1.inertia", 4e-5, 1e-7, 1e-2)]
 
@@ -61,10 +64,10 @@ def pendulum_logs(truth, seed, measurement=None):
             rng=rng,
             fit_initial=("theta1",),
             offsets=("theta1",),
-            name=f"drop_{k}",
+            name=name,
             measurement=measurement,
         )
-        for k, (a, o) in enumerate(zip(RELEASES_DEG, offsets))
+        for name, a, o in zip(LOG_NAMES, RELEASES_DEG, offsets)
     ]
 
 
@@ -126,7 +129,7 @@ def diagnose_arm(logs, base=None, **kw):
 # --- hidden effects ---------------------------------------------------------------
 
 PENDULUM_ENTRIES = ("coulomb_friction", "quadratic_damping", "sensor_delay", "sensor_gain_offset", "sensor_highpass")
-ARM_ENTRIES = ("actuator_lag", "base_tilt", "missing_mode", "joint_elasticity")
+ARM_ENTRIES = ("actuator_lag", "base_tilt", "missing_mode", "joint_elasticity", "backlash")
 
 
 def hidden(name: str, seed: int):
@@ -165,6 +168,12 @@ def hidden(name: str, seed: int):
     if name == "joint_elasticity":
         k = float(rng.uniform(20.0, 60.0))
         return (lambda: diagnose_arm(arm_logs(arm(elastic=(k, 0.01, None)), seed))), k, "joint1.stiffness"
+    if name == "backlash":
+        # the arm with an elastic (geared) joint: k = 40 N m/rad, rotor 0.01 kg m^2; the
+        # baseline knows the elastic joint but not the gear's dead zone
+        v = float(rng.uniform(0.003, 0.01))
+        base = arm(elastic=(40.0, 0.01, None))
+        return (lambda: diagnose_arm(arm_logs(arm(elastic=(40.0, 0.01, v)), seed), base=base)), v, "joint1.backlash"
     if name == "null_pendulum":
         return (lambda: diagnose_pendulum(pendulum_logs(pendulum(), seed))), None, None
     if name == "null_arm":

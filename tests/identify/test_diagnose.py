@@ -16,7 +16,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-
 from diagnose_cases import diagnose_pendulum, pendulum, pendulum_logs  # tests/ is on sys.path
 
 from identify import measurement as meas
