@@ -1,0 +1,307 @@
+"""Gradient-based trajectory design: rest-to-rest moves with no residual vibration.
+
+A move takes the arm from rest at `start_angles` to rest at `goal_angles` (rad) in a
+move time `T` (s). The joint torque is a smooth parameterised signal
+(`BSplineTorque`: a cubic B-spline per joint, saturated smoothly so that
+`|tau_j(t)| < tau_max` at every instant); its control points are chosen by
+Levenberg-Marquardt (optimistix) on a residual vector built from one simulation
+(`fd.simulate`, fixed-step RK4) over `[0, T + settle]`, differentiated through the
+solver in forward mode:
+
+    r = [ (theta(t_k) - theta_goal) / sqrt(K),                  (rad)
+          v_tip(t_k) / (L_ref sqrt(K)),                         (m / m)
+          theta_dot(T) tau_ref ],                               (rad/s * s)
+
+with `t_k` the `K` samples of the settle window `[T, T + settle]` and `v_tip` the
+elastic tip deflections of every link. After `T` the torque is zero, so a state that
+stays at the goal over the window is a rest-to-rest move. The robust variant stacks the
+residuals of a vmapped batch of payload masses (least squares on their mean square).
+
+Performance measures (`move_metrics`) are the same for every input, so the optimised
+move can be compared with bang-bang, shaped bang-bang (`flexdyn.shaping`) or a tracking
+controller on the same move and the same `T`.
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from ._checks import as_float_array
+from .chain import Chain
+from .inputs import AbstractInput
+from .simulate import observe, simulate
+
+
+def cubic_bspline(x):
+    """The centred cardinal cubic B-spline `b(x)` (support `[-2, 2]`, C^2, `b(0) = 2/3`):
+    `(2 - |x|)^3 / 6` for `1 <= |x| < 2`, `2/3 - x^2 + |x|^3 / 2` for `|x| < 1`, else 0."""
+    a = jnp.abs(x)
+    inner = 2.0 / 3.0 - a**2 + 0.5 * a**3
+    outer = (2.0 - a) ** 3 / 6.0
+    return jnp.where(a < 1.0, inner, jnp.where(a < 2.0, outer, 0.0))
+
+
+def bspline_basis(t, n_control: int, duration) -> Float[Array, "... n_control"]:
+    """Basis `N_k(t) = b(t / h - k - 2)`, `k = 0 .. n_control - 1`, knot spacing
+    `h = duration / (n_control + 3)`: every basis function's support lies inside
+    `[0, duration]`, so the spline and its first two derivatives are zero at `t <= 0`
+    and `t >= duration` (a torque that starts and ends smoothly at zero)."""
+    h = duration / (n_control + 3)
+    k = jnp.arange(n_control, dtype=float)
+    return cubic_bspline(jnp.asarray(t, dtype=float)[..., None] / h - k - 2.0)
+
+
+class BSplineTorque(AbstractInput):
+    """Joint torque `tau_j(t) = tau_max_j tanh(s_j(t) / tau_max_j)`, N m, with
+    `s_j(t) = sum_k c_kj N_k(t)` a cubic B-spline on `[0, duration]` (`bspline_basis`),
+    zero outside it. The saturation keeps `|tau_j| < tau_max_j` at every time by
+    construction and is smooth, so gradients flow for every control point.
+
+    **Arguments:** `control_points` (N m, shape `(n_control, n_joints)`), `duration` (s),
+    `tau_max` (N m, scalar or one per joint).
+    """
+
+    control_points: Float[Array, "n_control n_joints"]
+    duration: Float[Array, ""]
+    tau_max: Float[Array, " n_joints"]
+
+    def __init__(self, control_points, duration, tau_max):
+        self.control_points = as_float_array(control_points)
+        if self.control_points.ndim != 2 or self.control_points.shape[0] < 1:
+            raise ValueError(
+                f"BSplineTorque.control_points: expected shape (n_control, n_joints), got {self.control_points.shape}"
+            )
+        self.duration = as_float_array(duration)
+        self.tau_max = jnp.broadcast_to(as_float_array(tau_max), self.control_points.shape[1:])
+        if not isinstance(self.tau_max, jax.core.Tracer) and np.any(np.asarray(self.tau_max) <= 0):
+            raise ValueError(f"BSplineTorque.tau_max: expected torque limits > 0 N m, got {tau_max!r}")
+
+    def spline(self, t):
+        """The unsaturated spline `s(t)` (N m)."""
+        return bspline_basis(t, self.control_points.shape[0], self.duration) @ self.control_points
+
+    def __call__(self, t, y=None):
+        return self.tau_max * jnp.tanh(self.spline(t) / self.tau_max)
+
+    @staticmethod
+    def fit(times, torques, n_control: int, duration, tau_max) -> BSplineTorque:
+        """The `BSplineTorque` whose spline is the least-squares fit of sampled torques
+        `(T, n_joints)` (clipped to 0.95 `tau_max` and passed through `artanh`, so that the
+        saturated torque matches them): e.g. an initial guess from a bang-bang."""
+        tau_max = np.broadcast_to(np.asarray(tau_max, dtype=float), np.shape(torques)[1:])
+        target = tau_max * np.arctanh(np.clip(np.asarray(torques) / tau_max, -0.95, 0.95))
+        basis = np.asarray(bspline_basis(jnp.asarray(times), n_control, jnp.asarray(float(duration))))
+        cp, *_ = np.linalg.lstsq(basis, target, rcond=None)
+        return BSplineTorque(cp, duration, tau_max)
+
+
+class RestToRestMove(eqx.Module):
+    """A rest-to-rest move and how it is scored.
+
+    **Arguments:**
+    - `chain`: the arm (its `payload.mass` is replaced per evaluation in the robust design).
+    - `start_angles`, `goal_angles`: link angles (rad), at rest.
+    - `duration`: move time `T` (s).
+    - `tau_max`: torque limit (N m), scalar or per joint.
+    - `settle`: length of the window after `T` over which residual vibration is scored (s).
+    - `n_window`: samples in the window (including `T` and `T + settle`).
+    - `dt`: fixed RK4 step (s); a compile-time setting.
+    - `length_scale`: `L_ref` (m) that turns tip deflections into angles in the residuals.
+    - `rate_time_scale`: `tau_ref` (s) weighting the terminal joint rates.
+    """
+
+    chain: Chain
+    start_angles: Float[Array, " n_joints"]
+    goal_angles: Float[Array, " n_joints"]
+    duration: Float[Array, ""]
+    tau_max: Float[Array, " n_joints"]
+    settle: Float[Array, ""]
+    length_scale: Float[Array, ""]
+    rate_time_scale: Float[Array, ""]
+    n_window: int = eqx.field(static=True)
+    dt: float = eqx.field(static=True)
+
+    def __init__(
+        self,
+        chain,
+        start_angles,
+        goal_angles,
+        duration,
+        tau_max,
+        *,
+        settle=1.0,
+        n_window=101,
+        dt=2e-3,
+        length_scale=0.5,
+        rate_time_scale=0.1,
+    ):
+        self.chain = chain
+        self.start_angles = jnp.atleast_1d(as_float_array(start_angles))
+        self.goal_angles = jnp.atleast_1d(as_float_array(goal_angles))
+        n = chain.n_links
+        if self.start_angles.shape != (n,) or self.goal_angles.shape != (n,):
+            raise ValueError(
+                f"RestToRestMove: expected {n} start and goal angles, got {self.start_angles.shape} "
+                f"and {self.goal_angles.shape}"
+            )
+        self.duration = as_float_array(duration)
+        self.tau_max = jnp.broadcast_to(as_float_array(tau_max), (n,))
+        self.settle = as_float_array(settle)
+        self.length_scale = as_float_array(length_scale)
+        self.rate_time_scale = as_float_array(rate_time_scale)
+        self.n_window = int(n_window)
+        self.dt = float(dt)
+
+    def output_times(self):
+        """`[0, T, ..., T + settle]` (s): start, then the window samples."""
+        window = self.duration + jnp.linspace(0.0, 1.0, self.n_window) * self.settle
+        return jnp.concatenate([jnp.zeros(1), window])
+
+    def initial_state(self):
+        """Rest at `start_angles` with undeformed links and unloaded joint springs (traceable)."""
+        lay = self.chain.layout
+        Q = jnp.zeros(lay.n_dof).at[jnp.asarray(lay.theta)].set(self.start_angles)
+        for i, k in enumerate(lay.rotor):
+            if k is not None:
+                Q = Q.at[k].set(self.start_angles[i])
+        return jnp.concatenate([Q, jnp.zeros(lay.n_dof)])
+
+    def with_payload(self, payload_mass) -> RestToRestMove:
+        return eqx.tree_at(lambda m: m.chain.payload.mass, self, as_float_array(payload_mass))
+
+    def torque(self, control_points) -> BSplineTorque:
+        return BSplineTorque(control_points, self.duration, self.tau_max)
+
+
+def move_residuals(control_points, move: RestToRestMove):
+    """Residual vector of the move (module docstring) for one chain: dimensionless
+    (rad-like), length `n_window (n_joints + n_links) + n_joints`."""
+    torque = move.torque(control_points)
+    traj = simulate(
+        move.chain,
+        move.initial_state(),
+        move.output_times(),
+        torque,
+        dt=move.dt,
+        adjoint=diffrax.ForwardMode(),
+    )
+    out = observe(move.chain, traj, torque)
+    scale = 1.0 / jnp.sqrt(float(move.n_window))
+    angle_error = (out.joint_angle[1:] - move.goal_angles) * scale
+    tip = out.tip_deflection[1:] / move.length_scale * scale
+    rates = out.joint_rate[1] * move.rate_time_scale
+    return jnp.concatenate([angle_error.ravel(), tip.ravel(), rates])
+
+
+def robust_residuals(control_points, move: RestToRestMove, payload_masses):
+    """Residuals of `move_residuals` for every payload mass (kg), vmapped, stacked and
+    scaled by `1 / sqrt(n_payloads)`: their sum of squares is the mean over payloads."""
+    payload_masses = as_float_array(payload_masses)
+    per_payload = jax.vmap(lambda m: move_residuals(control_points, move.with_payload(m)))(payload_masses)
+    return per_payload.ravel() / jnp.sqrt(float(payload_masses.shape[0]))
+
+
+class MoveDesign(eqx.Module):
+    """Result of `design_move`: the optimised `torque`, the final `cost`
+    (`0.5 |r|^2`), the initial cost, the optimistix result code and its stats."""
+
+    torque: BSplineTorque
+    cost: Array
+    initial_cost: Array
+    result: optx.RESULTS
+    num_steps: Array
+
+
+def design_move(
+    move: RestToRestMove,
+    initial: BSplineTorque,
+    payload_masses=None,
+    *,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 60,
+    throw: bool = False,
+) -> MoveDesign:
+    """Choose the control points of `initial` (a `BSplineTorque` with the move's duration
+    and limits) by Levenberg-Marquardt on `move_residuals` (nominal chain), or on
+    `robust_residuals` over `payload_masses` (kg) when given. Jacobians are forward-mode
+    through the RK4 solve. `throw=False` returns the best point found when `max_steps` is
+    reached (check `result`)."""
+
+    def fn(cp, args):
+        move_, masses = args
+        return move_residuals(cp, move_) if masses is None else robust_residuals(cp, move_, masses)
+
+    masses = None if payload_masses is None else as_float_array(payload_masses)
+    args = (move, masses)
+    cp0 = initial.control_points
+    cost0 = 0.5 * jnp.sum(fn(cp0, args) ** 2)
+    sol = optx.least_squares(
+        fn,
+        optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+        cp0,
+        args=args,
+        options={"jac": "fwd"},
+        max_steps=max_steps,
+        throw=throw,
+    )
+    cost = 0.5 * jnp.sum(fn(sol.value, args) ** 2)
+    return MoveDesign(move.torque(sol.value), cost, cost0, sol.result, sol.stats["num_steps"])
+
+
+def move_metrics(
+    move: RestToRestMove,
+    torque: AbstractInput,
+    *,
+    solver: diffrax.AbstractSolver | None = None,
+    dt: float | None = None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    n_torque_samples: int = 4001,
+) -> dict[str, np.ndarray]:
+    """Score any input on the move (host-side, NumPy results, SI units):
+
+    - `residual_vibration` (m): RMS over the window `[T, T + settle]` of the Euclidean
+      norm of the links' elastic tip deflections;
+    - `peak_residual_deflection` (m): largest |tip deflection| in the window;
+    - `angle_error_T`, `angle_error_end` (rad): max |theta - theta_goal| at `T` and at
+      `T + settle`;
+    - `rate_T` (rad/s): max |theta_dot| at `T`;
+    - `peak_torque` (N m): max |tau| per joint over `n_torque_samples` times on
+      `[0, T + settle]` (for a feedback input, along the simulated trajectory);
+    - `state_T`: the state `[Q, Q_dot]` at `T`.
+
+    Simulated with `solver` (default RK4 at `dt`, the move's step, when `dt` is None and
+    `solver` is None; pass e.g. `diffrax.Dopri8()` with `rtol`/`atol` for an adaptive
+    reference run)."""
+    if solver is None and dt is None:
+        dt = move.dt
+    # one run on the union of the window samples and a fine grid for the torque
+    window = np.asarray(move.output_times())
+    t_fine = np.linspace(0.0, window[-1], n_torque_samples)
+    ts = np.unique(np.concatenate([window, t_fine]))
+    k = np.searchsorted(ts, window)
+    traj = simulate(
+        move.chain, move.initial_state(), jnp.asarray(ts), torque, solver=solver, dt=dt, rtol=rtol, atol=atol
+    )
+    out = observe(move.chain, traj, torque)
+    tip = np.asarray(out.tip_deflection)[k[1:]]
+    theta = np.asarray(out.joint_angle)[k]
+    rate_T = np.asarray(out.joint_rate)[k[1]]
+    goal = np.asarray(move.goal_angles)
+    tau = np.asarray(out.torque)
+    return {
+        "residual_vibration": float(np.sqrt(np.mean(np.sum(tip**2, axis=1)))),
+        "peak_residual_deflection": float(np.max(np.abs(tip))),
+        "angle_error_T": float(np.max(np.abs(theta[1] - goal))),
+        "angle_error_end": float(np.max(np.abs(theta[-1] - goal))),
+        "rate_T": float(np.max(np.abs(rate_T))),
+        "peak_torque": np.max(np.abs(tau), axis=0),
+        "state_T": np.asarray(traj.y)[k[1]],
+    }

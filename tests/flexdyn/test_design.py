@@ -1,0 +1,84 @@
+"""flexdyn.design: the B-spline torque (fast, no ODE solves) and the move residuals' derivatives (slow)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import flexdyn as fd
+from flexdyn import design
+
+T = 1.0  # s
+
+
+def test_cubic_bspline_closed_form_and_partition_of_unity():
+    x = jnp.linspace(-3.0, 3.0, 601)
+    b = design.cubic_bspline(x)
+    # integral 1, value 2/3 at 0, 1/6 at +-1, zero outside [-2, 2]
+    assert float(jnp.sum(b) * (x[1] - x[0])) == pytest.approx(1.0, abs=1e-6)
+    assert float(design.cubic_bspline(jnp.asarray(0.0))) == pytest.approx(2 / 3, abs=1e-15)
+    assert float(design.cubic_bspline(jnp.asarray(1.0))) == pytest.approx(1 / 6, abs=1e-15)
+    assert float(jnp.max(jnp.abs(jnp.where(jnp.abs(x) >= 2, b, 0.0)))) == 0.0
+    # the basis sums to one where it is complete: t in [3h, n h], h = T / (n + 3)
+    n = 8
+    h = T / (n + 3)
+    t = jnp.linspace(3 * h, n * h, 50)
+    np.testing.assert_allclose(np.asarray(jnp.sum(design.bspline_basis(t, n, T), axis=1)), 1.0, atol=1e-14)
+
+
+def test_torque_starts_and_ends_smoothly_at_zero(rng):
+    torque = design.BSplineTorque(rng.normal(size=(8, 2)) * 0.3, T, 0.4)
+
+    def tau(t):
+        return torque(t)
+
+    d1 = jax.jacfwd(tau)
+    d2 = jax.jacfwd(d1)
+    for t in (0.0, T):
+        for f in (tau, d1, d2):
+            np.testing.assert_allclose(np.asarray(f(jnp.asarray(t))), 0.0, atol=1e-12)
+    outside = jax.vmap(tau)(jnp.asarray([-0.5, 1.2, 3.0]))
+    assert float(jnp.max(jnp.abs(outside))) == 0.0
+    assert float(jnp.max(jnp.abs(jax.vmap(tau)(jnp.linspace(0.0, T, 101))))) > 0.05
+
+
+def test_torque_limit_holds_for_any_control_points(rng):
+    torque = design.BSplineTorque(rng.normal(size=(8, 2)) * 50.0, T, jnp.asarray([0.4, 0.25]))
+    tau = jax.vmap(torque)(jnp.linspace(0.0, T, 2001))
+    assert np.all(np.abs(np.asarray(tau)) <= np.asarray([0.4, 0.25]))
+    # the spline itself goes far beyond: the saturation is what holds the limit
+    assert float(jnp.max(jnp.abs(jax.vmap(torque.spline)(jnp.linspace(0.0, T, 2001))))) > 10.0
+    with pytest.raises(ValueError, match="tau_max"):
+        design.BSplineTorque(np.zeros((8, 2)), T, -1.0)
+
+
+def test_fit_recovers_a_spline_torque(rng):
+    true = design.BSplineTorque(rng.normal(size=(6, 2)) * 0.1, T, 0.4)
+    ts = jnp.linspace(0.0, T, 301)
+    fitted = design.BSplineTorque.fit(np.asarray(ts), np.asarray(jax.vmap(true)(ts)), 6, T, 0.4)
+    np.testing.assert_allclose(np.asarray(fitted.control_points), np.asarray(true.control_points), atol=1e-10)
+
+
+def test_move_rejects_wrong_number_of_angles():
+    with pytest.raises(ValueError, match="2 start and goal angles"):
+        design.RestToRestMove(fd.rigs.two_link_flexible_arm(), [0.0], [0.1, 0.2], T, 0.4)
+
+
+@pytest.mark.slow
+def test_residual_jacobian_matches_finite_differences(rng):
+    # forward-mode derivative through the RK4 solve vs central differences (float64)
+    move = design.RestToRestMove(
+        fd.rigs.two_link_flexible_arm(), [0.0, 0.0], [0.1, 0.5], 0.5, 0.4, settle=0.2, n_window=11, dt=2e-3
+    )
+    cp = jnp.asarray(rng.normal(size=(5, 2)) * 0.1)
+    direction = jnp.asarray(rng.normal(size=(5, 2)))
+    _, jvp = jax.jvp(lambda c: design.move_residuals(c, move), (cp,), (direction,))
+    eps = 1e-6
+    fd_jvp = (design.move_residuals(cp + eps * direction, move) - design.move_residuals(cp - eps * direction, move)) / (
+        2 * eps
+    )
+    np.testing.assert_allclose(np.asarray(jvp), np.asarray(fd_jvp), rtol=1e-6, atol=1e-9)
+    # the robust residuals of one payload equal the nominal ones at that payload
+    rob = design.robust_residuals(cp, move, jnp.asarray([0.03]))
+    nom = design.move_residuals(cp, move.with_payload(0.03))
+    np.testing.assert_allclose(np.asarray(rob), np.asarray(nom), rtol=1e-12, atol=1e-15)
