@@ -78,7 +78,8 @@ def test_residual_jacobian_matches_finite_differences(rng):
         2 * eps
     )
     np.testing.assert_allclose(np.asarray(jvp), np.asarray(fd_jvp), rtol=1e-6, atol=1e-9)
-    # the robust residuals of one payload equal the nominal ones at that payload
+    # the robust residuals: the nominal ones, then the at-rest ones of each payload
     rob = design.robust_residuals(cp, move, jnp.asarray([0.03]))
-    nom = design.move_residuals(cp, move.with_payload(0.03))
-    np.testing.assert_allclose(np.asarray(rob), np.asarray(nom), rtol=1e-12, atol=1e-15)
+    nom = design.move_residuals(cp, move)
+    rest = design.move_residuals(cp, move.with_payload(0.03), at_goal=False)
+    np.testing.assert_allclose(np.asarray(rob), np.concatenate([nom, rest]), rtol=1e-12, atol=1e-15)
