@@ -108,7 +108,8 @@ def test_residual_vibration_below_every_comparison(results):
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="not met yet (first part of issue 7): measured (nominal design at 40 LM steps) worst-case residual vibration over 0-100 g 2.46e-3 m "
+    reason="not met yet (first part of issue 7): measured (nominal design at 40 LM steps) worst-case residual "
+    "vibration over 0-100 g 2.46e-3 m "
     "(robust) vs 3.65e-3 m (nominal), 1.5x lower, not 3x; the robust objective needs work",
 )
 def test_robust_design_holds_over_payloads(results):
