@@ -15,11 +15,13 @@ from . import (
     batch as batch,
     control as control,
     denoc as denoc,
+    design as design,
     modes as modes,
     nonlinear as nonlinear,
     params as params,
     response as response,
     rigs as rigs,
+    shaping as shaping,
 )
 from .chain import (
     AssembledChain as AssembledChain,

@@ -456,7 +456,10 @@ def diagnose_logs(
             )
             break
     offsets_fitted = {c for c in channels if all(c in log.offsets for log in fit_logs if c in log.outputs)}
-    max_f = 0.5 / dt_sample
+    # the highest frequency a structural guess aims at: 4x the model's highest mode (a
+    # joint mode far above it stiffens the problem for nothing), at most Nyquist
+    positive_modes = [f for f in modal if f > 0]
+    max_f = min(0.5 / dt_sample, 4.0 * max(positive_modes)) if positive_modes else 0.5 / dt_sample
     cands = [
         c
         for c in cat.candidates(

@@ -6,7 +6,9 @@ third log held out), so the programs compile once for the whole module. Each hid
 effect has a seeded random magnitude in a realistic range; the diagnosis must name it,
 gain at least 2x in held-out RMS, and its fitted parameter's 95 % interval must contain
 the truth. The full grid (every catalogue entry, 20 null trials, stacked effects, the
-driven rigs) is in `test_diagnose_grid.py` (slow).
+driven rigs) is in `test_diagnose_grid.py` (slow). In CI (not slow): the shipped example
+(hidden dry friction, through the CLI), air drag told apart from dry friction, a null case;
+slow: random-magnitude dry friction and sensor delay.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from diagnose_cases import diagnose_pendulum, pendulum, pendulum_logs  # tests/ is on sys.path
 
 from identify import measurement as meas
@@ -62,6 +65,7 @@ def test_main_job_diagnose_names_the_hidden_friction_of_the_example(tmp_path):
     assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(EXAMPLE / "logs"), "--quiet"]) == 2
 
 
+@pytest.mark.slow
 def test_coulomb_friction_hidden_with_a_random_magnitude():
     rng = np.random.default_rng(501)
     fc = float(rng.uniform(0.5e-3, 2.0e-3))  # N m
@@ -89,6 +93,7 @@ def test_quadratic_damping_hidden_and_told_apart_from_dry_friction():
     assert scores["coulomb_friction"].held_out_gain < scores["quadratic_damping"].held_out_gain
 
 
+@pytest.mark.slow
 def test_sensor_delay_hidden():
     rng = np.random.default_rng(503)
     d = float(rng.uniform(0.02, 0.05))  # s
