@@ -2,54 +2,32 @@
 angular momentum, the linearised arm's modes, the clamped-mass frequency equation, non-vmapped runs, the paper's
 trends."""
 
-import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-nbformat = pytest.importorskip("nbformat")
-nbclient = pytest.importorskip("nbclient")
+pytest.importorskip("nbformat")
+pytest.importorskip("nbclient")
 
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import oracles  # noqa: E402  (tests/ is on sys.path via conftest.py)
+from notebook_runner import assert_stored_without_outputs, notebook_path, run_notebook  # noqa: E402
 
 import flexdyn as fd  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-NOTEBOOK = ROOT / "notebooks" / "paper002_two_link.ipynb"
-MARK = "__RESULTS_JSON__"
+NOTEBOOK = notebook_path("paper002_two_link.ipynb")
 
 
 def execute(full: bool):
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    nb.cells.append(nbformat.v4.new_code_cell(f"import json as _j\nprint({MARK!r} + _j.dumps(RESULTS))"))
-    env = {"FLEXDYN_FULL": "1" if full else "0"}
-    old = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
-    try:
-        client = nbclient.NotebookClient(
-            nb, kernel_name="python3", timeout=600, resources={"metadata": {"path": str(ROOT)}}
-        )
-        client.execute()
-    finally:
-        for k, v in old.items():
-            os.environ.pop(k, None) if v is None else os.environ.__setitem__(k, v)
-    for out in nb.cells[-1].outputs:
-        if out.get("name") == "stdout" and MARK in out["text"]:
-            return json.loads(out["text"].split(MARK, 1)[1])
-    raise AssertionError("RESULTS not printed")
+    return run_notebook(NOTEBOOK, env={"FLEXDYN_FULL": "1" if full else "0"}, timeout=600)
 
 
 def test_notebook_stored_without_outputs():
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    for cell in nb.cells:
-        if cell.cell_type == "code":
-            assert cell.outputs == []
-            assert cell.execution_count is None
+    assert_stored_without_outputs(NOTEBOOK)
 
 
 @pytest.fixture(scope="module")

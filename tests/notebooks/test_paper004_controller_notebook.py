@@ -1,40 +1,27 @@
 """Execute notebooks/paper004_controller.ipynb (paper 004's composite controller) and check its RESULTS."""
 
 import ast
-import json
 import math
 from pathlib import Path
 
 import pytest
 
 nbformat = pytest.importorskip("nbformat")
-nbclient = pytest.importorskip("nbclient")
+pytest.importorskip("nbclient")
+
+from notebook_runner import assert_stored_without_outputs, notebook_path, run_notebook  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-NOTEBOOK = ROOT / "notebooks" / "paper004_controller.ipynb"
-MARK = "__RESULTS_JSON__"
+NOTEBOOK = notebook_path("paper004_controller.ipynb")
 
 
 def test_notebook_stored_without_outputs():
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    for cell in nb.cells:
-        if cell.cell_type == "code":
-            assert cell.outputs == []
-            assert cell.execution_count is None
+    assert_stored_without_outputs(NOTEBOOK)
 
 
 @pytest.fixture(scope="module")
 def results():
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    nb.cells.append(nbformat.v4.new_code_cell(f"import json as _j\nprint({MARK!r} + _j.dumps(RESULTS))"))
-    client = nbclient.NotebookClient(
-        nb, kernel_name="python3", timeout=600, resources={"metadata": {"path": str(ROOT)}}
-    )
-    client.execute()
-    for out in nb.cells[-1].outputs:
-        if out.get("name") == "stdout" and MARK in out["text"]:
-            return json.loads(out["text"].split(MARK, 1)[1])
-    raise AssertionError("RESULTS not printed")
+    return run_notebook(NOTEBOOK, timeout=600)
 
 
 def test_time_scales(results):

@@ -2,49 +2,27 @@
 deflection tau/k_s, the rotor equation (paper eq. 56), the rigid-joint arm as the k_s -> infinity limit, Rayleigh's
 monotonicity."""
 
-import json
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-nbformat = pytest.importorskip("nbformat")
-nbclient = pytest.importorskip("nbclient")
+pytest.importorskip("nbformat")
+pytest.importorskip("nbclient")
+
+from notebook_runner import assert_stored_without_outputs, notebook_path, run_notebook  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-NOTEBOOK = ROOT / "notebooks" / "paper004_arm.ipynb"
-MARK = "__RESULTS_JSON__"
+NOTEBOOK = notebook_path("paper004_arm.ipynb")
 TAU, K_S = 0.2, 100.0  # N m, N m/rad (Table 1 and section 6)
 
 
 def execute(full: bool):
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    nb.cells.append(nbformat.v4.new_code_cell(f"import json as _j\nprint({MARK!r} + _j.dumps(RESULTS))"))
-    old = os.environ.get("FLEXDYN_FULL")
-    os.environ["FLEXDYN_FULL"] = "1" if full else "0"
-    try:
-        client = nbclient.NotebookClient(
-            nb, kernel_name="python3", timeout=900, resources={"metadata": {"path": str(ROOT)}}
-        )
-        client.execute()
-    finally:
-        if old is None:
-            os.environ.pop("FLEXDYN_FULL", None)
-        else:
-            os.environ["FLEXDYN_FULL"] = old
-    for out in nb.cells[-1].outputs:
-        if out.get("name") == "stdout" and MARK in out["text"]:
-            return json.loads(out["text"].split(MARK, 1)[1])
-    raise AssertionError("RESULTS not printed")
+    return run_notebook(NOTEBOOK, env={"FLEXDYN_FULL": "1" if full else "0"}, timeout=900)
 
 
 def test_notebook_stored_without_outputs():
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    for cell in nb.cells:
-        if cell.cell_type == "code":
-            assert cell.outputs == []
-            assert cell.execution_count is None
+    assert_stored_without_outputs(NOTEBOOK)
 
 
 @pytest.fixture(scope="module")

@@ -3,24 +3,23 @@ rest (re-simulated here with a different solver and tighter tolerance), its resi
 comparison's, the robust design holds over the payload range where the nominal one degrades, and the torque limit
 holds at every sample."""
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-nbformat = pytest.importorskip("nbformat")
-nbclient = pytest.importorskip("nbclient")
+pytest.importorskip("nbformat")
+pytest.importorskip("nbclient")
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+from notebook_runner import assert_stored_without_outputs, notebook_path, run_notebook  # noqa: E402
 
 import flexdyn as fd  # noqa: E402
 from flexdyn import design  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-NOTEBOOK = ROOT / "notebooks" / "trajectory_design.ipynb"
-MARK = "__RESULTS_JSON__"
+NOTEBOOK = notebook_path("trajectory_design.ipynb")
 
 # Stated tolerances of the optimised move (issue 7): at T the link angles are within 1e-4 rad of the goal and the joint
 # rates below 1e-4 rad/s; the RMS tip deflection over [T, T + 1 s] is below 1e-4 m (bang-bang: 2e-2 m).
@@ -30,24 +29,11 @@ VIBRATION_TOL = 1e-4  # m
 
 
 def execute():
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    nb.cells.append(nbformat.v4.new_code_cell(f"import json as _j\nprint({MARK!r} + _j.dumps(RESULTS))"))
-    client = nbclient.NotebookClient(
-        nb, kernel_name="python3", timeout=1200, resources={"metadata": {"path": str(ROOT)}}
-    )
-    client.execute()
-    for out in nb.cells[-1].outputs:
-        if out.get("name") == "stdout" and MARK in out["text"]:
-            return json.loads(out["text"].split(MARK, 1)[1])
-    raise AssertionError("RESULTS not printed")
+    return run_notebook(NOTEBOOK, timeout=1200)
 
 
 def test_notebook_stored_without_outputs():
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    for cell in nb.cells:
-        if cell.cell_type == "code":
-            assert cell.outputs == []
-            assert cell.execution_count is None
+    assert_stored_without_outputs(NOTEBOOK)
 
 
 @pytest.fixture(scope="module")
