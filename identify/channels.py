@@ -3,6 +3,7 @@
 | name           | quantity                                   | unit   |
 | -------------- | ------------------------------------------ | ------ |
 | `theta{i}`     | link angle of joint i                      | rad    |
+| `phi{i}`       | absolute angle of link i in the base frame | rad    |
 | `alpha{i}`     | rotor angle of (elastic) joint i           | rad    |
 | `tip{i}`       | elastic tip deflection v_i(l_i) of link i  | m      |
 | `curvature{i}` | root curvature v_i''(0) of link i          | 1/m    |
@@ -10,6 +11,12 @@
 | `accel_x`, `accel_y` | end-point acceleration               | m/s^2  |
 
 Inputs: `torque{i}`, N m, the torque of joint i.
+
+`phi{i}` is the angle of link i's root frame from the base x axis (`flexdyn.chain.frames`):
+`phi_1 = theta_1`, `phi_i = phi_{i-1} + v_{i-1}'(l_{i-1}) + theta_i` (the tip slope of a
+flexible link i-1 turns the next joint's frame). Encoders that read each link against
+gravity or the base rather than against the previous link (e.g. the double pendulum of
+`identify/examples/real_double_pendulum`) record `phi`, not `theta`.
 """
 
 from __future__ import annotations
@@ -20,12 +27,21 @@ import jax
 import jax.numpy as jnp
 
 import flexdyn as fd
+from flexdyn.chain import frames
 
 from . import units as u
 
-_CHANNEL = re.compile(r"^(theta|alpha|tip|curvature)(\d+)$|^(end|accel)_(x|y)$")
+_CHANNEL = re.compile(r"^(theta|phi|alpha|tip|curvature)(\d+)$|^(end|accel)_(x|y)$")
 
-UNITS = {"theta": "rad", "alpha": "rad", "tip": "m", "curvature": "1/m", "end": "m", "accel": "m/s^2"}
+UNITS = {
+    "theta": "rad",
+    "phi": "rad",
+    "alpha": "rad",
+    "tip": "m",
+    "curvature": "1/m",
+    "end": "m",
+    "accel": "m/s^2",
+}
 
 
 def channel_problem(chain: fd.Chain, channel: str) -> str | None:
@@ -85,13 +101,16 @@ def evaluate(asm: fd.AssembledChain, channels: tuple[str, ...], t, y, torque):
     n = lay.n_dof
     Q, Qd = y[:n], y[n:]
     values = []
-    tips = curv = end = acc = None
+    tips = curv = end = acc = angles = None
     for name in channels:
         m = _CHANNEL.match(name)
         if m[1]:
             kind, i = m[1], int(m[2]) - 1
             if kind == "theta":
                 values.append(Q[lay.theta[i]])
+            elif kind == "phi":
+                angles = frames(asm, Q).angle if angles is None else angles
+                values.append(angles[i])
             elif kind == "alpha":
                 values.append(Q[lay.rotor[i]])
             elif kind == "tip":

@@ -26,7 +26,7 @@ DPI = 110
 
 def display_unit(channel: str) -> tuple[float, str]:
     """(scale, unit) to show an SI channel value in: degrees for angles, mm for lengths."""
-    if channel.startswith(("theta", "alpha")):
+    if channel.startswith(("theta", "phi", "alpha")):
         return 180.0 / np.pi, "deg"
     if channel.startswith(("tip", "end_")):
         return 1e3, "mm"

@@ -12,6 +12,7 @@ vocabulary), each with a dimension used to check a log's units:
 |----------------|---------------------------------------------------|--------------|---------|
 | `time`         | sample time                                       | time         | s       |
 | `theta{i}`     | link angle of joint i                             | angle        | rad     |
+| `phi{i}`       | absolute angle of link i (base frame)             | angle        | rad     |
 | `alpha{i}`     | rotor angle of elastic joint i (link side)        | angle        | rad     |
 | `tip{i}`       | elastic tip deflection of link i                  | length       | m       |
 | `curvature{i}` | bending curvature at the root of link i           | curvature    | 1/m     |
@@ -90,9 +91,10 @@ ALIASES = {
     "mN.m": "mN m",
 }
 
-_INDEXED = re.compile(r"^(theta|alpha|tip|curvature|torque)([1-9][0-9]*)$")
+_INDEXED = re.compile(r"^(theta|phi|alpha|tip|curvature|torque)([1-9][0-9]*)$")
 _INDEXED_DIMENSION = {
     "theta": ANGLE,
+    "phi": ANGLE,
     "alpha": ANGLE,
     "tip": LENGTH,
     "curvature": CURVATURE,
@@ -102,7 +104,7 @@ _PLAIN = {"end_x": LENGTH, "end_y": LENGTH, "accel_x": ACCELERATION, "accel_y": 
 
 #: The channel patterns, for error messages.
 CHANNEL_PATTERNS = (
-    "theta{i}, alpha{i}, tip{i}, curvature{i}, end_x, end_y, accel_x, accel_y (outputs); torque{i} (inputs)"
+    "theta{i}, phi{i}, alpha{i}, tip{i}, curvature{i}, end_x, end_y, accel_x, accel_y (outputs); torque{i} (inputs)"
 )
 
 
