@@ -1,0 +1,235 @@
+"""Real measured data: Kaheman et al.'s single and double compound pendulum
+(`identify/examples/real_single_pendulum`, `real_double_pendulum`; arXiv:2205.06231).
+
+The oracle is the authors' own estimate from the same recordings (published with the data)
+and the held-out validation segments; the fits start far from the authors' values (their
+guesses are 4-10x off). The free swing identifies only ratios of the inertial, gravity and
+damping terms; the experiment files fix the scale (see their comments), so the comparisons
+below are of identifiable combinations.
+
+The single pendulum fit runs in CI (about a minute); the double pendulum fit and the two
+diagnoses are `slow` (several minutes each on two cores).
+"""
+
+import dataclasses
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import flexdyn as fd
+from identify import fit, fitted_outputs, load_experiment, make_problem, predict
+from identify.run import log_data, parameters, problem_from_experiment
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "identify" / "examples"
+RTOL = 1e-7  # fit solver tolerance; the model error is ~1e-3 rad
+
+# The authors' estimates (EstimatedParameters_*.mat of dynamicslab/MultiArm-Pendulum).
+M1, A1 = 0.14758, 0.14775
+AUTHORS_SINGLE = {"link1.mass": M1, "link1.com": A1, "link1.inertia": 1.0912e-4, "joint1.damping": 2.2394e-4}
+DM1, DM2, DA2 = 0.093844, 0.137596, 0.116779
+AUTHORS_DOUBLE = {
+    "link1.mass": DM1,
+    "link2.mass": DM2,
+    "link1.com": 0.108565,
+    "link2.com": DA2,
+    "link1.length": 0.172719,
+    "link1.inertia": 4.3753e-4,
+    "link2.inertia": 1.26883e-3,
+    "joint1.damping": 2.3714e-4,
+    "joint2.damping": 1.0e-5,
+    "gravity[0]": -9.80858,
+}
+
+
+def _fit(exp):
+    problem = problem_from_experiment(exp, rtol=RTOL, atol=1e-2 * RTOL)
+    return fit(problem, parameters(exp), estimate_noise=list(problem.channels), n_starts=1)
+
+
+def _rms_reestimated(exp, values, sigma):
+    """Validation RMS per channel with the parameters fixed and each log's initial state and
+    encoder offsets re-estimated."""
+    chain = fd.with_parameters(exp.chain, values)
+    data = [log_data(s, chain.n_links) for s in exp.validation_logs]
+    problem = make_problem(chain, [], data, dict(sigma), rtol=RTOL, atol=1e-2 * RTOL)
+    res = fit(problem, [], n_stages=1, estimate_noise=False)
+    outs = fitted_outputs(res).values()
+    return {c: float(np.sqrt(np.mean(np.concatenate([e["residual"][c] for e in outs]) ** 2))) for c in problem.channels}
+
+
+def _rms_measured_start(exp, values):
+    """Validation RMS per channel of a pure simulation from the measured initial state (the
+    authors' procedure: first sample, their denoised rate), no offsets."""
+    chain = fd.with_parameters(exp.chain, values)
+    data = [dataclasses.replace(log_data(s, chain.n_links), fit_initial=(), offsets=()) for s in exp.validation_logs]
+    problem = make_problem(chain, [], data, {c: 1.0 for c in exp.output_channels}, rtol=1e-10, atol=1e-12)
+    pred, ok = predict(problem, jnp.zeros(0), problem.y0_known)
+    assert bool(jnp.all(ok))
+    err = (np.asarray(pred) - np.asarray(problem.measured))[np.asarray(problem.valid)]
+    return {c: float(np.sqrt(np.mean(err[:, j] ** 2))) for j, c in enumerate(problem.channels)}
+
+
+# ---------------------------------------------------------------------------
+# single pendulum (CI)
+# ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def single():
+    exp = load_experiment(EXAMPLES / "real_single_pendulum" / "experiment.toml")
+    return exp, _fit(exp)
+
+
+def test_single_pendulum_files_load_as_documented():
+    exp = load_experiment(EXAMPLES / "real_single_pendulum" / "experiment.toml")
+    assert [s.name for s in exp.fit_logs] == ["id0", "id1", "id2", "id3"]
+    assert [s.name for s in exp.validation_logs] == ["vad0", "vad1"]
+    for s in exp.fit_logs + exp.validation_logs:
+        assert s.log.sampling.median_dt == pytest.approx(0.005)
+        # upright = 0: the recordings swing about pi
+        assert abs(np.median(s.log.outputs["theta1"]) - np.pi) < 0.1
+    assert np.asarray(exp.chain.gravity).tolist() == [-9.81, 0.0]
+
+
+def test_single_pendulum_inertia_agrees_damping_differs_as_explained(single):
+    exp, res = single
+    assert res.converged
+    J_ours = M1 * A1**2 + res.value["link1.inertia"]
+    J_auth = M1 * A1**2 + AUTHORS_SINGLE["link1.inertia"]
+    # inertia about the pivot at the authors' m1*a1: measured +0.27 % (our 95 % interval is
+    # +-0.003 %: it assumes white residuals, and the residual is mostly model error)
+    assert abs(J_ours / J_auth - 1) < 0.01
+    # damping: ours is lower (measured 0.84x); see the next two tests
+    assert 0.6 < res.value["joint1.damping"] / AUTHORS_SINGLE["joint1.damping"] < 0.95
+
+
+def _single_rms(values, specs, method, rtol):
+    J, k = M1 * A1**2 + values["link1.inertia"], values["joint1.damping"]
+    err = []
+    for s in specs:
+        t = s.log.t_relative
+        y0 = [s.log.outputs["theta1"][0], s.initial["theta1_rate"]]
+        sol = solve_ivp(
+            lambda t, y: [y[1], (M1 * A1 * 9.81 * np.sin(y[0]) - k * y[1]) / J],
+            (0.0, t[-1]),
+            y0,
+            method=method,
+            t_eval=t,
+            rtol=rtol,
+            atol=1e-6 if rtol >= 1e-6 else 1e-12,
+        )
+        err.append(sol.y[0] - s.log.outputs["theta1"])
+    return float(np.sqrt(np.mean(np.concatenate(err) ** 2)))
+
+
+def test_single_pendulum_authors_estimate_fits_a_loose_integrator(single):
+    """The difference explained: the authors simulated with MATLAB ode15s at its default
+    RelTol 1e-3. Simulated accurately (SciPy DOP853), our parameters reproduce the
+    identification segments far better than theirs; with a loose variable-order BDF
+    integrator (rtol 1e-3) theirs are the better ones: their estimate absorbs the integrator's
+    numerical error. Measured (RMS over id0-id3): accurate, ours 17.9 mrad vs authors' 141.8;
+    BDF 1e-3, ours 127.5 vs authors' 41.9."""
+    exp, res = single
+    ours_accurate = _single_rms(res.value, exp.fit_logs, "DOP853", 1e-11)
+    auth_accurate = _single_rms(AUTHORS_SINGLE, exp.fit_logs, "DOP853", 1e-11)
+    ours_loose = _single_rms(res.value, exp.fit_logs, "BDF", 1e-3)
+    auth_loose = _single_rms(AUTHORS_SINGLE, exp.fit_logs, "BDF", 1e-3)
+    assert ours_accurate < 0.3 * auth_accurate
+    assert auth_loose < 0.5 * ours_loose
+
+
+@pytest.fixture(scope="module")
+def single_validation(single):
+    exp, res = single
+    return _rms_reestimated(exp, res.value, res.sigma)["theta1"], _rms_reestimated(exp, AUTHORS_SINGLE, res.sigma)[
+        "theta1"
+    ]
+
+
+def test_single_pendulum_validation_error(single_validation):
+    ours, authors = single_validation
+    # measured: ours 12.36 mrad, the authors' parameters in our model 10.30 mrad
+    assert ours < 0.0130
+    assert ours < 1.25 * authors
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 8's requirement fails on the single pendulum: the held-out segments are the "
+    "smallest swings, which decay faster than a viscous law fitted to the larger ones predicts "
+    "(amplitude-dependent dissipation the viscous model lacks); the authors' larger k1 suits them "
+    "better. Measured: ours 12.36 mrad vs the authors' 10.30 mrad (initial state and offset "
+    "re-estimated); from the measured start 24.1 vs 17.9 mrad.",
+)
+def test_single_pendulum_validation_no_worse_than_the_authors(single_validation):
+    ours, authors = single_validation
+    assert ours <= authors
+
+
+# ---------------------------------------------------------------------------
+# double pendulum (slow: about 3 min on two cores)
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_double_pendulum_combinations_and_validation():
+    exp = load_experiment(EXAMPLES / "real_double_pendulum" / "experiment.toml")
+    assert exp.output_channels == ("phi1", "phi2")
+    res = _fit(exp)
+    assert res.converged
+    v = {"link1.mass": DM1, "link2.mass": DM2, "link2.com": DA2, **res.value}
+
+    def combos(w):
+        return {
+            "J1": w["link1.inertia"] + DM1 * w["link1.com"] ** 2 + DM2 * w["link1.length"] ** 2,
+            "J2": w["link2.inertia"] + DM2 * DA2**2,
+            "c": DM2 * w["link1.length"] * DA2,
+            "G1": DM1 * w["link1.com"] + DM2 * w["link1.length"],
+        }
+
+    ours, auth = combos(v), combos(AUTHORS_DOUBLE)
+    # the inertial and gravity combinations agree within 1 % (measured: 0.1-0.4 %)
+    for key in ours:
+        assert ours[key] == pytest.approx(auth[key], rel=0.01), key
+    # validation against the authors' parameters in our model. Measured (mrad, phi1/phi2):
+    # measured start, ours 6.25/9.14 vs authors' 5.87/8.39; initial state and offsets
+    # re-estimated, ours 1.584/2.581 vs authors' 1.563/2.531. Ours is 1-9 % WORSE: issue 8's
+    # "no worse" fails here too (the held-out segments are the smallest swings, where the
+    # authors' larger k1, fitted to all 26 segments, does better); it is pinned, not hidden.
+    for how, worst in ((_rms_measured_start, 1.15), (lambda e, w: _rms_reestimated(e, w, res.sigma), 1.05)):
+        a, b = how(exp, res.value), how(exp, AUTHORS_DOUBLE)
+        for c in ("phi1", "phi2"):
+            assert a[c] <= worst * b[c], (c, a, b)
+    assert _rms_reestimated(exp, res.value, res.sigma)["phi2"] < 0.003
+
+
+# ---------------------------------------------------------------------------
+# diagnosis (slow: about 5 min for the single pendulum on two cores)
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_single_pendulum_diagnosis_is_pinned():
+    """`identify diagnose` on the real single pendulum, as measured (identify/diagnose.py of
+    2026-11-24): **no cause named**. Baseline held-out RMS 12.36 mrad (vad0 + vad1). Air drag
+    (`quadratic_damping:link1`, drag 1.84e-3 kg/m^2) halves the fit cost (dBIC -4884) but is
+    worse on the held-out smaller swings (gain 0.867x), so it is rejected; Coulomb friction
+    ends at its neutral value (2e-10 N m, gain 1.000x) although one Gauss-Newton step from the
+    baseline predicted the fit cost 7336 -> 5236 (reported as a suspected diagnose issue).
+    The fit is deterministic (three runs gave the same cost 7336 to 4 digits); tolerances
+    allow for a different BLAS/XLA build, not for a different answer."""
+    from identify import diagnose
+
+    exp = load_experiment(EXAMPLES / "real_single_pendulum" / "experiment.toml")
+    d = diagnose(exp)
+    assert d.named == []
+    base = d.to_dict()["held_out"]
+    assert base["baseline"]["theta1"] == pytest.approx(0.01236, rel=0.02)
+    scores = {(s["name"], s["where"]): s for s in d.to_dict()["rounds"][0]}
+    drag = scores[("quadratic_damping", "link1")]
+    assert drag["delta_bic"] < -1000
+    assert drag["held_out_gain"] == pytest.approx(0.867, abs=0.03)
+    assert scores[("coulomb_friction", "joint1")]["held_out_gain"] == pytest.approx(1.0, abs=0.02)
