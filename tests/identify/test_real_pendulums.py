@@ -217,8 +217,8 @@ def test_single_pendulum_diagnosis_is_pinned():
     2026-11-24): **no cause named**. Baseline held-out RMS 12.36 mrad (vad0 + vad1). Air drag
     (`quadratic_damping:link1`, drag 1.84e-3 kg/m^2) halves the fit cost (dBIC -4884) but is
     worse on the held-out smaller swings (gain 0.867x), so it is rejected; Coulomb friction
-    ends at its neutral value (2e-10 N m, gain 1.000x) although one Gauss-Newton step from the
-    baseline predicted the fit cost 7336 -> 5236 (reported as a suspected diagnose issue).
+    ends at its neutral value (2e-10 N m, gain 1.000x), as a plain fit with `joint1.coulomb`
+    free does (it ends on its lower bound, cost unchanged).
     The fit is deterministic (three runs gave the same cost 7336 to 4 digits); tolerances
     allow for a different BLAS/XLA build, not for a different answer."""
     from identify import diagnose
