@@ -59,6 +59,7 @@ from .fit import (
     _offsets,
     _residuals_from,
     _x_from_z,
+    _z_from_x,
     fit,
     make_problem,
     predict,
@@ -180,6 +181,50 @@ def _jacobian(j: _Joint, xb, xe, y0, off, idx, logf, sigma, step):
 
 
 _predict = eqx.filter_jit(predict)
+
+
+Z_SATURATION = 6.0
+
+
+def _gauss_newton_start(j: _Joint, xb, xe, v, delta):
+    """The starting point one Gauss-Newton step `delta` (over the columns of `_jacobian`:
+    baseline x, extension slots, initial states, offsets) predicts, in the fit's
+    coordinates (baseline parameters kept inside their bounds); None if not finite."""
+    nb, ns = j.nb, xe.shape[0]
+    ny = int(np.asarray(v["y0"]).shape[0])
+    if not np.all(np.isfinite(delta)):
+        return None
+    lo, hi = np.asarray(j.problem.lower[:nb]), np.asarray(j.problem.upper[:nb])
+    x = np.asarray(xb, float) + delta[:nb]
+    # inside the bounds by the margin `_unsaturated` keeps (|z| <= Z_SATURATION)
+    both = np.isfinite(lo) & np.isfinite(hi)
+    margin = np.where(both, (hi - lo) / (1.0 + math.exp(Z_SATURATION)), math.exp(-Z_SATURATION))
+    x = np.where(np.isfinite(lo), np.maximum(x, lo + margin), x)
+    x = np.where(np.isfinite(hi), np.minimum(x, hi - margin), x)
+    zb = _unsaturated(j, _z_from_x(_bounds(j), x))
+    return {
+        "zb": zb,
+        "xe": np.asarray(xe, float) + delta[nb : nb + ns],
+        "y0": jnp.asarray(np.asarray(v["y0"], float) + delta[nb + ns : nb + ns + ny]),
+        "offset": jnp.asarray(np.asarray(v["offset"], float) + delta[nb + ns + ny :]),
+    }
+
+
+def _unsaturated(j: _Joint, zb):
+    """`zb` with every bounded coordinate pulled back to at most `Z_SATURATION` inside its
+    transform's linear range. A baseline parameter that the misspecified baseline pushed
+    onto its bound sits where the sigmoid (softplus) is flat (z ~ -50: dx/dz ~ 1e-22), and
+    Levenberg-Marquardt cannot move it back when the extension makes the bound no longer
+    optimal (seen: a sensor gain error drove the pendulum's hub inertia onto its lower
+    bound; with the gain free the true inertia was unreachable). At |z| = 6 the parameter
+    moves by at most 0.25 % of its (log-)range and regains a usable gradient."""
+    lo, hi = np.asarray(j.problem.lower[: j.nb]), np.asarray(j.problem.upper[: j.nb])
+    z = np.asarray(zb, float).copy()
+    low = np.isfinite(lo) & (z < -Z_SATURATION)
+    high = np.isfinite(hi) & (z > Z_SATURATION)
+    z[low] = -Z_SATURATION
+    z[high] = Z_SATURATION
+    return jnp.asarray(z)
 
 
 def _pad(tree, size: int):
@@ -593,12 +638,13 @@ def diagnose_logs(
                 step,
             )
             rs, Js = np.asarray(rs)[:B, used], np.asarray(Js)[:B, used, :]
-            predicted, per_start = {}, []
+            predicted, per_start, stepped = {}, [], []
             for b, c in enumerate(owners):
                 delta, *_ = np.linalg.lstsq(Js[b], -rs[b], rcond=None)
                 pred = float(np.sum((rs[b] + Js[b] @ delta) ** 2))
                 per_start.append(pred)
                 predicted[c.label] = min(predicted.get(c.label, np.inf), pred)
+                stepped.append(_gauss_newton_start(joint, xb_cur, xe[b], current["v"], delta))
             # fully fit the most promising, and only those predicted to pass the BIC test
             promising = [
                 lab
@@ -617,11 +663,19 @@ def diagnose_logs(
                 "  screening (one Gauss-Newton step per start), predicted costs: "
                 + ", ".join(f"{lab} {predicted[lab]:.6g}" for lab in sorted(predicted, key=predicted.get))
             )
-            # the two most promising starts of each kept candidate
-            sel = []
+            # Each kept candidate is fitted from its most promising start as it is and from
+            # the point its Gauss-Newton step predicts (every parameter moved at once, in
+            # the natural coordinates: the step reaches optima that Levenberg-Marquardt's
+            # first iterations approach slowly, e.g. when the extension moves a baseline
+            # parameter far from its baseline value).
+            sel, starts = [], []
             for lab in keep:
-                mine = sorted((b for b, c in enumerate(owners) if c.label == lab), key=lambda b: per_start[b])
-                sel.extend(mine[:2])
+                b = min((b for b, c in enumerate(owners) if c.label == lab), key=lambda b: per_start[b])
+                sel.append(b)
+                starts.append(None)
+                if stepped[b] is not None:
+                    sel.append(b)
+                    starts.append(stepped[b])
             screened_out = [c for c in remaining if c.label not in keep]
             owners = [owners[b] for b in sel]
             sel_i = np.asarray(sel, dtype=int)
@@ -629,6 +683,7 @@ def diagnose_logs(
             remaining = [c for c in remaining if c.label in keep]
         else:
             screened_out, predicted = [], {}
+            starts = [None] * len(owners)
         # accepted effects start from their fitted values
         B = len(owners)
         scores = []
@@ -636,12 +691,13 @@ def diagnose_logs(
         if B == 0:
             say("  no continuous candidate is predicted to improve the fit significantly")
         else:
-            v0 = {
-                "zb": jnp.tile(current["v"]["zb"], (B, 1)),
-                "xe": jnp.asarray(xe),
-                "y0": jnp.tile(current["v"]["y0"], (B, 1)),
-                "offset": jnp.tile(current["v"]["offset"], (B, 1)),
+            plain = {
+                "zb": _unsaturated(joint, current["v"]["zb"]),
+                "y0": jnp.asarray(current["v"]["y0"]),
+                "offset": jnp.asarray(current["v"]["offset"]),
             }
+            v0 = {k: jnp.stack([(st or plain)[k] for st in starts]) for k in plain}
+            v0["xe"] = jnp.asarray(np.stack([xe[b] if st is None else st["xe"] for b, st in enumerate(starts)]))
             say(f"round {rnd + 1}: fitting {len(remaining)} candidates ({B} starts) in one vmapped call ...")
             size = next(b for b in (3, 6, 12, 24, 10**9) if b >= B) if B <= 24 else B
             vs, costs, steps = _fit_batch(
