@@ -205,7 +205,7 @@ def _unsaturated(j: _Joint, zb):
 MAX_REFINEMENTS = 8
 
 
-def _refine(joint, vs, costs, steps, best, owners, idx, logf, sigma, step, max_steps, size, cost_cur, N):
+def _refine(joint, vs, costs, steps, best, owners, idx, logf, sigma, step, max_steps, size, cost_cur, N, say):
     """Continue the fits of the candidates that improve on the current model (dBIC < 0)
     but ran out of Levenberg-Marquardt steps, `max_steps` at a time (the same compiled
     program), until each converges or its dBIC moves by less than 0.1 per round (at most
@@ -213,17 +213,20 @@ def _refine(joint, vs, costs, steps, best, owners, idx, logf, sigma, step, max_s
     optimum: seen, a sensor-gain candidate whose fit moved the pendulum's hub inertia 5.3
     in log from its bound needed 40 steps, and at 25 its held-out prediction was 2.6x
     worse than the baseline's. Candidates drifting to their neutral value (dBIC > 0, a
-    log-scale parameter sliding towards zero never "converges") are left alone."""
+    log-scale parameter sliding towards zero never "converges") and those far behind the
+    best one (dBIC above half the lowest) are left alone: they cannot win."""
     by_label = {c.label: c for c in owners}
     for _ in range(MAX_REFINEMENTS):
-        more = []
-        for lab, b in best.items():
-            k = len(by_label[lab].params)
-            dbic = N * math.log(max(costs[b], 1e-300) / cost_cur) + k * math.log(N)
-            if steps[b] >= max_steps and dbic < 0:
-                more.append(b)
+        dbic = {
+            b: N * math.log(max(costs[b], 1e-300) / cost_cur) + len(by_label[lab].params) * math.log(N)
+            for lab, b in best.items()
+        }
+        lowest = min(dbic.values(), default=0.0)
+        # only the contenders: those within half the best candidate's dBIC of it
+        more = [b for b in best.values() if steps[b] >= max_steps and dbic[b] < 0 and dbic[b] <= 0.5 * lowest]
         if not more:
             break
+        say(f"  continuing {len(more)} unconverged fit(s) for {max_steps} more steps ...")
         sel = np.asarray(more, dtype=int)
         v0 = {k: v[sel] for k, v in vs.items()}
         out, c2, s2 = _fit_batch(
@@ -720,7 +723,21 @@ def diagnose_logs(
                 if np.isfinite(costs[b]) and (c.label not in best or costs[b] < costs[best[c.label]]):
                     best[c.label] = b
             vs, costs = _refine(
-                joint, vs, costs, steps, best, owners, idx, logf, sigma_j, step, max_steps, size, current["cost"], N
+                joint,
+                vs,
+                costs,
+                steps,
+                best,
+                owners,
+                idx,
+                logf,
+                sigma_j,
+                step,
+                max_steps,
+                size,
+                current["cost"],
+                N,
+                say,
             )
             labels = [c.label for c in remaining if c.label in best]
             bs = [best[lab] for lab in labels]

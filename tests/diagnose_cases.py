@@ -128,8 +128,16 @@ def diagnose_arm(logs, base=None, **kw):
 
 # --- hidden effects ---------------------------------------------------------------
 
-PENDULUM_ENTRIES = ("coulomb_friction", "quadratic_damping", "sensor_delay", "sensor_gain_offset", "sensor_highpass")
-ARM_ENTRIES = ("actuator_lag", "base_tilt", "missing_mode", "joint_elasticity", "backlash")
+PENDULUM_ENTRIES = ("coulomb_friction", "quadratic_damping", "sensor_delay", "sensor_highpass")
+# `sensor_gain_offset` is hidden in the arm's strain-gauge (tip) channel, the example,
+# with a 10-20 % calibration error (an uncalibrated bridge/amplifier chain; the assumed mode
+# shape relates strain to tip deflection). A smaller error cannot pass the 2x held-out gain:
+# the gain is bounded by the baseline's held-out RMS over the noise (the extended model can
+# at best reach the noise). Measured (seed 1): on the pendulum, potentiometer gain 1.061,
+# the baseline's held-out RMS was 1.64x the noise (the re-estimated release angle and offset
+# absorb most of it; gain 1.65x reached, named at dBIC -9800); on the arm, tip gain 1.061,
+# the held-out tip RMS was 1.96x the noise (EI absorbs part; 1.91x reached).
+ARM_ENTRIES = ("sensor_gain_offset", "actuator_lag", "base_tilt", "missing_mode", "joint_elasticity", "backlash")
 
 
 def hidden(name: str, seed: int):
@@ -147,9 +155,10 @@ def hidden(name: str, seed: int):
         m = meas.Measurement({"theta1": meas.Sensor(delay=v)})
         return (lambda: diagnose_pendulum(pendulum_logs(pendulum(), seed, m))), v, "sensor.theta1.delay"
     if name == "sensor_gain_offset":
-        v = float(rng.uniform(1.03, 1.08))
-        m = meas.Measurement({"theta1": meas.Sensor(gain=v)})
-        return (lambda: diagnose_pendulum(pendulum_logs(pendulum(), seed, m))), v, "sensor.theta1.gain"
+        # a strain-gauge calibration error of 10-20 % on the arm's tip channel
+        v = float(rng.uniform(1.10, 1.20))
+        m = meas.Measurement({"tip1": meas.Sensor(gain=v)})
+        return (lambda: diagnose_arm(arm_logs(arm(), seed, m))), v, "sensor.tip1.gain"
     if name == "sensor_highpass":
         v = float(rng.uniform(0.05, 0.2))
         m = meas.Measurement({"theta1": meas.Sensor(highpass=v)})
