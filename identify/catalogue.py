@@ -248,7 +248,7 @@ def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: floa
         joint, hub = chain.joints[i], chain.hubs[i]
         # The motor's inertia (the hub's, if the rigid joint had no rotor) moves to the rotor
         # side of the spring; the spring's first guess puts the joint mode at
-        # `max_frequency_hz` (diagnose: 4x the model's highest mode, at most Nyquist).
+        # `max_frequency_hz` (diagnose: 2x the model's highest mode, at most Nyquist).
         rotor = float(joint.rotor_inertia) * float(joint.gear_ratio) ** 2 or 0.5 * float(hub.inertia) or 1e-5
         k = rotor * (2 * np.pi * max_frequency_hz) ** 2
         new = fd.ElasticJoint(
