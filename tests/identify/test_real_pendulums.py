@@ -233,3 +233,49 @@ def test_single_pendulum_diagnosis_is_pinned():
     assert drag["delta_bic"] < -1000
     assert drag["held_out_gain"] == pytest.approx(0.867, abs=0.03)
     assert scores[("coulomb_friction", "joint1")]["held_out_gain"] == pytest.approx(1.0, abs=0.02)
+
+
+# ---------------------------------------------------------------------------
+# single pendulum: a dissipation law that generalises (slow: ~4 min on two cores)
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_single_pendulum_dry_friction_and_air_drag_beat_the_authors_on_validation():
+    """The viscous law is what fails on the held-out swings (the xfail above). Replacing it
+    by dry joint friction plus air drag on the link (`joint1.coulomb`, `link1.drag`, the
+    catalogue's `coulomb_friction` and `quadratic_damping` together), fitted on the same
+    identification segments, predicts the smaller held-out swings better than the authors'
+    parameters. Neither term alone does (the diagnosis pin below: drag alone 0.867x, Coulomb
+    alone ends at zero): large swings decay faster than viscous (drag, ~v|v|) and small ones
+    too (dry friction, a constant torque).
+    Measured 2026-11-24: J1 unchanged (I1 = 1.1810e-4 kg m^2); coulomb 4.957e-4 N m
+    [4.949e-4, 4.966e-4]; drag 7.720e-3 kg/m^2 [7.712e-3, 7.727e-3]; held-out RMS (initial state and offset re-estimated) 6.31 mrad vs the authors' 10.30
+    and our viscous fit's 12.36; from the measured start 13.56 mrad vs 17.9 and 24.1. With a
+    free viscous coefficient as well, it goes to its lower bound (1e-7 N m s/rad)."""
+    import equinox as eqx
+
+    from identify.fit import Parameter
+
+    exp = load_experiment(EXAMPLES / "real_single_pendulum" / "experiment.toml")
+    absent = lambda x: x is None  # noqa: E731 - optional part fields are None when absent
+    chain = eqx.tree_at(lambda c: c.joints[0].damping, exp.chain, 0.0)
+    chain = eqx.tree_at(lambda c: c.joints[0].coulomb, chain, 1e-4, is_leaf=absent)
+    chain = eqx.tree_at(lambda c: c.links[0].drag, chain, 1e-3, is_leaf=absent)
+    ext = dataclasses.replace(exp, chain=chain)
+    params = [
+        Parameter("link1.inertia", 1e-3, 1e-6, 1e-1),
+        Parameter("joint1.coulomb", 1e-4, 1e-8, 1e-1),  # N m, start 5x below the fitted value
+        Parameter("link1.drag", 1e-3, 1e-7, 1.0),  # kg/m^2, start 8x below
+    ]
+    data = [log_data(s, chain.n_links) for s in ext.fit_logs]
+    res = fit(make_problem(chain, params, data, {}, rtol=RTOL, atol=1e-2 * RTOL), params, estimate_noise=["theta1"])
+    assert res.converged and not res.at_bounds
+    v = res.value
+    assert 3e-4 < v["joint1.coulomb"] < 8e-4 and 4e-3 < v["link1.drag"] < 1.5e-2
+    # J1 is set by the swing frequency whatever the dissipation law: the authors' within 1 %
+    assert M1 * A1**2 + v["link1.inertia"] == pytest.approx(M1 * A1**2 + AUTHORS_SINGLE["link1.inertia"], rel=0.01)
+    ours = _rms_reestimated(ext, v, res.sigma)["theta1"]
+    authors = _rms_reestimated(exp, AUTHORS_SINGLE, res.sigma)["theta1"]
+    assert ours < 0.75 * authors  # measured 0.61x
+    assert _rms_measured_start(ext, v)["theta1"] < 0.85 * _rms_measured_start(exp, AUTHORS_SINGLE)["theta1"]

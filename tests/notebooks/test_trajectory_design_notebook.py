@@ -81,7 +81,9 @@ def test_optimised_move_ends_at_rest_independent_resimulation(results):
 def test_residual_vibration_below_every_comparison(results):
     metrics = results["metrics"]
     optimised = metrics["optimised"]["residual_vibration"]
-    for name in ("bang-bang", "ZV bang-bang", "ZVD bang-bang"):
+    comparisons = ("bang-bang", "ZV bang-bang", "ZVD bang-bang", "composite (paper gains)", "composite (stiffer gains)")
+    assert set(metrics) == {"optimised", *comparisons}
+    for name in comparisons:
         factor = metrics[name]["residual_vibration"] / optimised
         print(f"{name}: residual vibration {factor:.0f} x the optimised move's")
         assert factor > 10.0
