@@ -10,11 +10,17 @@ solver in forward mode:
 
     r = [ (theta(t_k) - theta_goal) / sqrt(K),                  (rad)
           v_tip(t_k) / (L_ref sqrt(K)),                         (m / m)
-          theta_dot(T) tau_ref ],                               (rad/s * s)
+          theta_dot(T) tau_ref,                                 (rad/s * s)
+          (alpha(t_k) - theta(t_k)) / sqrt(K),                  (rad, elastic joints)
+          alpha_dot(T) tau_ref ],                               (rad/s * s, elastic joints)
 
 with `t_k` the `K` samples of the settle window `[T, T + settle]` and `v_tip` the
 elastic tip deflections of every link. After `T` the torque is zero, so a state that
-stays at the goal over the window is a rest-to-rest move. The robust variant
+stays at the goal over the window is a rest-to-rest move. For an arm with elastic joints
+(paper 004) the torque acts on the rotors (`alpha`) and the goal is on the link angles;
+the last two blocks (only present when some joint is elastic, so the residuals of a
+rigid-joint arm are unchanged) ask the joint springs to be unloaded over the window and
+the rotors to be at rest at `T`. The robust variant
 (`robust_residuals`) appends, for a vmapped batch of payload masses, the same residuals
 with the angles measured from `theta(T)` (at rest without vibration, wherever the
 payload made the arm stop).
@@ -183,7 +189,8 @@ class RestToRestMove(eqx.Module):
 
 def move_residuals(control_points, move: RestToRestMove, *, at_goal: bool = True):
     """Residual vector of the move (module docstring) for one chain: dimensionless
-    (rad-like), length `n_window (n_joints + n_links) + n_joints`.
+    (rad-like), length `n_window (n_joints + n_links) + n_joints`, plus
+    `n_window n_joints + n_joints` when some joint is elastic.
 
     With `at_goal=False` the angles over the window are measured from `theta(T)` instead
     of the goal: the residuals then ask only that the arm be at rest from `T` on (no
@@ -203,7 +210,11 @@ def move_residuals(control_points, move: RestToRestMove, *, at_goal: bool = True
     angle_error = (out.joint_angle[1:] - reference) * scale
     tip = out.tip_deflection[1:] / move.length_scale * scale
     rates = out.joint_rate[1] * move.rate_time_scale
-    return jnp.concatenate([angle_error.ravel(), tip.ravel(), rates])
+    parts = [angle_error.ravel(), tip.ravel(), rates]
+    if any(k is not None for k in move.chain.layout.rotor):
+        # elastic joints: unloaded springs over the window, rotors at rest at T
+        parts += [(out.joint_deflection[1:] * scale).ravel(), out.rotor_rate[1] * move.rate_time_scale]
+    return jnp.concatenate(parts)
 
 
 def robust_residuals(control_points, move: RestToRestMove, payload_masses):
@@ -288,7 +299,9 @@ def move_metrics(
     - `peak_residual_deflection` (m): largest |tip deflection| in the window;
     - `angle_error_T`, `angle_error_end` (rad): max |theta - theta_goal| at `T` and at
       `T + settle`;
-    - `rate_T` (rad/s): max |theta_dot| at `T`;
+    - `rate_T` (rad/s): max |theta_dot| and |alpha_dot| (link and rotor rates) at `T`;
+    - `joint_deflection_T`, `joint_deflection_window` (rad): max |alpha - theta| at `T`
+      and over the window (zero for rigid joints);
     - `peak_torque` (N m): max |tau| per joint over `n_torque_samples` times on
       `[0, T + settle]` (for a feedback input, along the simulated trajectory);
     - `state_T`: the state `[Q, Q_dot]` at `T`.
@@ -309,7 +322,8 @@ def move_metrics(
     out = observe(move.chain, traj, torque)
     tip = np.asarray(out.tip_deflection)[k[1:]]
     theta = np.asarray(out.joint_angle)[k]
-    rate_T = np.asarray(out.joint_rate)[k[1]]
+    rate_T = np.concatenate([np.asarray(out.joint_rate)[k[1]], np.asarray(out.rotor_rate)[k[1]]])
+    deflection = np.asarray(out.joint_deflection)[k[1:]]
     goal = np.asarray(move.goal_angles)
     tau = np.asarray(out.torque)
     return {
@@ -318,6 +332,8 @@ def move_metrics(
         "angle_error_T": float(np.max(np.abs(theta[1] - goal))),
         "angle_error_end": float(np.max(np.abs(theta[-1] - goal))),
         "rate_T": float(np.max(np.abs(rate_T))),
+        "joint_deflection_T": float(np.max(np.abs(deflection[0]))),
+        "joint_deflection_window": float(np.max(np.abs(deflection))),
         "peak_torque": np.max(np.abs(tau), axis=0),
         "state_T": np.asarray(traj.y)[k[1]],
     }

@@ -1,4 +1,5 @@
-"""flexdyn.design: the B-spline torque (fast, no ODE solves) and the move residuals' derivatives (slow)."""
+"""flexdyn.design: the B-spline torque (fast, no ODE solves), the move residuals' derivatives and their elastic-joint
+blocks (slow)."""
 
 import jax
 import jax.numpy as jnp
@@ -83,3 +84,35 @@ def test_residual_jacobian_matches_finite_differences(rng):
     nom = design.move_residuals(cp, move)
     rest = design.move_residuals(cp, move.with_payload(0.03), at_goal=False)
     np.testing.assert_allclose(np.asarray(rob), np.concatenate([nom, rest]), rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.slow
+def test_elastic_joint_residuals_include_joint_deflections_and_rotor_rates(rng):
+    # paper 004's arm: the torque acts on the rotors, the goal is on the link angles; at rest the joint springs must be
+    # unloaded (alpha = theta) and the rotors still, so those are residuals too (read here from the raw state)
+    arm = fd.rigs.flexible_link_joint_arm()
+    move = design.RestToRestMove(arm, [0.0, 0.0], [0.02, 0.05], 0.3, 0.4, settle=0.1, n_window=6, dt=1e-3)
+    cp = jnp.asarray(rng.normal(size=(4, 2)) * 0.2)
+    r = np.asarray(design.move_residuals(cp, move))
+    K, n = 6, 2
+    assert r.shape == (K * (n + n) + n + K * n + n,)
+    traj = fd.simulate(arm, move.initial_state(), move.output_times(), move.torque(cp), dt=1e-3)
+    Q, Qd = np.asarray(traj.Q), np.asarray(traj.Qd)
+    alpha, theta = np.asarray(arm.layout.rotor), np.asarray(arm.layout.theta)
+    deflection = (Q[1:, alpha] - Q[1:, theta]) / np.sqrt(K)
+    np.testing.assert_allclose(r[K * 2 * n + n : -n], deflection.ravel(), rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(r[-n:], Qd[1, alpha] * 0.1, rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(r[K * 2 * n : K * 2 * n + n], Qd[1, theta] * 0.1, rtol=1e-10, atol=1e-14)
+    # not a copy of the link rates: the rotors and links move differently at T
+    assert np.max(np.abs(Qd[1, alpha] - Qd[1, theta])) > 1e-3 * np.max(np.abs(Qd[1, theta]))
+    assert np.max(np.abs(deflection)) > 1e-6
+    # no torque, start = goal: the arm stays at rest and every residual is zero
+    still = design.RestToRestMove(arm, [0.3, -0.2], [0.3, -0.2], 0.3, 0.4, settle=0.1, n_window=6, dt=1e-3)
+    np.testing.assert_allclose(np.asarray(design.move_residuals(jnp.zeros((4, 2)), still)), 0.0, atol=1e-15)
+
+
+def test_rigid_joint_residuals_unchanged_in_length():
+    # a rigid-joint arm has no rotor coordinates, so no extra residual blocks (shape only, no solve)
+    move = design.RestToRestMove(fd.rigs.two_link_flexible_arm(), [0.0, 0.0], [0.1, 0.5], 0.5, 0.4, n_window=11)
+    shape = jax.eval_shape(lambda c: design.move_residuals(c, move), jnp.zeros((5, 2))).shape
+    assert shape == (11 * (2 + 2) + 2,)
