@@ -50,7 +50,7 @@ def reference():
     return np.asarray(traj.y[-1])
 
 
-@pytest.mark.parametrize("solve", ["unrolled", "cho"])
+@pytest.mark.parametrize("solve", ["unrolled", pytest.param("cho", marks=pytest.mark.slow)])  # CI time
 def test_rk4_final_fourth_order_across_jumps(reference, solve):
     # dt = 1/400 and 1/800 s: 0.25 s and 0.5 s are step boundaries, and so is T1.
     errors = []
