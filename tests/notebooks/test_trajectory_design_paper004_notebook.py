@@ -1,0 +1,116 @@
+"""Execute notebooks/trajectory_design_paper004.ipynb (paper 004's arm with elastic joints) and check its claims with
+numbers: the optimised move ends at the goal at rest, joint springs unloaded and rotors still (re-simulated here with a
+different solver and tighter tolerance), its residual vibration is below every comparison's by a reported factor, and
+the torque limit holds at every sample."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+pytest.importorskip("nbformat")
+pytest.importorskip("nbclient")
+
+from notebook_runner import assert_stored_without_outputs, notebook_path, run_notebook  # noqa: E402
+
+import flexdyn as fd  # noqa: E402
+from flexdyn import design  # noqa: E402
+
+NOTEBOOK = notebook_path("trajectory_design_paper004.ipynb")
+
+# Measured in the slow run (2026-11-24, 2 shared CPU cores, notebook 1089 s): optimised residual vibration 4.58e-5 m
+# (Dopri8 4.58e-5), angle error 7.6e-5 rad at T, 2.6e-5 rad at T + 1 s, 1.12e-4 rad at worst over the window (Tsit5),
+# rates at T 3.9e-4 rad/s, joint deflection 3.1e-5 rad, peak torque 0.364 N m; comparisons' residual vibration / the
+# optimised one's: bang-bang 69, ZV 58, ZVD 12, composite (paper gains) 139.
+# Stated tolerances of the optimised move: at T and at T + 1 s the link angles are within ANGLE_TOL of the goal,
+# link and rotor rates at T below RATE_TOL, joint deflections alpha - theta below DEFLECTION_TOL, and the RMS tip
+# deflection over the window below VIBRATION_TOL; the comparisons' residual vibration is at least FACTOR times larger.
+ANGLE_TOL = 1e-4  # rad
+RATE_TOL = 1e-3  # rad/s
+DEFLECTION_TOL = 1e-4  # rad
+VIBRATION_TOL = 1e-4  # m
+FACTOR = 10.0
+
+
+def test_notebook_stored_without_outputs():
+    assert_stored_without_outputs(NOTEBOOK)
+
+
+@pytest.fixture(scope="module")
+def results():
+    res = run_notebook(NOTEBOOK, timeout=1800)
+    for name, m in res["metrics"].items():  # the table, for the record (pytest -s)
+        print(
+            f"{name}: residual vibration {m['residual_vibration']:.3e} m, "
+            f"angle error at T {m['angle_error_T']:.2e} rad, "
+            f"rate at T {m['rate_T']:.2e} rad/s, joint deflection {m['joint_deflection_window']:.2e} rad, "
+            f"peak torque {m['peak_torque']} N m"
+        )
+    print({k: res[k] for k in ("design_cost_rigid", "design_cost", "dopri8", "rk4_vs_dopri8_state_T", "runtime_s")})
+    return res
+
+
+@pytest.mark.slow
+def test_optimised_move_ends_at_rest_independent_resimulation(results):
+    # re-simulated here with adaptive Tsit5 at rtol 1e-10 (the design used fixed-step RK4 at 1 ms; the notebook's check
+    # used Dopri8)
+    chain = fd.rigs.flexible_link_joint_arm()
+    move = design.RestToRestMove(chain, [0.0, 0.0], results["goal"], results["T"], results["tau_max"], n_window=51)
+    torque = design.BSplineTorque(np.asarray(results["control_points"]), results["T"], results["tau_max"])
+    traj = fd.simulate(chain, move.initial_state(), move.output_times(), torque, rtol=1e-10, atol=1e-12)
+    Q, Qd = np.asarray(traj.Q[1:]), np.asarray(traj.Qd[1:])  # the window [T, T + 1 s]
+    theta, alpha = np.asarray(chain.layout.theta), np.asarray(chain.layout.rotor)
+    goal = np.asarray(results["goal"])
+    assert np.max(np.abs(Q[0, theta] - goal)) < ANGLE_TOL  # at T (measured 7.6e-5 rad)
+    assert np.max(np.abs(Q[-1, theta] - goal)) < ANGLE_TOL  # at T + 1 s (measured 2.6e-5 rad)
+    assert np.max(np.abs(Qd[0, theta])) < RATE_TOL
+    assert np.max(np.abs(Qd[0, alpha])) < RATE_TOL
+    assert np.max(np.abs(Q[:, alpha] - Q[:, theta])) < DEFLECTION_TOL
+    tip = np.asarray(jax.vmap(lambda q: fd.tip_deflections(chain, q))(jnp.asarray(Q)))
+    vibration = np.sqrt(np.mean(np.sum(tip**2, axis=1)))
+    err = np.abs(Q[:, theta] - goal).max()
+    print(f"Tsit5 re-simulation: residual vibration {vibration:.3e} m, angle error {err:.2e} rad")
+    assert vibration < VIBRATION_TOL
+    np.testing.assert_allclose(vibration, results["metrics"]["optimised"]["residual_vibration"], rtol=0.05)
+    # and the notebook's Dopri8 run agrees
+    d8 = results["dopri8"]
+    assert d8["angle_error_T"] < ANGLE_TOL and d8["angle_error_end"] < ANGLE_TOL and d8["rate_T"] < RATE_TOL
+    assert d8["joint_deflection_window"] < DEFLECTION_TOL and d8["residual_vibration"] < VIBRATION_TOL
+    assert results["rk4_vs_dopri8_state_T"] < 1e-5
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="not met: measured max |theta - goal| over [T, T + 1 s] 1.12e-4 rad (Tsit5 re-simulation; 7.6e-5 at T, "
+    "2.6e-5 at T + 1 s) against 1e-4 rad, after 40 rigid-joint + 20 elastic-joint LM steps (12 gave 1.42e-4)",
+)
+def test_optimised_move_stays_within_angle_tolerance_over_window(results):
+    chain = fd.rigs.flexible_link_joint_arm()
+    move = design.RestToRestMove(chain, [0.0, 0.0], results["goal"], results["T"], results["tau_max"], n_window=51)
+    torque = design.BSplineTorque(np.asarray(results["control_points"]), results["T"], results["tau_max"])
+    traj = fd.simulate(chain, move.initial_state(), move.output_times(), torque, rtol=1e-10, atol=1e-12)
+    theta = np.asarray(chain.layout.theta)
+    assert np.max(np.abs(np.asarray(traj.Q[1:])[:, theta] - np.asarray(results["goal"]))) < ANGLE_TOL
+
+
+@pytest.mark.slow
+def test_residual_vibration_below_every_comparison(results):
+    metrics = results["metrics"]
+    optimised = metrics["optimised"]["residual_vibration"]
+    comparisons = ("bang-bang", "ZV bang-bang", "ZVD bang-bang", "composite (paper gains)")
+    assert set(metrics) == {"optimised", *comparisons}
+    for name in comparisons:
+        factor = metrics[name]["residual_vibration"] / optimised
+        print(f"{name}: residual vibration {factor:.0f} x the optimised move's")
+        assert factor > FACTOR
+        assert results["vibration_factors"][name] == pytest.approx(factor, rel=1e-12)
+
+
+@pytest.mark.slow
+def test_torque_limit_holds_at_every_sample(results):
+    tau_max = results["tau_max"]
+    torque = design.BSplineTorque(np.asarray(results["control_points"]), results["T"], tau_max)
+    tau = np.asarray(jax.vmap(torque)(jnp.linspace(-0.1, results["T"] + 0.1, 20001)))
+    assert np.all(np.abs(tau) <= tau_max)
+    assert np.all(np.asarray(results["metrics"]["optimised"]["peak_torque"]) <= tau_max)
