@@ -38,7 +38,6 @@ sweeps are `bench_payload_sweep.py`).
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import re
 import sys
@@ -47,7 +46,6 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import diffrax  # noqa: E402
-import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -59,27 +57,13 @@ from flexdyn import fixed_step  # noqa: E402
 T_END = 5.0
 DT = 1e-3
 RTOL, ATOL = 1e-6, 1e-8
-BASE = fd.rigs.flexible_link_joint_arm()
-TORQUE = fd.BangBang([0.2, 0.2], 0.5)
-Y0 = fd.initial_state(BASE, joint_angles=[0.0, 0.0])
-TS = jnp.array([0.0, T_END])
+# the same arm, input, grid and parameter substitution as the CPU sweep
+from bench_payload_sweep import BASE, TORQUE, TS, Y0, arm, grid  # noqa: E402
+
 N = BASE.n_dof
 # Float64 peak of the H100/H200 SXM without tensor cores (vendor datasheet; the FP64
 # tensor-core rate, 67 TFLOP/s, needs matrix products that a 16-state RHS does not have).
 FP64_PEAK = 33.5e12
-
-
-def grid(size: int) -> np.ndarray:
-    """(size, 2) payload mass [kg], hub-1 inertia [kg m^2], as `bench_payload_sweep.grid`."""
-    n_h = 2 ** int(round(math.log2(math.sqrt(size)))) if size > 1 else 1
-    n_h = max(1, min(n_h, size))
-    n_p = math.ceil(size / n_h)
-    pm, hi = np.meshgrid(np.linspace(0.01, 0.2, n_p), np.linspace(0.0, 0.02, n_h), indexing="ij")
-    return np.stack([pm.ravel(), hi.ravel()], axis=1)[:size]
-
-
-def arm(p):
-    return eqx.tree_at(lambda c: (c.payload.mass, c.hubs[0].inertia), BASE, (p[0], p[1]))
 
 
 def diffrax_rk4(p):
@@ -342,13 +326,17 @@ def main(argv=None):
             print(f"kernels per while-loop iteration (lean, {s}, unroll {uu}): {k}", flush=True)
             best.setdefault("kernels_per_iteration", {})[f"{s}_unroll{uu}"] = k
         # per-step cost from two horizons (1 s vs 5 s)
-        short = None if args.no_short else bench(
-            f"lean RK4 1 ms, {solve} solve, unroll {u}, 1 s horizon",
-            lean(solve, u, t_end=1.0),
-            M,
-            dev,
-            1000,
-            solve,
+        short = (
+            None
+            if args.no_short
+            else bench(
+                f"lean RK4 1 ms, {solve} solve, unroll {u}, 1 s horizon",
+                lean(solve, u, t_end=1.0),
+                M,
+                dev,
+                1000,
+                solve,
+            )
         )
         if short is not None:
             per_step = (best["warm_s"] - short["warm_s"]) / (n_fixed - 1000)

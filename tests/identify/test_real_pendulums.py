@@ -250,7 +250,8 @@ def test_single_pendulum_dry_friction_and_air_drag_beat_the_authors_on_validatio
     alone ends at zero): large swings decay faster than viscous (drag, ~v|v|) and small ones
     too (dry friction, a constant torque).
     Measured 2026-11-24: J1 unchanged (I1 = 1.1810e-4 kg m^2); coulomb 4.957e-4 N m
-    [4.949e-4, 4.966e-4]; drag 7.720e-3 kg/m^2 [7.712e-3, 7.727e-3]; held-out RMS (initial state and offset re-estimated) 6.31 mrad vs the authors' 10.30
+    [4.949e-4, 4.966e-4]; drag 7.720e-3 kg/m^2 [7.712e-3, 7.727e-3]; held-out RMS (initial state and
+    offset re-estimated) 6.31 mrad vs the authors' 10.30
     and our viscous fit's 12.36; from the measured start 13.56 mrad vs 17.9 and 24.1. With a
     free viscous coefficient as well, it goes to its lower bound (1e-7 N m s/rad)."""
     import equinox as eqx
