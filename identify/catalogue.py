@@ -71,6 +71,7 @@ class Candidate:
       per start.
     - `structural`: it changes the model's coordinates (`missing_mode`,
       `joint_elasticity`), so it is fitted as a model of its own.
+    - `members`: for two entries fitted together (`pair`), the two; else empty.
     """
 
     name: str
@@ -79,10 +80,32 @@ class Candidate:
     log_scale: tuple[bool, ...]
     starts: tuple[tuple[float, ...], ...]
     structural: bool = False
+    members: tuple = ()
 
     @property
     def label(self) -> str:
-        return f"{self.name}:{self.where}"
+        return pair_label(m.label for m in self.members) if self.members else f"{self.name}:{self.where}"
+
+
+def pair_label(labels) -> str:
+    """The label of entries fitted together: their labels joined by ' + '."""
+    return " + ".join(labels)
+
+
+def pair(first: Candidate, first_values, second: Candidate) -> Candidate:
+    """Two continuous entries fitted together: `first` starts from `first_values` (its own
+    fit), `second` from each of its starts."""
+    if first.structural or second.structural:
+        raise ValueError(f"pair: {first.label} and {second.label} must both be continuous entries")
+    first_values = tuple(float(v) for v in first_values)
+    return Candidate(
+        f"{first.name}+{second.name}",
+        f"{first.where}+{second.where}",
+        first.params + second.params,
+        first.log_scale + second.log_scale,
+        tuple(first_values + tuple(s) for s in second.starts),
+        members=(first, second),
+    )
 
 
 def _none(x):

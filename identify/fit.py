@@ -1026,7 +1026,37 @@ def _stage_step(problem: Problem, z, horizon, safety):
     step, ok = _grid_step(problem, z, jnp.asarray(horizon), safety)
     if not bool(ok):
         raise RuntimeError("fit: the simulation at the current parameters failed; check guesses and bounds")
-    return step
+    return aligned_step(problem, step)
+
+
+def aligned_step(problem: Problem, step):
+    """`step` shortened to divide the torque's sample interval, when the logs are driven,
+    sampled uniformly at one common interval `dt_s`, and `step < dt_s`: `dt_s / ceil(dt_s /
+    step)` (at most 2x more steps). Otherwise `step` unchanged.
+
+    The applied torque is linear between samples, so its derivative jumps at every sample.
+    A constant step that straddles the sample times integrates across those kinks: the
+    local error there is second order, not fifth, and the sum over the log biases the fit.
+    Measured (identify diagnose, the tilted paper-004 arm, seed 1, 5 ms samples): at a
+    3.0 ms step the fitted in-plane gravity was 3 standard errors from the truth, at a
+    4x finer step inside its 95 % interval. With steps aligned to the samples every kink
+    falls on a step boundary, where Tsit5 restarts its stages."""
+    if step is None:
+        return None
+    tv = np.asarray(problem.torque_v)
+    if not np.any(tv != 0):
+        return step
+    t, valid = np.asarray(problem.t), np.asarray(problem.valid)
+    intervals = np.concatenate([np.diff(t[l][valid[l]]) for l in range(t.shape[0])])
+    if intervals.size == 0:
+        return step
+    dt_s = float(np.median(intervals))
+    if not (dt_s > 0 and np.allclose(intervals, dt_s, rtol=1e-6, atol=0.0)):
+        return step
+    h = float(step)
+    if h >= dt_s:
+        return step
+    return jnp.asarray(dt_s / math.ceil(dt_s / h - 1e-9), dtype=jnp.asarray(step).dtype)
 
 
 def _reestimate_sigma(problem: Problem, z, sigma, channels, step):

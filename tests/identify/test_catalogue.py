@@ -1,0 +1,31 @@
+"""`identify.catalogue`: entries fitted together (the pair search of `identify.diagnose`)."""
+
+from __future__ import annotations
+
+import pytest
+
+from identify import catalogue as cat
+
+
+def _entry(name, where, params, starts, structural=False):
+    return cat.Candidate(name, where, params, (True,) * len(params), starts, structural=structural)
+
+
+def test_pair_frees_both_entries_parameters_the_first_at_its_fitted_value():
+    drag = _entry("quadratic_damping", "link1", ("link1.drag",), ((1e-4,), (1e-2,)))
+    dry = _entry("coulomb_friction", "joint1", ("joint1.coulomb",), ((1e-6,), (1e-4,), (1e-3,)))
+    p = cat.pair(drag, (7.7e-3,), dry)
+    assert p.params == ("link1.drag", "joint1.coulomb")
+    assert p.log_scale == (True, True)
+    # one start per start of the second entry, the first entry at its own fit
+    assert p.starts == ((7.7e-3, 1e-6), (7.7e-3, 1e-4), (7.7e-3, 1e-3))
+    assert p.members == (drag, dry) and not p.structural
+    assert p.label == "quadratic_damping:link1 + coulomb_friction:joint1"
+    assert drag.label == "quadratic_damping:link1"
+
+
+def test_pair_of_a_structural_entry_is_refused_by_name():
+    drag = _entry("quadratic_damping", "link1", ("link1.drag",), ((1e-4,),))
+    mode = _entry("missing_mode", "link1", (), ((),), structural=True)
+    with pytest.raises(ValueError, match="missing_mode:link1"):
+        cat.pair(drag, (1e-3,), mode)
