@@ -178,7 +178,13 @@ def markdown(diag, title: str = "") -> str:
         for c in diag.causes:
             lines.append(
                 f"- **{c.name}** at `{c.where}`: {c.description} (dBIC {c.delta_bic:.1f}, held-out RMS gain "
-                f"{c.held_out_gain:.2f}x)"
+                f"{c.held_out_gain:.2f}x"
+                + (
+                    f"; accepted together with {', '.join(f'`{w}`' for w in c.together_with)}, neither passing "
+                    "alone: the scores are the pair's)"
+                    if c.together_with
+                    else ")"
+                )
             )
             for n, p in c.parameters.items():
                 lines.append(
