@@ -827,8 +827,8 @@ def diagnose_logs(
         scores, fits = score_continuous(remaining, current["v"])
         rms_cur = float(np.sqrt(np.mean(current["ho"] ** 2)))
         # structural candidates of this round: all of them from the baseline; in later
-        # rounds only those that improved on the model of the previous round (each is a
-        # model of its own, compiled and fitted separately: the expensive part)
+        # rounds only those that improved significantly on the model of the previous round
+        # (each is a model of its own, compiled and fitted separately: the expensive part)
         for c in [
             x for x in cands if x.structural and x.label not in done and (rnd == 0 or x.label in struct_promising)
         ]:
@@ -896,8 +896,14 @@ def diagnose_logs(
                 scores.extend(pair_scores)
         scores.sort(key=lambda s: s.delta_bic)
         rounds.append(scores)
+        # structural candidates are refitted in the next round only if they passed the BIC
+        # test in this one (each refit is a model of its own: 75-300 s on two cores; one
+        # that did not improve the fit significantly before the accepted effect was added
+        # is not re-examined)
         struct_promising = {
-            s.label for s in scores if s.delta_bic < 0 and any(c.label == s.label and c.structural for c in cands)
+            s.label
+            for s in scores
+            if s.delta_bic < -bic_threshold and any(c.label == s.label and c.structural for c in cands)
         }
         winners = [s for s in scores if s.accepted]
         for s in scores[:5]:

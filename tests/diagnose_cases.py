@@ -10,7 +10,8 @@ Two rigs from the papers:
   clamped-mass mode) on its 0.02 kg m^2 hub with a 50 g payload, horizontal plane, driven
   by three bang-bang torques (paper 002's input, 0.1-0.2 N m), 3 s at 200 Hz, hub angle
   (encoder, 1 mrad noise) and tip deflection (0.1 mm noise) recorded; the third log is held
-  out.
+  out. For `missing_mode` the rig records hub angle and root curvature (a strain gauge,
+  2e-4 1/m noise) instead: the tip deflection cannot see the second mode.
 
 `hidden(name, rng)` draws a seeded magnitude in a realistic range for each catalogue
 entry and returns the logs, the truth and the parameter to check.
