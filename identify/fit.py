@@ -853,6 +853,11 @@ def fit_independent(
         step, ok = grid(stacked, z, jnp.asarray(h), grid_safety)
         if not bool(jnp.all(ok)):
             raise RuntimeError("fit_independent: a simulation at the current parameters failed")
+        # each log's step aligned with its torque samples (`aligned_step`); padding entries
+        # repeat the last log
+        step = jnp.asarray(
+            [float(aligned_step(singles[min(k, L - 1)], step[k])) for k in range(step.shape[0])], dtype=step.dtype
+        )
         z, result, steps, cost = solve(stacked, z, sigma, jnp.asarray(h), step, max_steps, rtol, atol)
         for k in range(L):
             stages[k].append(
@@ -865,11 +870,7 @@ def fit_independent(
             )
         say(f"  horizon {h:8.3f} s: {int(jnp.max(steps)):3d} iterations (slowest of {L} logs)")
     say("  computing standard errors (exact Jacobians at the optima) ...")
-    x = (
-        jax.vmap(_x_from_z)(stacked, z["phys"])
-        if False
-        else jnp.stack([_x_from_z(singles[k], z["phys"][k]) for k in range(L)])
-    )
+    x = jnp.stack([_x_from_z(singles[k], z["phys"][k]) for k in range(L)])
     jac = eqx.filter_vmap(_jacobian_natural, in_axes=(0, 0, 0, 0, None, 0))
     r, J = jac(stacked, fbatch.shard_batch(x, mesh)[0], z["y0"], z["offset"], sigma, step)
     wall = (time.perf_counter() - start) / L
