@@ -204,7 +204,13 @@ def simulate(
         ys,
         sol.result == diffrax.RESULTS.max_steps_reached,
         f"simulate: the solver reached max_steps={max_steps} before the last output time; "
-        "raise max_steps, loosen rtol/atol, or use a larger fixed dt",
+        + (
+            "raise max_steps, loosen rtol/atol, or use a larger fixed dt"
+            if dt is None
+            else "raise max_steps or use a larger dt; or the fixed step dt is above the "
+            "stability limit of the stiffest mode or joint and the state blew up (the step control "
+            "then rejects every step): reduce dt or use the adaptive solver (dt=None)"
+        ),
     )
     ys = eqx.error_if(
         ys,

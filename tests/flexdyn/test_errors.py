@@ -133,6 +133,15 @@ def test_unstable_fixed_step_raises_instead_of_returning_nan():
         fd.simulate(chain, y0, jnp.linspace(0.0, 2.0, 5), dt=0.05).Q.block_until_ready()
 
 
+def test_unstable_fixed_step_with_input_jumps_names_the_stability_limit():
+    """With input jumps the fixed step runs under a step controller that rejects a blown-up
+    state until the step budget is spent: the error must still point at dt."""
+    chain = fd.rigs.flexible_pendulum(n_modes=3)
+    y0 = fd.initial_state(chain, [0.0], modal=[1e-4, 0.0, 0.0])
+    with pytest.raises(RUNTIME_ERRORS, match=r"max_steps.*stability limit.*reduce dt"):
+        fd.simulate(chain, y0, jnp.linspace(0.0, 2.0, 5), fd.BangBang(0.01, 0.5), dt=0.05, max_steps=1000).Q
+
+
 def test_too_few_steps_raises_naming_max_steps():
     chain = fd.rigs.rigid_pendulum()
     y0 = fd.initial_state(chain, [0.0])
