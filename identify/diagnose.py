@@ -96,13 +96,16 @@ def split_logs(fit_logs, validation_logs, fraction: float = 0.7):
         name=f"{log.name}[:{k}]",
     )
     rest_initial = _segment_initial(t[k:], {c: np.asarray(v)[k:] for c, v in log.outputs.items()})
+    # the held-out segment starts mid-motion: its link angles and rates are estimated (from
+    # the guesses above), with whatever else the log already estimated at its start
+    rest_fit = tuple(dict.fromkeys((*log.fit_initial, *rest_initial)))
     second = dataclasses.replace(
         log,
         t=t[k:],
         outputs={c: np.asarray(v)[k:] for c, v in log.outputs.items()},
         torque=None if log.torque is None else np.asarray(log.torque)[k:],
         initial=rest_initial,
-        fit_initial=tuple(rest_initial),
+        fit_initial=rest_fit,
         name=f"{log.name}[{k}:]",
     )
     desc = (
@@ -112,14 +115,18 @@ def split_logs(fit_logs, validation_logs, fraction: float = 0.7):
     return [first], [second], desc
 
 
-def _segment_initial(t, outputs) -> dict:
-    """Initial-state guesses of a segment from its measured link angles (and their rates)."""
+def _segment_initial(t, outputs, n: int = 9) -> dict:
+    """Initial-state guesses of a segment from its measured link angles: angle and rate at
+    `t[0]` from a least-squares quadratic through the first `n` samples (a mean or a line
+    would be biased by the rate and the acceleration of a swinging link)."""
     init = {}
+    n = min(len(t), n)
     for c, v in outputs.items():
         if c.startswith("theta") or c.startswith("alpha"):
-            init[c] = float(np.mean(v[:3]))
-            n = min(len(t), 7)
-            init[f"{c}_rate"] = float(np.polyfit(t[:n] - t[0], v[:n], 1)[0])
+            deg = min(2, n - 1)
+            coef = np.polyfit(np.asarray(t[:n]) - t[0], np.asarray(v[:n], float), deg)
+            init[c] = float(coef[-1])
+            init[f"{c}_rate"] = float(coef[-2]) if deg >= 1 else 0.0
     return init
 
 
