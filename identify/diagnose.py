@@ -367,7 +367,9 @@ class Diagnosis:
     held_out: dict  # {'baseline': {ch: rms}, 'extended': {ch: rms}, 'gain': {ch: ratio}, 'gain_total': ...}
     delta_bic_total: float
     fraction_explained: float
-    fraction_of_excess_explained: float
+    # None when the baseline's held-out residual is not above the noise level (e.g. noise
+    # "estimate"d from the baseline's own residual): there is no excess to explain
+    fraction_of_excess_explained: float | None
     extended_chain: fd.Chain
     extended_measurement: meas.Measurement
     extended_parameters: dict
@@ -378,6 +380,13 @@ class Diagnosis:
     @property
     def named(self) -> list[str]:
         return [c.name for c in self.causes]
+
+    @property
+    def excess_explained_text(self) -> str:
+        """`fraction_of_excess_explained` as text ("n/a ..." when there is no excess)."""
+        if self.fraction_of_excess_explained is None:
+            return "n/a, the baseline's held-out residual is not above the noise level"
+        return f"{self.fraction_of_excess_explained:.3f}"
 
     def summary(self) -> str:
         lines = [f"held-out data: {self.split}", ""]
@@ -405,7 +414,7 @@ class Diagnosis:
             )
         lines.append(
             f"total dBIC {self.delta_bic_total:.1f}; fraction of the held-out residual explained "
-            f"{self.fraction_explained:.3f} (of its excess over the noise: {self.fraction_of_excess_explained:.3f})"
+            f"{self.fraction_explained:.3f} (of its excess over the noise: {self.excess_explained_text})"
         )
         for r, scores in enumerate(self.rounds, start=1):
             lines.append("")
@@ -1013,7 +1022,7 @@ def diagnose_logs(
     dbic_total = N * math.log(max(cost_final, 1e-300) / cost0) + k_total * math.log(N) if causes_scores else 0.0
     frac = 1.0 - ho_cost1 / ho_cost0 if ho_cost0 > 0 else 0.0
     excess = ho_cost0 - n_ho
-    frac_excess = (ho_cost0 - ho_cost1) / excess if excess > 0 else 0.0
+    frac_excess = (ho_cost0 - ho_cost1) / excess if excess > 0 else None
     extended_params = dict(base.value)
     if current["layout"]:
         theta_ext = np.asarray(theta_of(current["v"], current["idx"], current["logf"]))
@@ -1057,7 +1066,7 @@ def diagnose_logs(
         },
         delta_bic_total=float(dbic_total),
         fraction_explained=float(frac),
-        fraction_of_excess_explained=float(frac_excess),
+        fraction_of_excess_explained=None if frac_excess is None else float(frac_excess),
         extended_chain=ext_chain,
         extended_measurement=ext_meas,
         extended_parameters=extended_params,

@@ -211,7 +211,7 @@ def markdown(diag, title: str = "") -> str:
     lines.append("")
     lines.append(
         f"Total dBIC {diag.delta_bic_total:.1f}; fraction of the held-out residual (sum of squares) explained "
-        f"{diag.fraction_explained:.3f}, of its excess over the noise {diag.fraction_of_excess_explained:.3f}."
+        f"{diag.fraction_explained:.3f}, of its excess over the noise {diag.excess_explained_text}."
     )
     lines.append("")
     lines.append("## Evidence (baseline fit)")
