@@ -32,7 +32,10 @@ the model, and measure the gain on held-out data.
    pendulum air drag alone fits the large swings and mispredicts the small ones, dry
    friction alone fits nothing; together they generalise.
 6. **Stacking.** After a win, the search runs again from the extended model (the
-   accepted effects' parameters stay free), up to `max_effects` rounds.
+   accepted effects' parameters stay free), up to `max_effects` rounds. The extended
+   model is first refitted alone to convergence (from the same start the next round's
+   candidates get), so that a later candidate is credited only with what its own
+   parameters add.
 
 The result (`Diagnosis`) holds the baseline fit, the evidence, every candidate's scores,
 the accepted causes with their parameters and 95 % intervals (from the exact Jacobian
@@ -778,7 +781,7 @@ def diagnose_logs(
                 [theta_of({k: v[b] for k, v in vs.items()}, np.asarray(idx[b]), np.asarray(logf[b])) for b in bs]
             )
             ho = held_out(thetas)
-            fits = {"vs": vs, "best": best, "idx": idx, "logf": logf, "ho": ho, "labels": labels}
+            fits = {"vs": vs, "best": best, "idx": idx, "logf": logf, "ho": ho, "labels": labels, "size": size}
             for lab, b, r_ho in zip(labels, bs, ho):
                 c = next(x for x in remaining if x.label == lab)
                 k = len(c.params)
@@ -828,6 +831,37 @@ def diagnose_logs(
                 )
             )
         return scores, fits
+
+    def reconverge(cur, size):
+        """The accepted model refitted alone (no new parameter), from its baseline
+        parameters pulled off their bounds (`_unsaturated`, as every candidate of the next
+        round starts), until its cost stops falling: the reference the next round's
+        candidates are scored against. Without it, a candidate of the next round gets the
+        credit for whatever this refit gains: seen, after a sensor high-pass was accepted
+        (held-out 40x), a calibration gain fitted at 0.9999 [0.9997, 1.0001] "improved" the
+        fit by dBIC -4370 and was named as a second effect."""
+        v = {k: jnp.asarray(val)[None] for k, val in cur["v"].items()}
+        v["zb"] = _unsaturated(joint, v["zb"][0])[None]
+        idx_c, logf_c = jnp.asarray(cur["idx"])[None], jnp.asarray(cur["logf"])[None]
+        cost, moved = cur["cost"], False
+        for _ in range(MAX_REFINEMENTS):
+            out, c2, s2 = _fit_batch(
+                joint, _pad(v, size), _pad(idx_c, size), _pad(logf_c, size), sigma_j, step, max_steps
+            )
+            c2 = float(np.asarray(c2)[0])
+            if not (np.isfinite(c2) and c2 < cost):
+                break
+            gained = N * math.log(cost / max(c2, 1e-300))
+            v = {k: jnp.asarray(val)[:1] for k, val in out.items()}
+            cost, moved = c2, True
+            if gained < 0.1 or int(np.asarray(s2)[0]) < max_steps:
+                break
+        if not moved or N * math.log(cur["cost"] / max(cost, 1e-300)) < 0.1:
+            return cur
+        say(f"  the accepted model refitted alone: cost {cur['cost']:.6g} -> {cost:.6g}")
+        v1 = {k: val[0] for k, val in v.items()}
+        theta = theta_of(v1, np.asarray(cur["idx"]), np.asarray(cur["logf"]))
+        return {**cur, "v": v1, "cost": cost, "ho": held_out(theta[None])[0]}
 
     accepted: list[tuple[cat.Candidate, dict]] = []  # continuous causes and their fitted values
     current = {"v": v_base, "cost": cost0, "ho": ho0, "layout": [], "k": 0}
@@ -953,6 +987,8 @@ def diagnose_logs(
             "idx": np.asarray(f["idx"][b]),
             "logf": np.asarray(f["logf"][b]),
         }
+        if rnd + 1 < max_effects:
+            current = reconverge(current, f["size"])
 
     # the extended model: parameters, intervals, gain
     causes = []

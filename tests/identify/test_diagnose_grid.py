@@ -2,7 +2,7 @@
 
 For every catalogue entry (on the rig of the papers it applies to, see
 `tests/diagnose_cases.py`), a seeded random magnitude is hidden in the logs; `diagnose`
-must name it, gain at least 2x in held-out RMS and bracket the truth with its 95 %
+must name it (and nothing else), gain at least 2x in held-out RMS and bracket the truth with its 95 %
 interval. Null logs must name nothing in at least 95 % of 20 seeded trials; two stacked
 effects must both be named; the confusable pair sensor delay / actuator lag on the driven
 arm must be told apart. `benchmarks/bench_diagnose_confusion.py` prints the confusion
@@ -34,7 +34,10 @@ pytestmark = pytest.mark.slow
 def test_hidden_effect_is_named_and_recovered(name, seed):
     run, truth, param = hidden(name, seed)
     diag = run()
-    assert diag.named[:1] == [name], diag.summary()
+    # exactly this one: a second, spurious cause stacked on it is a false positive (seen
+    # before the accepted model was refitted alone between rounds: sensor_highpass seed 2
+    # named a calibration gain of 0.9999 as well)
+    assert diag.named == [name], diag.summary()
     gains = diag.held_out["gain"]
     assert diag.held_out["gain_total"] >= 2.0 or max(gains.values()) >= 2.0, diag.summary()
     if param is not None:
