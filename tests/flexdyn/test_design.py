@@ -84,6 +84,9 @@ def test_residual_jacobian_matches_finite_differences(rng):
     nom = design.move_residuals(cp, move)
     rest = design.move_residuals(cp, move.with_payload(0.03), at_goal=False)
     np.testing.assert_allclose(np.asarray(rob), np.concatenate([nom, rest]), rtol=1e-12, atol=1e-15)
+    # at rest wherever it stopped: the goal-angle block (the first n_window x n_joints entries) is left out
+    full = design.move_residuals(cp, move.with_payload(0.03))
+    np.testing.assert_allclose(np.asarray(rest), np.asarray(full)[11 * 2 :], rtol=1e-12, atol=1e-15)
 
 
 @pytest.mark.slow
