@@ -223,11 +223,19 @@ def move_residuals(control_points, move: RestToRestMove, *, at_goal: bool = True
     return jnp.concatenate(parts)
 
 
-def robust_residuals(control_points, move: RestToRestMove, payload_masses):
+def robust_residuals(control_points, move: RestToRestMove, payload_masses, payload_weight=1.0):
     """Residuals of a design robust to the payload: `move_residuals` of the nominal chain
     (`move.chain`, reaching the goal), followed by the at-rest residuals
     (`at_goal=False`) for every payload mass (kg) of a vmapped batch, scaled by
-    `1 / sqrt(n_payloads)` (their sum of squares is the mean over payloads).
+    `payload_weight / sqrt(n_payloads)` (with the default weight 1 their sum of squares
+    is the mean over payloads, and the nominal residuals count as much as that mean).
+
+    `payload_weight` sets the trade-off between reaching the goal exactly with the
+    nominal payload and stopping without vibration with the others. When the payload
+    changes the inertia a lot (paper 004's arm: 0-100 g at the tip halves or doubles the
+    inertia about the shoulder) no open-loop torque does both in a short move, and a
+    weight above 1 spreads the residual vibration evenly over the batch at the cost of
+    the nominal goal error (`notebooks/trajectory_design_paper004.ipynb`).
 
     An open-loop torque cannot bring different inertias to the same angles, so the
     payloads other than the nominal one are asked to stop without vibration and with
@@ -238,7 +246,8 @@ def robust_residuals(control_points, move: RestToRestMove, payload_masses):
         payload_masses
     )
     nominal = move_residuals(control_points, move)
-    return jnp.concatenate([nominal, per_payload.ravel() / jnp.sqrt(float(payload_masses.shape[0]))])
+    scale = payload_weight / jnp.sqrt(float(payload_masses.shape[0]))
+    return jnp.concatenate([nominal, per_payload.ravel() * scale])
 
 
 class MoveDesign(eqx.Module):
@@ -257,6 +266,7 @@ def design_move(
     initial: BSplineTorque,
     payload_masses=None,
     *,
+    payload_weight=1.0,
     rtol: float = 1e-8,
     atol: float = 1e-10,
     max_steps: int = 60,
@@ -264,16 +274,20 @@ def design_move(
 ) -> MoveDesign:
     """Choose the control points of `initial` (a `BSplineTorque` with the move's duration
     and limits) by Levenberg-Marquardt on `move_residuals` (nominal chain), or on
-    `robust_residuals` over `payload_masses` (kg) when given. Jacobians are forward-mode
+    `robust_residuals` over `payload_masses` (kg) when given, with `payload_weight` (see
+    `robust_residuals`). Jacobians are forward-mode
     through the RK4 solve. `throw=False` returns the best point found when `max_steps` is
     reached (check `result`)."""
 
     def fn(cp, args):
-        move_, masses = args
-        return move_residuals(cp, move_) if masses is None else robust_residuals(cp, move_, masses)
+        move_, masses, weight = args
+        return move_residuals(cp, move_) if masses is None else robust_residuals(cp, move_, masses, weight)
 
     masses = None if payload_masses is None else as_float_array(payload_masses)
-    args = (move, masses)
+    weight = as_float_array(payload_weight)
+    if weight.ndim != 0 or (not isinstance(weight, jax.core.Tracer) and not float(weight) > 0):
+        raise ValueError(f"design_move.payload_weight: expected one number > 0, got {payload_weight!r}")
+    args = (move, masses, weight)
     cp0 = initial.control_points
     cost0 = 0.5 * jnp.sum(fn(cp0, args) ** 2)
     sol = optx.least_squares(

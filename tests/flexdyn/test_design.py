@@ -65,6 +65,14 @@ def test_move_rejects_wrong_number_of_angles():
         design.RestToRestMove(fd.rigs.two_link_flexible_arm(), [0.0], [0.1, 0.2], T, 0.4)
 
 
+@pytest.mark.parametrize("weight", [0.0, -1.0, float("nan"), [1.0, 2.0]])
+def test_design_rejects_bad_payload_weight(weight):
+    move = design.RestToRestMove(fd.rigs.two_link_flexible_arm(), [0.0, 0.0], [0.1, 0.5], 0.5, 0.4, n_window=5)
+    initial = move.torque(jnp.zeros((4, 2)))
+    with pytest.raises(ValueError, match="payload_weight: expected one number > 0"):
+        design.design_move(move, initial, payload_masses=[0.0, 0.1], payload_weight=weight)
+
+
 @pytest.mark.slow
 def test_residual_jacobian_matches_finite_differences(rng):
     # forward-mode derivative through the RK4 solve vs central differences (float64)
@@ -84,6 +92,9 @@ def test_residual_jacobian_matches_finite_differences(rng):
     nom = design.move_residuals(cp, move)
     rest = design.move_residuals(cp, move.with_payload(0.03), at_goal=False)
     np.testing.assert_allclose(np.asarray(rob), np.concatenate([nom, rest]), rtol=1e-12, atol=1e-15)
+    # payload_weight scales only the payloads' block
+    weighted = design.robust_residuals(cp, move, jnp.asarray([0.03]), payload_weight=2.5)
+    np.testing.assert_allclose(np.asarray(weighted), np.concatenate([nom, 2.5 * rest]), rtol=1e-12, atol=1e-15)
     # at rest wherever it stopped: the goal-angle block (the first n_window x n_joints entries) is left out
     full = design.move_residuals(cp, move.with_payload(0.03))
     np.testing.assert_allclose(np.asarray(rest), np.asarray(full)[11 * 2 :], rtol=1e-12, atol=1e-15)
