@@ -40,7 +40,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import diffrax
 import equinox as eqx
@@ -408,12 +408,50 @@ def _residual_fn(z, args):
     return r
 
 
+class _BudgetedLM(optx.AbstractLeastSquaresSolver):
+    """Levenberg-Marquardt (`inner`) that also stops after `budget` steps, a traced
+    integer, with the result `nonlinear_max_steps_reached` (what optimistix reports at
+    its own static `max_steps`). The stages of a fit have different iteration budgets;
+    as a traced value the budget does not recompile the fit's Levenberg-Marquardt
+    program (a static one did: about 12 s of XLA compilation per distinct budget on 2
+    cores, `benchmarks/bench_fit_vs_scipy.py`)."""
+
+    inner: optx.LevenbergMarquardt
+    budget: jax.Array
+    rtol: float = eqx.field(static=True)
+    atol: float = eqx.field(static=True)
+    norm: Callable = eqx.field(static=True)
+
+    def __init__(self, inner: optx.LevenbergMarquardt, budget):
+        self.inner = inner
+        self.budget = jnp.asarray(budget, dtype=int)
+        self.rtol, self.atol, self.norm = inner.rtol, inner.atol, inner.norm
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        return self.inner.init(fn, y, args, options, f_struct, aux_struct, tags), jnp.array(0)
+
+    def step(self, fn, y, args, options, state, tags):
+        inner_state, n = state
+        y, inner_state, aux = self.inner.step(fn, y, args, options, inner_state, tags)
+        return y, (inner_state, n + 1), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        inner_state, n = state
+        done, result = self.inner.terminate(fn, y, args, options, inner_state, tags)
+        capped = jnp.invert(done) & (n >= self.budget)
+        return done | capped, optx.RESULTS.where(capped, optx.RESULTS.nonlinear_max_steps_reached, result)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
+
+
 @eqx.filter_jit
-def _solve(problem: Problem, z0, sigma, horizon, step, max_steps: int, rtol: float, atol: float):
+def _solve(problem: Problem, z0, sigma, horizon, step, budget, max_steps: int, rtol: float, atol: float):
     # Termination on the RMS (not the max) of the residual change: converged when the
     # residuals move by less than `rtol` of their size on average, i.e. the step is a
     # small fraction of a standard error (not when every single residual is frozen).
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, norm=optx.rms_norm)
+    # At most `budget` (traced) iterations, `max_steps` (static) >= every budget used.
+    solver = _BudgetedLM(optx.LevenbergMarquardt(rtol=rtol, atol=atol, norm=optx.rms_norm), budget)
     args = (problem, sigma, horizon, step)
     sol = optx.least_squares(_residual_fn, solver, z0, args=args, max_steps=max_steps, throw=False)
     r = _residual_fn(sol.value, args)
@@ -578,7 +616,7 @@ def fit(
       a stage makes the loss smooth.
     - `n_starts`, `start_spread`: the first (shortest) stage is solved from `n_starts`
       points (the guess and a deterministic design within a factor `start_spread` of it,
-      see `_starts`) in one vmapped call, and the best continues. Measured on the
+      see `_starts`), and the best continues. Measured on the
       4-parameter flexible-arm benchmark: from guesses -50 %/+100 % off, single-start
       growing horizon converged in 20 of 24 trials, all failures starting at 2x EI.
     - `max_restarts`: if the fit ends with a parameter on a bound (a wrong basin), the
@@ -609,28 +647,41 @@ def fit(
         estimate_noise = problem.channels
     rounds = 2 if estimate_noise else 1
     candidates = [z]
+    # one compiled Levenberg-Marquardt program for every stage and start: the iteration
+    # budget is traced (`_BudgetedLM`), the loop bound `cap` static
+    cap = max(max_steps, early_max_steps)
     if n_starts > 1 and problem.names:
         # Multi-start on the shortest horizon: a few cheap short fits from a design around
-        # the guess, all in one vmapped call; the best ones seed the growing horizon.
+        # the guess, one after another with the stages' compiled program (a vmapped call
+        # would be a second program, ~18 s more compilation on 2 cores, and on the CPU it
+        # is not faster); the best ones seed the growing horizon.
         h = horizons[0]
         step = _stage_step(problem, z, h, grid_safety)
         xs = _starts(problem, x0, n_starts, start_spread)
-        zs = {
-            "phys": jnp.asarray(np.stack([_z_from_x(problem, x) for x in xs])),
-            "y0": jnp.tile(z["y0"], (n_starts, 1)),
-            "offset": jnp.tile(z["offset"], (n_starts, 1)),
-        }
-        multi = eqx.filter_vmap(_solve, in_axes=(None, 0, None, None, None, None, None, None))
-        zs, results, steps, costs = multi(problem, zs, sigma, jnp.asarray(h), step, early_max_steps, rtol, atol)
-        order = np.argsort(np.where(np.isfinite(np.asarray(costs)), np.asarray(costs), np.inf))
-        candidates = [{k: v[int(i)] for k, v in zs.items()} for i in order[: max_restarts + 1]]
+        runs = [
+            _solve(
+                problem,
+                {"phys": jnp.asarray(_z_from_x(problem, x)), "y0": z["y0"], "offset": z["offset"]},
+                sigma,
+                jnp.asarray(h),
+                step,
+                jnp.asarray(early_max_steps),  # an array: traced, not a static argument
+                cap,
+                rtol,
+                atol,
+            )
+            for x in xs
+        ]
+        costs = np.asarray([float(r[3]) for r in runs])
+        order = np.argsort(np.where(np.isfinite(costs), costs, np.inf))
+        candidates = [runs[int(i)][0] for i in order[: max_restarts + 1]]
         best = int(order[0])
         stages.append(
             {
                 "horizon_s": float(h),
-                "iterations": int(jnp.max(steps)),
+                "iterations": max(int(r[2]) for r in runs),
                 "cost": float(costs[best]),
-                "result": _result_name(jax.tree_util.tree_map(lambda a: a[best], results)),
+                "result": _result_name(runs[best][1]),
                 "starts": n_starts,
                 "start_costs": [float(c) for c in costs],
             }
@@ -655,6 +706,7 @@ def fit(
             grid_safety,
             max_steps,
             early_max_steps,
+            cap,
             rtol,
             atol,
             say,
@@ -676,7 +728,7 @@ def fit(
 
 
 def _grow(
-    problem, z, sigma, horizons, rounds, estimate_noise, grid_safety, max_steps, early_max_steps, rtol, atol, say
+    problem, z, sigma, horizons, rounds, estimate_noise, grid_safety, max_steps, early_max_steps, cap, rtol, atol, say
 ):
     """The growing-horizon stages (and a noise re-estimation round) from `z`."""
     stages = []
@@ -687,8 +739,8 @@ def _grow(
         for k, h in enumerate(horizons if rnd == 0 else horizons[-1:]):
             last = rnd > 0 or k == len(horizons) - 1
             step = _stage_step(problem, z, h, grid_safety)
-            budget = max_steps if last else early_max_steps
-            z, result, steps, cost = _solve(problem, z, sigma, jnp.asarray(h), step, budget, rtol, atol)
+            budget = jnp.asarray(max_steps if last else early_max_steps)  # traced: no recompilation
+            z, result, steps, cost = _solve(problem, z, sigma, jnp.asarray(h), step, budget, cap, rtol, atol)
             stages.append(
                 {"horizon_s": float(h), "iterations": int(steps), "cost": float(cost), "result": _result_name(result)}
             )
@@ -847,7 +899,7 @@ def fit_independent(
     sigma = problem.sigma
     horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
     grid = eqx.filter_vmap(_grid_step, in_axes=(0, 0, None, None))
-    solve = eqx.filter_vmap(_solve, in_axes=(0, 0, None, None, 0, None, None, None))
+    solve = eqx.filter_vmap(_solve, in_axes=(0, 0, None, None, 0, None, None, None, None))
     stages = [[] for _ in range(L)]
     for h in horizons:
         step, ok = grid(stacked, z, jnp.asarray(h), grid_safety)
@@ -858,7 +910,7 @@ def fit_independent(
         step = jnp.asarray(
             [float(aligned_step(singles[min(k, L - 1)], step[k])) for k in range(step.shape[0])], dtype=step.dtype
         )
-        z, result, steps, cost = solve(stacked, z, sigma, jnp.asarray(h), step, max_steps, rtol, atol)
+        z, result, steps, cost = solve(stacked, z, sigma, jnp.asarray(h), step, max_steps, max_steps, rtol, atol)
         for k in range(L):
             stages[k].append(
                 {
