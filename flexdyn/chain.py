@@ -405,42 +405,69 @@ def _modal(lay: Layout, Q, i):
 
 
 def kinetic_energy(asm: AssembledChain, Q, Qd):
-    """Total kinetic energy T(Q, Q_dot), J (formula in the module docstring)."""
+    """Total kinetic energy T(Q, Q_dot), J (formula in the module docstring).
+
+    Written on scalar components (`o = (o_x, o_y)`, `R(phi)` as `cos`/`sin` products; the
+    velocity recursion of `frames_and_rates` inlined) rather than 2-vectors and 2 x 2
+    matrices: `M` and the velocity terms are derivatives of this function, and on the CPU
+    XLA fuses scalar arithmetic into a few kernels where every tiny `dot` is a library
+    call of its own, and under `vmap` the scalars become contiguous batch vectors.
+    Measured on paper 004's arm (8 coordinates, 2-core CPU, inside a compiled loop), with
+    `potential_energy` written the same way: one right-hand side 5.7 -> 2.5 us, its JVP
+    19 -> 7.7 us, its VJP 24 -> 12 us, vmapped over 256 states 1.6 -> 1.2 us per state."""
     lay, chain = asm.layout, asm.chain
-    f, fd = frames_and_rates(asm, Q, Qd)
-    T = jnp.zeros(())
+    zero = jnp.zeros((), Q.dtype)
+    ox = oy = vx = vy = psi = psi_dot = zero
+    T = zero
     for i, lm in enumerate(asm.links):
         q, qd = _modal(lay, Q, i), _modal(lay, Qd, i)
-        omega = fd.angle[i]
-        u = _rot(f.angle[i]).T @ fd.origin[i]
-        T = T + 0.5 * lm.mass * (u @ u)
-        T = T + 0.5 * omega**2 * (lm.c2 + q @ lm.modal_mass @ q) + u[1] * omega * lm.c1
-        T = T - u[0] * omega * (lm.a @ q) + u[1] * (lm.a @ qd) + omega * (lm.b @ qd)
-        T = T + 0.5 * qd @ lm.modal_mass @ qd
+        carrier_rate = psi_dot
+        phi = psi + Q[lay.theta[i]]
+        omega = psi_dot + Qd[lay.theta[i]]
+        c, s = jnp.cos(phi), jnp.sin(phi)
+        ux, uy = c * vx + s * vy, c * vy - s * vx  # R(phi)^T o_dot
+        aq, aqd, bqd = jnp.sum(lm.a * q), jnp.sum(lm.a * qd), jnp.sum(lm.b * qd)
+        qMq = jnp.sum(q[:, None] * lm.modal_mass * q[None, :])
+        qdMqd = jnp.sum(qd[:, None] * lm.modal_mass * qd[None, :])
+        T = T + 0.5 * lm.mass * (ux * ux + uy * uy)
+        T = T + 0.5 * omega**2 * (lm.c2 + qMq) + uy * omega * lm.c1
+        T = T - ux * omega * aq + uy * aqd + omega * bqd + 0.5 * qdMqd
         hub, joint = chain.hubs[i], chain.joints[i]
-        T = T + 0.5 * hub.mass * (fd.origin[i] @ fd.origin[i]) + 0.5 * hub.inertia * omega**2
+        T = T + 0.5 * hub.mass * (vx * vx + vy * vy) + 0.5 * hub.inertia * omega**2
         s_dot = Qd[lay.actuated[i]]
         if joint.spong_approximation:
             T = T + 0.5 * joint.rotor_inertia * (joint.gear_ratio * s_dot) ** 2
         else:
-            T = T + 0.5 * joint.rotor_inertia * (fd.rotor_carrier[i] + joint.gear_ratio * s_dot) ** 2
+            T = T + 0.5 * joint.rotor_inertia * (carrier_rate + joint.gear_ratio * s_dot) ** 2
+        # next joint: o += R(phi) [l, d]; o_dot += omega S R(phi) [l, d] + R(phi) [0, d_dot]
+        d, d_dot = jnp.sum(lm.tip_shape * q), jnp.sum(lm.tip_shape * qd)
+        ax, ay = c * lm.length - s * d, s * lm.length + c * d
+        vx, vy = vx - omega * ay - s * d_dot, vy + omega * ax + c * d_dot
+        ox, oy = ox + ax, oy + ay
+        psi = phi + jnp.sum(lm.tip_slope * q)
+        psi_dot = omega + jnp.sum(lm.tip_slope * qd)
     p = chain.payload
-    T = T + 0.5 * p.mass * (fd.end @ fd.end) + 0.5 * p.inertia * fd.tip_angle[-1] ** 2
-    return T
+    return T + 0.5 * p.mass * (vx * vx + vy * vy) + 0.5 * p.inertia * psi_dot**2
 
 
 def potential_energy(asm: AssembledChain, Q):
     """Gravity + bending + joint-spring potential energy V(Q), J. Zero at Q = 0 for the
-    elastic parts; the gravity datum is the base joint."""
+    elastic parts; the gravity datum is the base joint. (Scalar components, as
+    `kinetic_energy`; the position recursion of `frames` inlined.)"""
     lay, chain = asm.layout, asm.chain
-    f = frames(asm, Q)
-    weighted = jnp.zeros(2)  # sum of mass-weighted positions, kg m
-    V = jnp.zeros(())
+    zero = jnp.zeros((), Q.dtype)
+    ox = oy = psi = zero
+    wx = wy = zero  # sum of mass-weighted positions, kg m
+    V = zero
     for i, lm in enumerate(asm.links):
         q = _modal(lay, Q, i)
-        weighted = weighted + lm.mass * f.origin[i] + _rot(f.angle[i]) @ jnp.stack([lm.c1, lm.a @ q])
-        weighted = weighted + chain.hubs[i].mass * f.origin[i]
-        V = V + 0.5 * q @ lm.stiffness @ q
+        phi = psi + Q[lay.theta[i]]
+        c, s = jnp.cos(phi), jnp.sin(phi)
+        aq = jnp.sum(lm.a * q)
+        m = lm.mass + chain.hubs[i].mass
+        wx = wx + m * ox + c * lm.c1 - s * aq  # + R(phi) [c1, a.q]
+        wy = wy + m * oy + s * lm.c1 + c * aq
+        V = V + 0.5 * jnp.sum(q[:, None] * lm.stiffness * q[None, :])
         joint = chain.joints[i]
         if joint.elastic:
             delta = Q[lay.rotor[i]] - Q[lay.theta[i]]
@@ -448,8 +475,12 @@ def potential_energy(asm: AssembledChain, Q):
                 V = V + 0.5 * joint.stiffness * delta**2
             else:
                 V = V + backlash_energy(joint.stiffness, delta, joint.backlash)
-    weighted = weighted + chain.payload.mass * f.end
-    return V - chain.gravity @ weighted
+        d = jnp.sum(lm.tip_shape * q)
+        ox, oy = ox + c * lm.length - s * d, oy + s * lm.length + c * d
+        psi = phi + jnp.sum(lm.tip_slope * q)
+    mp = chain.payload.mass
+    wx, wy = wx + mp * ox, wy + mp * oy
+    return V - (chain.gravity[0] * wx + chain.gravity[1] * wy)
 
 
 def dissipation(asm: AssembledChain, Qd):
@@ -462,7 +493,7 @@ def dissipation(asm: AssembledChain, Qd):
         if joint.elastic:
             R = R + 0.5 * joint.spring_damping * (Qd[lay.rotor[i]] - Qd[lay.theta[i]]) ** 2
         qd = _modal(lay, Qd, i)
-        R = R + 0.5 * qd @ lm.damping @ qd
+        R = R + 0.5 * jnp.sum(qd[:, None] * lm.damping * qd[None, :])
     return R
 
 
