@@ -69,6 +69,7 @@ from .fit import (
     _offsets,
     _residuals_from,
     _x_from_z,
+    dense_jacobian,
     fit,
     make_problem,
     predict,
@@ -170,6 +171,9 @@ def _residual(v, args):
     return _residuals_from(j.problem, theta, v["y0"], v["offset"], sigma, None, step)[0]
 
 
+_residual_lm = dense_jacobian(_residual)  # same value, one forward-mode pass per LM step
+
+
 @eqx.filter_jit
 def _fit_batch(j: _Joint, v0, idx, logf, sigma, step, max_steps: int):
     """Levenberg-Marquardt for a batch of (start, slot layout) pairs, vmapped."""
@@ -177,7 +181,7 @@ def _fit_batch(j: _Joint, v0, idx, logf, sigma, step, max_steps: int):
 
     def one(v0, idx, logf):
         args = (j, idx, logf, sigma, step)
-        sol = optx.least_squares(_residual, solver, v0, args=args, max_steps=max_steps, throw=False)
+        sol = optx.least_squares(_residual_lm, solver, v0, args=args, max_steps=max_steps, throw=False)
         r = _residual(sol.value, args)
         return sol.value, jnp.sum(r**2), sol.stats["num_steps"]
 
@@ -295,6 +299,9 @@ def _held_residual(v, args):
     return _residuals_from(problem, theta, v["y0"], v["offset"], sigma, None, step)[0]
 
 
+_held_residual_lm = dense_jacobian(_held_residual)
+
+
 @eqx.filter_jit
 def _held_out_batch(problem: Problem, thetas, v0, sigma, step, max_steps: int):
     """Weighted held-out residuals for a batch of parameter vectors, each held-out log's
@@ -304,7 +311,7 @@ def _held_out_batch(problem: Problem, thetas, v0, sigma, step, max_steps: int):
     def one(theta):
         args = (problem, theta, sigma, step)
         if v0["y0"].size + v0["offset"].size:
-            v = optx.least_squares(_held_residual, solver, v0, args=args, max_steps=max_steps, throw=False).value
+            v = optx.least_squares(_held_residual_lm, solver, v0, args=args, max_steps=max_steps, throw=False).value
         else:
             v = v0
         return _held_residual(v, args), v
