@@ -67,12 +67,12 @@ from .fit import (
     Problem,
     _initial_states,
     _offsets,
+    _predict_jit,
     _residuals_from,
     _x_from_z,
     dense_jacobian,
     fit,
     make_problem,
-    predict,
 )
 
 # ---------------------------------------------------------------------------
@@ -200,7 +200,7 @@ def _jacobian(j: _Joint, xb, xe, y0, off, idx, logf, sigma, step):
     return fn(w), jnp.concatenate([J["xb"], J["xe"], J["y0"], J["offset"]], axis=1)
 
 
-_predict = eqx.filter_jit(predict)
+_predict = _predict_jit  # shared with identify.fit.fitted_outputs: one compiled program
 
 
 Z_SATURATION = 6.0

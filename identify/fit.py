@@ -381,6 +381,10 @@ def predict(problem: Problem, theta, y0s, horizon=None, step=None, *, stats: boo
     return jax.vmap(one)(problem.t, problem.torque_v, y0s)
 
 
+# compiled once per problem layout (an eager call re-traces and runs the assembly op by op)
+_predict_jit = eqx.filter_jit(predict)
+
+
 def _strictly_increasing(t):
     # Padded logs repeat their last time; SampledTorque needs increasing knots.
     k = jnp.arange(t.shape[0], dtype=t.dtype)
@@ -510,16 +514,17 @@ def _grid_step(problem: Problem, z, horizon, safety: float):
 
 @eqx.filter_jit
 def _jacobian_natural(problem: Problem, x, y0_free, offset_free, sigma, step):
-    """Weighted residuals and their Jacobian w.r.t. (x, y0_free, offsets), full horizon."""
+    """Weighted residuals, their Jacobian w.r.t. (x, y0_free, offsets) and whether every
+    log's simulation succeeded, full horizon; one forward-mode solve."""
 
     def fn(v):
         theta = _theta_from_x(problem, v["x"])
-        return _residuals_from(problem, theta, v["y0"], v["offset"], sigma, None, step)[0]
+        r, ok = _residuals_from(problem, theta, v["y0"], v["offset"], sigma, None, step)
+        return r, (r, jnp.all(ok))
 
     v = {"x": x, "y0": y0_free, "offset": offset_free}
-    r = fn(v)
-    J = jax.jacfwd(fn)(v)
-    return r, jnp.concatenate([J["x"], J["y0"], J["offset"]], axis=1)
+    J, (r, ok) = jax.jacfwd(fn, has_aux=True)(v)
+    return r, jnp.concatenate([J["x"], J["y0"], J["offset"]], axis=1), ok
 
 
 # ---------------------------------------------------------------------------
@@ -760,9 +765,8 @@ def fit(
     stages.extend(tried)
     say("  computing standard errors (exact Jacobian at the optimum) ...")
     x = _x_from_z(problem, z["phys"])
-    r, J = _jacobian_natural(problem, x, z["y0"], z["offset"], sigma, step)
-    _, ok = predict(problem, _theta_from_x(problem, x), _initial_states(problem, z["y0"]), None, step)
-    if not bool(jnp.all(ok)):
+    r, J, ok = _jacobian_natural(problem, x, z["y0"], z["offset"], sigma, step)
+    if not bool(ok):
         raise RuntimeError("fit: the simulation at the fitted parameters failed; check bounds and solver settings")
     return _finish(problem, parameters, z, x, sigma, step, r, J, stages, time.perf_counter() - start)
 
@@ -964,7 +968,13 @@ def fit_independent(
     say("  computing standard errors (exact Jacobians at the optima) ...")
     x = jnp.stack([_x_from_z(singles[k], z["phys"][k]) for k in range(L)])
     jac = eqx.filter_vmap(_jacobian_natural, in_axes=(0, 0, 0, 0, None, 0))
-    r, J = jac(stacked, fbatch.shard_batch(x, mesh)[0], z["y0"], z["offset"], sigma, step)
+    r, J, ok = jac(stacked, fbatch.shard_batch(x, mesh)[0], z["y0"], z["offset"], sigma, step)
+    failed = [k for k in range(L) if not bool(ok[k])]
+    if failed:
+        raise RuntimeError(
+            f"fit_independent: the simulation of log(s) {failed} at the fitted parameters failed; "
+            "check bounds and solver settings"
+        )
     wall = (time.perf_counter() - start) / L
     return [
         _finish(
@@ -1194,7 +1204,7 @@ def fitted_outputs(result: FitResult) -> dict:
     (SI; simulated includes the fitted sensor offsets), for plots and residual tests."""
     problem, z = result.problem, result.z
     theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
-    pred, _ = predict(problem, theta, _initial_states(problem, z["y0"]), None, result.step)
+    pred, _ = _predict_jit(problem, theta, _initial_states(problem, z["y0"]), None, result.step)
     off = _offsets(problem, z["offset"])
     pred = np.asarray(pred + off[:, None, :])
     meas, valid, present = np.asarray(problem.measured), np.asarray(problem.valid), np.asarray(problem.present)
