@@ -267,6 +267,16 @@ class MoveDesign(eqx.Module):
     num_steps: Array
 
 
+def _residuals(control_points, args):
+    # A module-level function, not a closure made per call, so that optimistix's compiled
+    # solve is reused by later calls with the same shapes (measured: a repeated nominal
+    # design of the paper 002 arm, 15 steps, 20.5 -> 4.5 s warm).
+    move, masses, weight = args
+    if masses is None:
+        return move_residuals(control_points, move)
+    return robust_residuals(control_points, move, masses, weight)
+
+
 def design_move(
     move: RestToRestMove,
     initial: BSplineTorque,
@@ -285,19 +295,15 @@ def design_move(
     through the RK4 solve. `throw=False` returns the best point found when `max_steps` is
     reached (check `result`)."""
 
-    def fn(cp, args):
-        move_, masses, weight = args
-        return move_residuals(cp, move_) if masses is None else robust_residuals(cp, move_, masses, weight)
-
     masses = None if payload_masses is None else as_float_array(payload_masses)
     weight = as_float_array(payload_weight)
     if weight.ndim != 0 or (not isinstance(weight, jax.core.Tracer) and not float(weight) > 0):
         raise ValueError(f"design_move.payload_weight: expected one number > 0, got {payload_weight!r}")
     args = (move, masses, weight)
     cp0 = initial.control_points
-    cost0 = 0.5 * jnp.sum(fn(cp0, args) ** 2)
+    cost0 = 0.5 * jnp.sum(_residuals(cp0, args) ** 2)
     sol = optx.least_squares(
-        fn,
+        _residuals,
         optx.LevenbergMarquardt(rtol=rtol, atol=atol),
         cp0,
         args=args,
@@ -305,7 +311,7 @@ def design_move(
         max_steps=max_steps,
         throw=throw,
     )
-    cost = 0.5 * jnp.sum(fn(sol.value, args) ** 2)
+    cost = 0.5 * jnp.sum(_residuals(sol.value, args) ** 2)
     return MoveDesign(move.torque(sol.value), cost, cost0, sol.result, sol.stats["num_steps"])
 
 
