@@ -88,7 +88,8 @@ class Modes(eqx.Module):
     """Result of `modal_analysis` (ascending frequency).
 
     - `natural_frequency`: undamped, Hz, from `K v = omega^2 M v` (rigid-body modes
-      of an unrestrained chain appear as 0).
+      of an unrestrained chain appear as exactly 0: omega^2 below the eigensolver's
+      round-off, `n eps max omega^2`, counts as zero).
     - `shapes`: the corresponding generalised-coordinate vectors (columns),
       mass-normalised (`v^T M v = 1`).
     """
@@ -121,7 +122,10 @@ def modal_analysis(chain: Chain | AssembledChain, Q0=None) -> Modes:
     L = jnp.linalg.cholesky(M)
     Linv = jax.scipy.linalg.solve_triangular(L, jnp.eye(n), lower=True)
     w2, V = jnp.linalg.eigh(Linv @ K @ Linv.T)
-    positive = w2 > 0.0
+    # A rigid-body mode's omega^2 is zero only up to the eigensolver's round-off, about
+    # n eps max|omega^2| (it came out as ~3e-6 Hz); below that it is reported as exactly 0.
+    tol = n * jnp.finfo(w2.dtype).eps * jnp.max(jnp.abs(w2))
+    positive = w2 > tol
     # sqrt with a finite derivative at rigid-body (zero) modes
     natural = jnp.where(positive, jnp.sqrt(jnp.where(positive, w2, 1.0)), 0.0) / (2 * jnp.pi)
     return Modes(natural, Linv.T @ V, asm.layout.names)

@@ -9,7 +9,9 @@ sensor offset `o_lc`) over the shared physical parameters `theta` (any named
 parameter: `link1.EI`, `joint1.damping`, `hub1.inertia`, `payload.mass`, ...)
 and the per-log nuisances (unknown initial-state entries `x0_l`, offsets) with
 optimistix's Levenberg-Marquardt. Jacobians are exact, by forward-mode
-differentiation through the diffrax solve (`diffrax.ForwardMode`).
+differentiation through the diffrax solve (`diffrax.ForwardMode`); each
+Levenberg-Marquardt step gets the residuals and the whole Jacobian from one
+forward-mode solve (`dense_jacobian`).
 
 **Coordinates.** Positive parameters are fitted as `log(theta)`, signed ones as
 `theta`; finite bounds `[lower, upper]` are imposed by the smooth map `x = lo +
