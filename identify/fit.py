@@ -971,7 +971,7 @@ def fit_independent(
     x = jnp.stack([_x_from_z(singles[k], z["phys"][k]) for k in range(L)])
     jac = eqx.filter_vmap(_jacobian_natural, in_axes=(0, 0, 0, 0, None, 0))
     r, J, ok = jac(stacked, fbatch.shard_batch(x, mesh)[0], z["y0"], z["offset"], sigma, step)
-    failed = [k for k in range(L) if not bool(ok[k])]
+    failed = np.flatnonzero(~np.asarray(ok)[:L]).tolist()  # one host transfer, not one per log
     if failed:
         raise RuntimeError(
             f"fit_independent: the simulation of log(s) {failed} at the fitted parameters failed; "
