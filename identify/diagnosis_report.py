@@ -214,6 +214,18 @@ def markdown(diag, title: str = "") -> str:
         f"{diag.fraction_explained:.3f}, of its excess over the noise {diag.excess_explained_text}."
     )
     lines.append("")
+    if diag.causes and diag.extended_intervals:
+        lines.append("## Extended model")
+        lines.append("")
+        lines.append("Every free parameter of the extended model, from the exact Jacobian of its final fit:")
+        lines.append("")
+        lines.append("| parameter | value | std error | 95 % CI |")
+        lines.append("| --- | ---: | ---: | --- |")
+        for n, p in diag.extended_intervals.items():
+            lines.append(
+                f"| `{n}` | {p['value']:.5g} | {p['std_error']:.3g} | [{p['ci95'][0]:.5g}, {p['ci95'][1]:.5g}] |"
+            )
+        lines.append("")
     lines.append("## Evidence (baseline fit)")
     lines.append("")
     lines.extend(ev.summary_lines(diag.evidence))

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +34,8 @@ import flexdyn as fd
 from identify import measurement as meas
 from identify.cli import main
 from identify.diagnose import diagnose_logs, split_logs
+
+D = sys.modules["identify.diagnose"]  # the module (`identify.diagnose` is the function)
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "identify" / "examples" / "pendulum_friction"
@@ -137,3 +141,36 @@ def test_a_single_log_is_diagnosed_on_a_time_split():
     lo, hi = diag.causes[0].parameters["joint1.coulomb"]["ci95"]
     assert lo <= fc <= hi, diag.causes[0].parameters
     assert diag.held_out["gain"]["theta1"] >= 2.0, diag.summary()
+
+
+def test_exclude_must_name_candidate_labels():
+    logs = logs_of(pendulum(), 14)
+    with pytest.raises(ValueError, match="exclude: 'coulomb:joint1' is not a candidate label"):
+        diagnose_logs(
+            fd.rigs.rigid_pendulum(),
+            PENDULUM_PARAMS,
+            logs[:2],
+            logs[2:],
+            {"theta1": PENDULUM_NOISE},
+            exclude=["coulomb:joint1"],
+        )
+
+
+def test_a_structural_candidate_is_refitted_when_its_cost_drop_would_pass_the_bic_test():
+    """`_promising`: a structural candidate that took `drop` off the previous round's model
+    is refitted against a model of cost C when N ln(C / (C - drop)) > threshold + k ln N.
+    The numbers of the masked-elasticity case (test_diagnose_grid): elasticity took 1.1e5
+    off a cost of 4.7e7 (dBIC +10 there), the tilted model's cost is 16067."""
+    n, thr = 2404, 10.0
+    drops = {"joint_elasticity:joint1": (1.1e5, 2), "missing_mode:link1": (50.0, 0)}
+    assert D._promising(drops, 4.7e7, n, thr) == set()
+    assert D._promising(drops, 16067.0, n, thr) == {"joint_elasticity:joint1"}
+    assert D._promising(drops, 16067.0 / 2, n, thr) == {"joint_elasticity:joint1", "missing_mode:link1"}
+    # the boundary is the BIC test's: just above / below the drop that gives dBIC = -threshold
+    for k in (0, 2):
+        cost = 5000.0
+        edge = cost * (1 - math.exp(-(thr + k * math.log(n)) / n))
+        for drop, expect in ((edge * (1 + 1e-6), True), (edge * (1 - 1e-6), False)):
+            dbic = n * math.log((cost - drop) / cost) + k * math.log(n)
+            assert (dbic < -thr) == expect
+            assert (D._promising({"x": (drop, k)}, cost, n, thr) == {"x"}) == expect
