@@ -359,8 +359,6 @@ def _fit_command(args) -> int:
     import jax
     import numpy as np
 
-    import flexdyn as fd
-
     from . import report as plots
     from .fit import fitted_outputs
     from .run import fit_experiment, residual_report
@@ -399,7 +397,7 @@ def _fit_command(args) -> int:
     t0 = time.perf_counter()
     outputs = fitted_outputs(result)
     resid = residual_report(result)
-    fitted_chain = fd.with_parameters(exp.chain, result.value)
+    fitted_chain = result.chain
     freqs, where = natural_frequencies(fitted_chain)
     val_outputs, val_report, val_nuisances = {}, {}, {}
     if exp.validation_logs:

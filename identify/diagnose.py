@@ -553,7 +553,7 @@ def diagnose_logs(
     sigma = np.asarray([base.sigma[c] for c in base_problem.channels])
     sigma_j = jnp.asarray(sigma)
     step = base.step
-    fitted_chain = fd.with_parameters(chain, base.value)
+    fitted_chain = base.chain
     modal = _modal_frequencies(fitted_chain)
 
     # the joint model of every continuous candidate
@@ -617,7 +617,8 @@ def diagnose_logs(
             offsets_fitted=offsets_fitted,
             max_frequency_hz=max_f,
         )
-        if c.name in catalogue and c.label not in exclude
+        # (an entry whose parameters are already free in the baseline is in the model)
+        if c.name in catalogue and c.label not in exclude and not set(c.params) & {p.name for p in parameters}
     ]
     sup_chain, sup_meas = cat.superset(chain, measurement, channels, driven)
     ext_names = []
@@ -1354,7 +1355,7 @@ def _structural_score(
     parameters at their fitted values, the fit, the held-out weighted cost), or None when
     the fit failed."""
     values = {n: val for n, val, _ in current["layout"]}
-    base_chain = fd.with_parameters(chain, base.value)
+    base_chain = base.chain
     struct_chain, new = cat.structural_model(base_chain, c, max_frequency_hz=max_f)
     m = sup_meas
     if values:
@@ -1479,7 +1480,15 @@ def diagnose(experiment, *, progress=None, **options) -> Diagnosis:
     fit_logs, held, desc = split_logs(fit_logs, val_logs)
     noise = {c: v for c, v in experiment.noise.items() if v is not None}
     return diagnose_logs(
-        experiment.chain, parameters(experiment), fit_logs, held, noise, split=desc, progress=progress, **options
+        experiment.chain,
+        parameters(experiment),
+        fit_logs,
+        held,
+        noise,
+        measurement=experiment.measurement,
+        split=desc,
+        progress=progress,
+        **options,
     )
 
 

@@ -23,8 +23,8 @@ import numpy as np
 
 import flexdyn as fd
 
-from . import units as u
-from .channels import channel_problem, state_names
+from . import measurement as meas, units as u
+from .channels import channel_problem, channel_unit, state_names
 from .logs import MIN_SAMPLES, Calibration, Log, LogError, check_calibration, load_log
 
 
@@ -46,11 +46,13 @@ RIGS = {
 LINK_TYPES = {"rigid": fd.RigidLink, "flexible": fd.FlexibleLink}
 JOINT_TYPES = {"rigid": fd.RigidJoint, "elastic": fd.ElasticJoint}
 
-_TOP_KEYS = ("experiment", "rig", "parameters", "noise", "logs")
+_TOP_KEYS = ("experiment", "rig", "parameters", "noise", "logs", "sensors", "actuators")
 _EXPERIMENT_KEYS = ("name", "description", "strict", "min_samples")
 _RIG_KEYS = ("base", "options", "set", "gravity", "links", "joints", "hubs", "payload")
 _LOG_KEYS = ("file", "name", "role", "columns", "calibration", "initial", "fit_initial", "offsets", "strict")
 _PARAMETER_KEYS = ("guess", "lower", "upper")
+_SENSOR_KEYS = ("gain", "offset", "delay", "highpass")
+_ACTUATOR_KEYS = ("lag",)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,9 +117,13 @@ class Experiment:
     - `path`, `name`, `description`.
     - `chain`: the rig as a `flexdyn.Chain`, with `rig.set` applied (the free parameters
       are at these nominal values, not at their guesses: see `chain_at_guess`).
-    - `free`: the `FreeParameter`s, in file order.
+    - `free`: the `FreeParameter`s, in file order (chain and measurement parameters).
     - `noise`: every output channel -> standard deviation (SI), or None to estimate it.
     - `logs`: the `LogSpec`s, in file order.
+    - `measurement`: the sensors and drives between the model and the logs
+      (`identify.measurement.Measurement`, from `[sensors.<channel>]` and
+      `[actuators.joint<i>]`; a measurement parameter that is free but not given there is
+      present at its neutral value).
     """
 
     path: Path
@@ -127,6 +133,7 @@ class Experiment:
     free: tuple[FreeParameter, ...]
     noise: dict[str, float | None]
     logs: tuple[LogSpec, ...]
+    measurement: meas.Measurement = dataclasses.field(default_factory=meas.Measurement)
 
     @property
     def fit_logs(self) -> tuple[LogSpec, ...]:
@@ -146,8 +153,12 @@ class Experiment:
         return tuple(sorted({c for entry in self.logs for c in entry.log.inputs}))
 
     def chain_at_guess(self) -> fd.Chain:
-        """The chain with every free parameter at its guess."""
-        return fd.with_parameters(self.chain, {p.name: p.guess for p in self.free})
+        """The chain with every free chain parameter at its guess."""
+        return fd.with_parameters(self.chain, meas.split_values({p.name: p.guess for p in self.free})[0])
+
+    def measurement_at_guess(self) -> meas.Measurement:
+        """The measurement model with every free measurement parameter at its guess."""
+        return meas.with_parameters(self.measurement, meas.split_values({p.name: p.guess for p in self.free})[1])
 
     def summary(self) -> str:
         lines = [f"experiment {self.name!r} ({self.path})", f"  coordinates: {self.chain.coordinate_names()}"]
@@ -156,6 +167,9 @@ class Experiment:
             lines.append(f"  free {p.name} = {p.guess:g} in [{p.lower}, {p.upper}] {p.unit} ({scale})")
         for c, s in self.noise.items():
             lines.append(f"  noise {c}: {'estimate' if s is None else f'{s:g}'}")
+        for n in meas.parameter_names(self.measurement):
+            unit = meas.unit(n, channel_unit)
+            lines.append(f"  measurement {n} = {float(meas.get_parameter(self.measurement, n)):g} {unit}".rstrip())
         for entry in self.logs:
             lines.append(f"  [{entry.role}] " + entry.log.summary().replace("\n", "\n    "))
         return "\n".join(lines)
@@ -309,7 +323,6 @@ def load_experiment(path) -> Experiment:
     if "rig" not in doc:
         raise r.error((), 'missing [rig]: expected base = "<named rig>" or an explicit chain ([[rig.links]], ...)')
     chain = _build_rig(r, r.table(doc["rig"], ("rig",), _RIG_KEYS))
-    free = _free_parameters(r, chain, r.table(doc.get("parameters", {}), ("parameters",)))
 
     if "logs" not in doc:
         raise r.error((), 'no [[logs]]; expected at least one [[logs]] table with file = "..."')
@@ -330,6 +343,10 @@ def load_experiment(path) -> Experiment:
         raise r.error(("logs",), 'every log has role = "validation"; expected at least one with role = "fit"')
 
     noise = _noise(r, logs, r.table(doc.get("noise", {}), ("noise",)))
+    measurement = _measurement(r, chain, logs, doc)
+    free, measurement = _free_parameters(
+        r, chain, measurement, logs, r.table(doc.get("parameters", {}), ("parameters",))
+    )
     return Experiment(
         path=path,
         name=name,
@@ -338,6 +355,7 @@ def load_experiment(path) -> Experiment:
         free=tuple(free),
         noise=noise,
         logs=tuple(logs),
+        measurement=measurement,
     )
 
 
@@ -495,19 +513,29 @@ def _apply_set(r: _Reader, chain: fd.Chain, overrides: Mapping) -> fd.Chain:
     return chain
 
 
-def _free_parameters(r: _Reader, chain: fd.Chain, table: Mapping) -> list[FreeParameter]:
+def _free_parameters(
+    r: _Reader, chain: fd.Chain, measurement: meas.Measurement, logs: list[LogSpec], table: Mapping
+) -> tuple[list[FreeParameter], meas.Measurement]:
+    """The `[parameters]` entries, and the measurement model with every free measurement
+    parameter present (at its neutral value when `[sensors]`/`[actuators]` do not give it)."""
     valid = fd.parameter_names(chain)
     free = []
     for name, spec in table.items():
         key = ("parameters", name)
-        if name not in valid:
+        if meas.is_measurement_parameter(name):
+            measurement = _measurement_parameter(r, chain, measurement, logs, name, key)
+            unit = meas.unit(name, channel_unit)
+            log_scale = not meas.is_signed(name)
+            current = float(meas.get_parameter(measurement, name))
+        elif name not in valid:
             raise _unknown_parameter(r, chain, key, spec)
+        else:
+            unit = fd.parameter_unit(chain, name)
+            log_scale = not fd.is_signed(chain, name)
+            current = float(fd.get_parameter(chain, name))
         if not isinstance(spec, Mapping):
             spec = {"guess": spec}
         r.table(spec, key, _PARAMETER_KEYS)
-        unit = fd.parameter_unit(chain, name)
-        log_scale = not fd.is_signed(chain, name)
-        current = float(fd.get_parameter(chain, name))
         guess = r.number(spec["guess"], key + ("guess",)) if "guess" in spec else current
         lower = r.number(spec["lower"], key + ("lower",)) if "lower" in spec else None
         upper = r.number(spec["upper"], key + ("upper",)) if "upper" in spec else None
@@ -521,7 +549,7 @@ def _free_parameters(r: _Reader, chain: fd.Chain, table: Mapping) -> list[FreePa
                     f"(e.g. {_positive_example(guess, upper)}), got {lower:g}",
                 )
             if guess <= 0:
-                source = "guess" if "guess" in spec else f"the rig's value of {name} (used as the guess)"
+                source = "guess" if "guess" in spec else f"the model's value of {name} (used as the guess)"
                 raise r.error(key + ("guess",), f"{source} is {guess:g}; expected a guess > 0 (fitted in log space)")
         if (lower is not None and guess < lower) or (upper is not None and guess > upper):
             source = "guess" if "guess" in spec else f"the rig's value (no guess given) {guess:g}"
@@ -531,7 +559,74 @@ def _free_parameters(r: _Reader, chain: fd.Chain, table: Mapping) -> list[FreePa
                 "expected lower <= guess <= upper",
             )
         free.append(FreeParameter(name, guess, lower, upper, unit, log_scale))
-    return free
+    return free, measurement
+
+
+def _measurement_parameter(r: _Reader, chain, measurement, logs, name: str, key: tuple) -> meas.Measurement:
+    """`measurement` with the free measurement parameter `name` present (checked: its
+    channel is measured by a log, its joint exists)."""
+    channel, joint = _measurement_target(name)
+    if channel is not None:
+        measured = sorted({c for entry in logs for c in entry.log.outputs})
+        if channel not in measured:
+            raise r.error(key, f"no log measures {channel}; the logs measure {', '.join(measured)}")
+    elif not 1 <= joint <= chain.n_links:
+        raise r.error(key, f"the rig has joints 1 to {chain.n_links}; got actuator{joint}")
+    try:
+        meas.get_parameter(measurement, name)
+        return measurement
+    except KeyError:
+        return meas.with_effect(measurement, name)
+
+
+def _measurement_target(name: str) -> tuple[str | None, int | None]:
+    """(channel, None) for `sensor.<channel>.<field>`, (None, joint) for `actuator<j>.lag`."""
+    if name.startswith("sensor."):
+        return name.split(".")[1], None
+    return None, int(name[len("actuator") : -len(".lag")])
+
+
+def _measurement(r: _Reader, chain: fd.Chain, logs: list[LogSpec], doc: Mapping) -> meas.Measurement:
+    """`[sensors.<channel>]` (gain, offset, delay, highpass) and `[actuators.joint<i>]`
+    (lag): the measurement model between the rig and the logs (`identify.measurement`)."""
+    measured = sorted({c for entry in logs for c in entry.log.outputs})
+    sensors = {}
+    for channel, spec in r.table(doc.get("sensors", {}), ("sensors",)).items():
+        key = ("sensors", channel)
+        if channel not in measured:
+            raise r.error(key, f"no log measures {channel}; the logs measure {', '.join(measured)}")
+        spec = r.table(spec, key, _SENSOR_KEYS)
+        dims = {"gain": None, "offset": u.channel_dimension(channel), "delay": u.TIME, "highpass": u.FREQUENCY}
+        values = {field: _quantity(r, value, dims[field], key + (field,)) for field, value in spec.items()}
+        for field in ("delay", "highpass"):
+            if values.get(field, 0.0) < 0:
+                raise r.error(key + (field,), f"expected a value >= 0, got {values[field]:g}")
+        if values.get("gain", 1.0) <= 0:
+            raise r.error(key + ("gain",), f"expected a gain > 0, got {values['gain']:g}")
+        sensors[channel] = meas.Sensor(**values)
+    lags = [None] * chain.n_links
+    for joint, spec in r.table(doc.get("actuators", {}), ("actuators",)).items():
+        key = ("actuators", joint)
+        m = re.fullmatch(r"joint([1-9][0-9]*)", joint)
+        if m is None or int(m[1]) > chain.n_links:
+            raise r.error(key, f"expected joint1 ... joint{chain.n_links} (the rig's joints), got {joint!r}")
+        spec = r.table(spec, key, _ACTUATOR_KEYS)
+        if "lag" in spec:
+            lag = _quantity(r, spec["lag"], u.TIME, key + ("lag",))
+            if lag < 0:
+                raise r.error(key + ("lag",), f"expected a lag >= 0 (s), got {lag:g}")
+            lags[int(m[1]) - 1] = lag
+    return meas.Measurement(sensors, lags if any(v is not None for v in lags) else ())
+
+
+def _quantity(r: _Reader, value, dimension: str | None, key: tuple) -> float:
+    """A number (SI) or, for a quantity with a dimension, a string with a unit."""
+    if isinstance(value, str) and dimension is not None:
+        try:
+            value = u.parse_quantity(value, dimension)
+        except ValueError as e:
+            raise r.error(key, str(e)) from None
+    return r.number(value, key)
 
 
 def _bound(x):

@@ -565,6 +565,16 @@ class FitResult:
     def value(self) -> dict:
         return dict(zip(self.names, self.values.tolist()))
 
+    @property
+    def chain(self) -> fd.Chain:
+        """The problem's chain with the fitted values of its parameters."""
+        return fd.with_parameters(self.problem.chain, meas.split_values(self.value)[0])
+
+    @property
+    def measurement(self) -> Measurement:
+        """The problem's measurement model with the fitted values of its parameters."""
+        return meas.with_parameters(self.problem.measurement, meas.split_values(self.value)[1])
+
     def summary(self) -> str:
         lines = [
             f"{'parameter':<28} {'value':>12} {'std err':>10} {'95% CI':>25} {'guess':>12} {'change':>8}",

@@ -103,6 +103,13 @@ def is_measurement_parameter(name: str) -> bool:
     return _NAME.match(name) is not None
 
 
+def split_values(values: dict) -> tuple[dict, dict]:
+    """`(chain_values, measurement_values)`: named values split into the chain's
+    parameters and the measurement's."""
+    chain = {n: v for n, v in values.items() if not is_measurement_parameter(n)}
+    return chain, {n: v for n, v in values.items() if is_measurement_parameter(n)}
+
+
 def is_signed(name: str) -> bool:
     return name.endswith(".offset")
 

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 
-import flexdyn as fd
-
 from . import diagnostics
 from .experiment import Experiment, LogSpec
 from .fit import FitResult, LogData, Parameter, Problem, fit, fitted_outputs, make_problem
@@ -35,7 +33,7 @@ def problem_from_experiment(exp: Experiment, logs=None, **solver) -> Problem:
     specs = exp.fit_logs if logs is None else logs
     data = [log_data(s, exp.chain.n_links) for s in specs]
     noise = {c: v for c, v in exp.noise.items() if v is not None}
-    return make_problem(exp.chain, parameters(exp), data, noise, **solver)
+    return make_problem(exp.chain, parameters(exp), data, noise, measurement=exp.measurement, **solver)
 
 
 def fit_experiment(exp: Experiment, *, progress=None, **options) -> FitResult:
@@ -54,9 +52,9 @@ def evaluate_held_out(result: FitResult, exp: Experiment, logs=None, *, progress
     specs = exp.validation_logs if logs is None else logs
     if not specs:
         raise ValueError("evaluate_held_out: the experiment has no validation logs")
-    chain = fd.with_parameters(exp.chain, result.value)
+    chain = result.chain
     data = [log_data(s, chain.n_links) for s in specs]
-    problem = make_problem(chain, [], data, dict(result.sigma))
+    problem = make_problem(chain, [], data, dict(result.sigma), measurement=result.measurement)
     return fit(problem, [], n_stages=1, estimate_noise=False, progress=progress)
 
 

@@ -33,6 +33,7 @@ CURVATURE = "curvature"
 ACCELERATION = "acceleration"
 TORQUE = "torque"
 VOLTAGE = "voltage"
+FREQUENCY = "frequency"
 
 #: SI unit of each dimension (volts have none: they need a calibration).
 SI_UNIT = {
@@ -43,6 +44,7 @@ SI_UNIT = {
     ACCELERATION: "m/s^2",
     TORQUE: "N m",
     VOLTAGE: "V",
+    FREQUENCY: "Hz",
 }
 
 #: unit -> (dimension, factor to SI).
@@ -64,6 +66,8 @@ UNITS: dict[str, tuple[str, float]] = {
     "mN m": (TORQUE, 1e-3),
     "V": (VOLTAGE, 1.0),
     "mV": (VOLTAGE, 1e-3),
+    "Hz": (FREQUENCY, 1.0),
+    "kHz": (FREQUENCY, 1e3),
 }
 
 #: Other spellings accepted for the same units.
@@ -87,6 +91,7 @@ ALIASES = {
     "N.mm": "N mm",
     "N·mm": "N mm",
     "mNm": "mN m",
+    "hz": "Hz",
     "mN*m": "mN m",
     "mN.m": "mN m",
 }
@@ -192,10 +197,14 @@ def parse_quantity(text: str, dimension: str) -> float:
         raise ValueError(f"unknown unit {m['unit']!r} in {text!r}; known units: {known_units()}")
     if unit_dimension(unit) != dimension:
         raise ValueError(
-            f"{text!r} is a {unit_dimension(unit)}; expected a {dimension} "
+            f"{text!r} is {_article(unit_dimension(unit))}; expected {_article(dimension)} "
             f"(e.g. '{m['value']} {_example_unit(dimension)}')"
         )
     return value * unit_factor(unit)
+
+
+def _article(word: str) -> str:
+    return f"{'an' if word[:1] in 'aeiou' else 'a'} {word}"
 
 
 def _example_unit(dimension: str) -> str:

@@ -364,7 +364,7 @@ def test_noise_errors(tmp_path):
     with pytest.raises(ExperimentError, match=msg("noise.tip1", "expected a standard deviation > 0")):
         load_experiment(path)
     path = experiment(tmp_path, RIG + '[noise]\ntip1 = "0.1 deg"\n' + LOG)
-    with pytest.raises(ExperimentError, match=msg("noise.tip1", "'0.1 deg' is a angle; expected a length", "mm")):
+    with pytest.raises(ExperimentError, match=msg("noise.tip1", "'0.1 deg' is an angle; expected a length", "mm")):
         load_experiment(path)
 
 
@@ -477,3 +477,74 @@ def test_format_md_example_loads(tmp_path):
     assert [entry.role for entry in exp.logs] == ["fit", "validation"]
     np.testing.assert_allclose(exp.logs[0].log.outputs["tip1"][0], 12.5e-3 * 11.0, rtol=1e-12)
     assert exp.logs[1].name == "drop from -97 deg"
+
+
+# ---------------------------------------------------------------------------
+# The measurement model: [sensors.<channel>], [actuators.joint<i>], free sensor parameters
+# ---------------------------------------------------------------------------
+
+
+def test_sensors_and_actuators_build_the_measurement_model_in_si(tmp_path):
+    path = experiment(
+        tmp_path,
+        RIG
+        + LOG
+        + """
+[sensors.tip1]
+gain = 1.02
+offset = "0.5 mm"
+highpass = "2 Hz"
+
+[sensors.theta1]
+delay = "3 ms"
+
+[actuators.joint1]
+lag = 0.004
+
+[parameters]
+"sensor.tip1.gain" = { lower = 0.5, upper = 2.0 }
+"sensor.theta1.highpass" = 0.1
+""",
+    )
+    exp = load_experiment(path)
+    from identify import measurement as meas
+
+    m = exp.measurement
+    assert float(meas.get_parameter(m, "sensor.tip1.gain")) == 1.02
+    assert float(meas.get_parameter(m, "sensor.tip1.offset")) == pytest.approx(0.5e-3)
+    assert float(meas.get_parameter(m, "sensor.tip1.highpass")) == 2.0
+    assert float(meas.get_parameter(m, "sensor.theta1.delay")) == pytest.approx(3e-3)
+    assert float(meas.get_parameter(m, "actuator1.lag")) == 0.004
+    # a free measurement parameter not given under [sensors] is present at its neutral value
+    assert float(meas.get_parameter(m, "sensor.theta1.highpass")) == 0.0
+    free = {p.name: p for p in exp.free}
+    assert free["sensor.tip1.gain"].guess == 1.02 and free["sensor.tip1.gain"].log_scale
+    assert free["sensor.theta1.highpass"].guess == 0.1 and free["sensor.theta1.highpass"].unit == "Hz"
+    assert float(meas.get_parameter(exp.measurement_at_guess(), "sensor.theta1.highpass")) == 0.1
+    assert exp.chain_at_guess() is not None  # the chain ignores measurement parameters
+    assert "measurement sensor.tip1.highpass = 2 Hz" in exp.summary()
+
+
+@pytest.mark.parametrize(
+    "body, fragments",
+    [
+        ("[sensors.tip2]\ngain = 1.1\n", ("sensors.tip2", "no log measures tip2", "theta1, tip1")),
+        ('[sensors.tip1]\ndelay = "3 mm"\n', ("sensors.tip1.delay", "'3 mm' is a length; expected a time")),
+        ("[sensors.tip1]\nhighpass = -1.0\n", ("sensors.tip1.highpass", "expected a value >= 0")),
+        ("[sensors.tip1]\ngain = 0.0\n", ("sensors.tip1.gain", "expected a gain > 0")),
+        ("[sensors.tip1]\ngian = 1.0\n", ("sensors.tip1.gian", "unknown key; expected one of gain, offset")),
+        ("[actuators.joint2]\nlag = 0.01\n", ("actuators.joint2", "expected joint1 ... joint1")),
+        ('[actuators.joint1]\nlag = "5 deg"\n', ("actuators.joint1.lag", "is an angle; expected a time")),
+        ('[parameters]\n"sensor.tip3.gain" = 1.0\n', ('parameters."sensor.tip3.gain"', "no log measures tip3")),
+        ('[parameters]\n"actuator2.lag" = 0.01\n', ('parameters."actuator2.lag"', "joints 1 to 1")),
+        (
+            '[parameters]\n"sensor.tip1.delay" = {}\n',
+            ('parameters."sensor.tip1.delay".guess', "the model's value of sensor.tip1.delay", "expected a guess > 0"),
+        ),
+    ],
+)
+def test_measurement_mistakes_name_the_line_and_key(tmp_path, body, fragments):
+    path = experiment(tmp_path, RIG + LOG + body)
+    line = line_of(path, body.splitlines()[1].split("=")[0].strip()) if "parameters" in body else None
+    with pytest.raises(ExperimentError, match=msg(*((f"line {line}",) if line else ()), *fragments)):
+        load_experiment(path)
