@@ -33,8 +33,8 @@ from identify.synthetic import simulate_log
 
 PENDULUM_NOISE = math.radians(0.1)
 RELEASES_DEG = (0.0, -30.0, -60.0)
-# the shipped example's log names: a problem's log names are part of its compiled structure,
-# so logs named alike reuse the programs compiled for the example
+# the shipped example's log names (compiled programs do not depend on the names: see
+# `identify.fit._LogLabels`)
 LOG_NAMES = ("drop_0deg", "drop_m30deg", "drop_m60deg")
 PENDULUM_T = np.arange(801) / 100.0
 PENDULUM_PARAMS = [Parameter("joint1.damping", 1e-3, 1e-6, 1e-1), Parameter("hub1.inertia", 4e-5, 1e-7, 1e-2)]

@@ -493,3 +493,37 @@ def test_dense_jacobian_levenberg_marquardt_reaches_the_closed_form_optimum():
     np.testing.assert_allclose(dense.value, [2.5, 0.8], rtol=1e-10)
     assert int(dense.stats["num_steps"]) == int(plain.stats["num_steps"])
     np.testing.assert_allclose(dense.value, plain.value, rtol=1e-12)
+
+
+def test_problems_differing_only_in_their_log_names_share_compiled_programs():
+    """The logs' names are labels (`_LogLabels`): two problems that differ only in them
+    trace a jitted function once; a different number of logs traces again. A fit of the
+    second problem reports its own names (nothing built from names is cached)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from identify.synthetic import simulate_log
+
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(101) / 100.0
+    truth = fd.with_parameters(chain, {"joint1.damping": 2e-3})
+    log = simulate_log(truth, t, initial={"theta1": 0.3}, channels=("theta1",), fit_initial=("theta1",))
+
+    def logs(*names):
+        return [dataclasses.replace(log, name=n) for n in names]
+
+    params = [identify.Parameter("joint1.damping", 1e-3, 1e-6, 1e-1)]
+    pa = identify.make_problem(chain, params, logs("drop_a"), {"theta1": 1e-3})
+    pb = identify.make_problem(chain, params, logs("drop_b"), {"theta1": 1e-3})
+    assert pa.log_names == ("drop_a",) and pb.log_names == ("drop_b",)
+    traced = []
+    f = eqx.filter_jit(lambda p: (traced.append(1), jnp.sum(p.t))[1])
+    f(pa), f(pb)
+    assert len(traced) == 1
+    f(identify.make_problem(chain, params, logs("a", "b"), {"theta1": 1e-3}))
+    assert len(traced) == 2
+    ra = identify.fit(pa, params, n_stages=1, estimate_noise=False)
+    rb = identify.fit(pb, params, n_stages=1, estimate_noise=False)
+    assert list(ra.initial_states) == ["drop_a"] and list(rb.initial_states) == ["drop_b"]
+    assert list(identify.fitted_outputs(rb)) == ["drop_b"]
+    assert rb.values[0] == pytest.approx(2e-3, rel=1e-4)
