@@ -1115,12 +1115,9 @@ def diagnose_logs(
         theta_ext = np.asarray(theta_of(current["v"], current["idx"], current["logf"]))
         extended_params = {n: float(theta_ext[i]) for i, n in enumerate([p.name for p in parameters])}
         extended_params.update({n: d["value"] for n, d in ext_values.items()})
-    ext_chain = fd.with_parameters(
-        sup_chain, {n: v for n, v in extended_params.items() if not meas.is_measurement_parameter(n)}
-    )
-    ext_meas = meas.with_parameters(
-        sup_meas, {n: v for n, v in extended_params.items() if meas.is_measurement_parameter(n)}
-    )
+    chain_vals, meas_vals = meas.split_values(extended_params)
+    ext_chain = fd.with_parameters(sup_chain, chain_vals)
+    ext_meas = meas.with_parameters(sup_meas, meas_vals)
     traces = _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, held_out)
     # evidence: what the baseline gets wrong, on the fit and the held-out logs
     outs = {
@@ -1359,8 +1356,7 @@ def _structural_score(
     struct_chain, new = cat.structural_model(base_chain, c, max_frequency_hz=max_f)
     m = sup_meas
     if values:
-        chain_vals = {n: v for n, v in values.items() if not meas.is_measurement_parameter(n)}
-        meas_vals = {n: v for n, v in values.items() if meas.is_measurement_parameter(n)}
+        chain_vals, meas_vals = meas.split_values(values)
         struct_chain, _ = cat.superset(struct_chain, meas.Measurement(), channels, [])
         struct_chain = fd.with_parameters(struct_chain, chain_vals)
         m = meas.with_parameters(sup_meas, meas_vals)

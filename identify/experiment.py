@@ -565,7 +565,7 @@ def _free_parameters(
 def _measurement_parameter(r: _Reader, chain, measurement, logs, name: str, key: tuple) -> meas.Measurement:
     """`measurement` with the free measurement parameter `name` present (checked: its
     channel is measured by a log, its joint exists)."""
-    channel, joint = _measurement_target(name)
+    channel, joint = meas.target(name)
     if channel is not None:
         measured = sorted({c for entry in logs for c in entry.log.outputs})
         if channel not in measured:
@@ -577,13 +577,6 @@ def _measurement_parameter(r: _Reader, chain, measurement, logs, name: str, key:
         return measurement
     except KeyError:
         return meas.with_effect(measurement, name)
-
-
-def _measurement_target(name: str) -> tuple[str | None, int | None]:
-    """(channel, None) for `sensor.<channel>.<field>`, (None, joint) for `actuator<j>.lag`."""
-    if name.startswith("sensor."):
-        return name.split(".")[1], None
-    return None, int(name[len("actuator") : -len(".lag")])
 
 
 def _measurement(r: _Reader, chain: fd.Chain, logs: list[LogSpec], doc: Mapping) -> meas.Measurement:

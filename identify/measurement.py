@@ -103,6 +103,15 @@ def is_measurement_parameter(name: str) -> bool:
     return _NAME.match(name) is not None
 
 
+def target(name: str) -> tuple[str | None, int | None]:
+    """What a measurement parameter acts on: `(channel, None)` for `sensor.<channel>.<field>`,
+    `(None, joint)` (1-based) for `actuator<joint>.lag`."""
+    match = _NAME.match(name)
+    if match is None:
+        raise KeyError(f"{name!r} is not a measurement parameter (sensor.<channel>.<field> or actuator<i>.lag)")
+    return (None, int(match["j"])) if match["j"] is not None else (match["ch"], None)
+
+
 def split_values(values: dict) -> tuple[dict, dict]:
     """`(chain_values, measurement_values)`: named values split into the chain's
     parameters and the measurement's."""
