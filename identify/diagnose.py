@@ -76,10 +76,10 @@ from .fit import (
     _predict_jit,
     _residuals_from,
     _x_from_z,
-    dense_jacobian,
     fit,
     make_problem,
 )
+from .residuals import log_blocked, log_jacobian
 
 # ---------------------------------------------------------------------------
 # Held-out split
@@ -170,14 +170,17 @@ def _bounds(j: _Joint):
     return types.SimpleNamespace(lower=j.problem.lower[: j.nb], upper=j.problem.upper[: j.nb])
 
 
-def _residual(v, args):
+def _unpack(args):
     j, idx, logf, sigma, step = args
-    xb = _x_from_z(_bounds(j), v["zb"])
-    theta = _theta(j, xb, v["xe"], idx, logf)
-    return _residuals_from(j.problem, theta, v["y0"], v["offset"], sigma, None, step)[0]
+    return j.problem, lambda v: _theta(j, _x_from_z(_bounds(j), v["zb"]), v["xe"], idx, logf), sigma, None, step
 
 
-_residual_lm = dense_jacobian(_residual)  # same value, one forward-mode pass per LM step
+def _residual(v, args):
+    problem, theta_of, sigma, horizon, step = _unpack(args)
+    return _residuals_from(problem, theta_of(v), v["y0"], v["offset"], sigma, horizon, step)[0]
+
+
+_residual_lm = log_blocked(_unpack)  # same value, one forward-mode pass per log per LM step
 
 
 @eqx.filter_jit
@@ -196,14 +199,10 @@ def _fit_batch(j: _Joint, v0, idx, logf, sigma, step, max_steps: int):
 
 @eqx.filter_jit
 def _jacobian(j: _Joint, xb, xe, y0, off, idx, logf, sigma, step):
-    def fn(w):
-        return _residuals_from(
-            j.problem, _theta(j, w["xb"], w["xe"], idx, logf), w["y0"], w["offset"], sigma, None, step
-        )[0]
-
-    w = {"xb": xb, "xe": xe, "y0": y0, "offset": off}
-    J = jax.jacfwd(fn)(w)
-    return fn(w), jnp.concatenate([J["xb"], J["xe"], J["y0"], J["offset"]], axis=1)
+    """Residuals and their Jacobian w.r.t. (xb, xe, y0, offsets), columns in that order."""
+    theta_of = lambda w: _theta(j, w["xb"], w["xe"], idx, logf)  # noqa: E731
+    jac = log_jacobian(j.problem, theta_of, {"xb": xb, "xe": xe}, y0, off, sigma, None, step)
+    return jac.r.reshape(-1), jac.dense(len(j.problem.y0_free), len(j.problem.offset_free))
 
 
 _predict = _predict_jit  # shared with identify.fit.fitted_outputs: one compiled program
@@ -300,12 +299,17 @@ def _screen(j: _Joint, xb, xes, y0, off, idx, logf, sigma, step):
     return jax.vmap(lambda xe, i, lf: _jacobian(j, xb, xe, y0, off, i, lf, sigma, step))(xes, idx, logf)
 
 
+def _held_unpack(args):
+    problem, theta, sigma, step = args
+    return problem, lambda v: theta, sigma, None, step
+
+
 def _held_residual(v, args):
     problem, theta, sigma, step = args
     return _residuals_from(problem, theta, v["y0"], v["offset"], sigma, None, step)[0]
 
 
-_held_residual_lm = dense_jacobian(_held_residual)
+_held_residual_lm = log_blocked(_held_unpack)
 
 
 @eqx.filter_jit

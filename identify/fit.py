@@ -11,7 +11,9 @@ and the per-log nuisances (unknown initial-state entries `x0_l`, offsets) with
 optimistix's Levenberg-Marquardt. Jacobians are exact, by forward-mode
 differentiation through the diffrax solve (`diffrax.ForwardMode`); each
 Levenberg-Marquardt step gets the residuals and the whole Jacobian from one
-forward-mode solve (`dense_jacobian`).
+forward-mode solve per log, carrying the shared parameters' and that log's own
+nuisances' tangents only (`identify.residuals`: the cost is linear in the number
+of logs, not quadratic).
 
 **Coordinates.** Positive parameters are fitted as `log(theta)`, signed ones as
 `theta`; finite bounds `[lower, upper]` are imposed by the smooth map `x = lo +
@@ -44,7 +46,6 @@ import math
 import time
 from collections.abc import Callable, Sequence
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -56,6 +57,16 @@ import flexdyn as fd
 from . import channels as ch, measurement as meas
 from .channels import state_names  # noqa: F401  (re-exported)
 from .measurement import Measurement
+from .residuals import (  # noqa: F401  (re-exported: identify.predict, diagnose)
+    _chain,
+    _initial_states,
+    _measurement,
+    _offsets,
+    log_blocked,
+    log_jacobian,
+    predict,
+    residuals as _residuals_from,
+)
 
 Z95 = 1.959963984540054
 
@@ -228,6 +239,11 @@ def make_problem(
             if name not in states:
                 raise ValueError(f"log {log.name!r}: initial-state entry {name!r} is not one of {states}")
             y0_known[l, states.index(name)] = float(value)
+        for field in ("fit_initial", "offsets"):
+            entries = list(getattr(log, field))
+            twice = sorted({e for e in entries if entries.count(e) > 1})
+            if twice:
+                raise ValueError(f"log {log.name!r}: {field} lists {', '.join(map(repr, twice))} more than once")
         for name in log.fit_initial:
             if name not in states:
                 raise ValueError(f"log {log.name!r}: fit_initial entry {name!r} is not one of {states}")
@@ -316,9 +332,8 @@ def _x_from_theta(problem: Problem, theta):
     return np.array([np.log(v) if s else v for v, s in zip(theta, problem.log_scale)], float)
 
 
-# ---------------------------------------------------------------------------
-# Simulation and residuals
-# ---------------------------------------------------------------------------
+# compiled once per problem layout (an eager call re-traces and runs the assembly op by op)
+_predict_jit = eqx.filter_jit(predict)
 
 
 def parameter_unit(problem: Problem, name: str) -> str:
@@ -328,153 +343,14 @@ def parameter_unit(problem: Problem, name: str) -> str:
     return fd.parameter_unit(problem.chain, name)
 
 
-def _chain(problem: Problem, theta):
-    values = {n: theta[i] for i, n in enumerate(problem.names) if not meas.is_measurement_parameter(n)}
-    return fd.with_parameters(problem.chain, values)
-
-
-def _measurement(problem: Problem, theta):
-    values = {n: theta[i] for i, n in enumerate(problem.names) if meas.is_measurement_parameter(n)}
-    return meas.with_parameters(problem.measurement, values)
-
-
-def _initial_states(problem: Problem, y0_free):
-    y0 = problem.y0_known
-    if problem.y0_free:
-        rows = np.array([a for a, _ in problem.y0_free])
-        cols = np.array([b for _, b in problem.y0_free])
-        y0 = y0.at[rows, cols].set(y0_free)
-    return y0
-
-
-def _offsets(problem: Problem, offset_free):
-    off = jnp.zeros(problem.present.shape)
-    if problem.offset_free:
-        rows = np.array([a for a, _ in problem.offset_free])
-        cols = np.array([b for _, b in problem.offset_free])
-        off = off.at[rows, cols].set(offset_free)
-    return off
-
-
-def predict(problem: Problem, theta, y0s, horizon=None, step=None, *, stats: bool = False):
-    """Simulated outputs `(L, T, C)` and a success flag per log, for physical parameters
-    `theta` (SI, in `problem.names` order) and initial states `y0s` `(L, 2n)`. Samples
-    after `t0 + horizon` are not simulated (their value is that at the horizon).
-
-    `step` (s, may be traced): integrate with Tsit5 at this constant step. Otherwise
-    the problem's fixed `dt` (RK4) or its adaptive tolerances are used. With `stats`,
-    also return the number of accepted steps per log."""
-    asm = fd.assemble(_chain(problem, theta))
-    sensors = _measurement(problem, theta)
-    rates = meas.needs_rates(sensors, problem.channels)
-
-    def one(t, torque_v, y0):
-        t_end = t[-1] if horizon is None else jnp.minimum(t[-1], t[0] + horizon)
-        ts = jnp.minimum(t, t_end)
-        torque_v = meas.apply_actuators(sensors, t, torque_v)
-        torque = fd.SampledTorque(_strictly_increasing(t), torque_v, hold="linear")
-        field = fd.ChainVectorField(asm, torque)
-        if step is not None:
-            solver, controller, dt0 = diffrax.Tsit5(), diffrax.ConstantStepSize(), step
-        elif problem.dt is None:
-            solver, controller, dt0 = diffrax.Tsit5(), diffrax.PIDController(rtol=problem.rtol, atol=problem.atol), None
-        else:
-            solver, controller, dt0 = fd.RK4(), diffrax.ConstantStepSize(), problem.dt
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(field),
-            solver,
-            t0=t[0],
-            t1=t_end,
-            dt0=dt0,
-            y0=y0,
-            saveat=diffrax.SaveAt(ts=ts),
-            stepsize_controller=controller,
-            max_steps=problem.max_steps,
-            adjoint=diffrax.ForwardMode(),
-            throw=False,
-        )
-        ok = (sol.result == diffrax.RESULTS.successful) & jnp.all(jnp.isfinite(sol.ys))
-        ys = jnp.where(ok, sol.ys, 0.0)
-        evaluate = lambda tk, yk: ch.evaluate(asm, problem.channels, tk, yk, torque)  # noqa: E731
-        out = jax.vmap(evaluate)(ts, ys)
-        if rates:
-            # time derivatives of the outputs (for delayed sensors): d out/dt = d out/dy . f(t, y)
-            ydot = jax.vmap(lambda tk, yk: field(tk, yk, None))(ts, ys)
-            dout = jax.vmap(lambda tk, yk, vk: jax.jvp(lambda y_: evaluate(tk, y_), (yk,), (vk,))[1])(ts, ys, ydot)
-        else:
-            dout = out
-        out = meas.apply_sensors(sensors, problem.channels, ts, out, dout)
-        return (out, ok, sol.stats["num_accepted_steps"]) if stats else (out, ok)
-
-    return jax.vmap(one)(problem.t, problem.torque_v, y0s)
-
-
-# compiled once per problem layout (an eager call re-traces and runs the assembly op by op)
-_predict_jit = eqx.filter_jit(predict)
-
-
-def _strictly_increasing(t):
-    # Padded logs repeat their last time; SampledTorque needs increasing knots.
-    k = jnp.arange(t.shape[0], dtype=t.dtype)
-    return jnp.where(jnp.concatenate([jnp.ones(1, bool), t[1:] > t[:-1]]), t, t[-1] + 1e-6 * k)
-
-
-def _residuals_from(problem: Problem, theta, y0_free, offset_free, sigma, horizon, step=None):
-    y0s = _initial_states(problem, y0_free)
-    pred, ok = predict(problem, theta, y0s, horizon, step)
-    off = _offsets(problem, offset_free)
-    mask = problem.valid[:, :, None] & problem.present[:, None, :]
-    if horizon is not None:
-        mask = mask & (problem.t <= problem.t[:, :1] + horizon)[:, :, None]
-    r = (pred + off[:, None, :] - problem.measured) / sigma
-    # A failed solve (wild parameters during the search) gives a large residual, so the
-    # optimiser rejects the step; the final solution is checked separately.
-    r = jnp.where(ok[:, None, None], r, 1e6)
-    return jnp.where(mask, r, 0.0).reshape(-1), ok
+def _unpack(args):
+    problem, sigma, horizon, step = args
+    return problem, lambda v: _theta_from_x(problem, _x_from_z(problem, v["phys"])), sigma, horizon, step
 
 
 def _residual_fn(z, args):
-    problem, sigma, horizon, step = args
-    theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
-    r, _ = _residuals_from(problem, theta, z["y0"], z["offset"], sigma, horizon, step)
-    return r
-
-
-def dense_jacobian(fn: Callable) -> Callable:
-    """`fn(z, args)` (residuals, a 1-D array) with a forward-mode derivative rule that
-    materialises the whole Jacobian w.r.t. `z` in one pass, for optimistix's
-    Levenberg-Marquardt.
-
-    Levenberg-Marquardt (`optx.LevenbergMarquardt`) takes `jax.linearize` of the residuals
-    at every trial point and keeps the linear map lazy: `jax.linearize` through a
-    `while_loop` (diffrax's) re-runs the whole loop, primal included, each time the map is
-    applied, and each step applies it twice (the predicted reduction of the trust region,
-    then once per column when the damped system is factorised by QR). That is a primal
-    solve, a one-tangent solve and an n-tangent solve per step. With this rule the
-    linearisation computes `r` and `J = dr/dz` in one forward-mode solve with n tangents
-    (`jax.jacfwd`), and the linear map is the product `J @ dz`: the same derivatives,
-    about half the solves (measured on `benchmarks/bench_fit_vs_scipy.py`). Only `z` may
-    be differentiated; `args` are constants of the fit."""
-
-    @eqx.filter_custom_jvp
-    def wrapped(z, args):
-        return fn(z, args)
-
-    @wrapped.def_jvp
-    def wrapped_jvp(primals, tangents):
-        z, args = primals
-        tz, targs = tangents
-        if any(t is not None for t in jax.tree_util.tree_leaves(targs)):
-            raise NotImplementedError("dense_jacobian: only the first argument (z) may be differentiated")
-        J, r = jax.jacfwd(lambda z_: (lambda out: (out, out))(fn(z_, args)), has_aux=True)(z)
-        treedef = jax.tree_util.tree_structure(z)
-        dr = jnp.zeros_like(r)
-        for Jk, tk in zip(treedef.flatten_up_to(J), treedef.flatten_up_to(tz)):
-            if tk is not None:
-                dr = dr + Jk.reshape(r.shape[0], -1) @ jnp.reshape(tk, (-1,))
-        return r, dr
-
-    return wrapped
+    problem, theta_of, sigma, horizon, step = _unpack(args)
+    return _residuals_from(problem, theta_of(z), z["y0"], z["offset"], sigma, horizon, step)[0]
 
 
 class _BudgetedLM(optx.AbstractLeastSquaresSolver):
@@ -514,7 +390,9 @@ class _BudgetedLM(optx.AbstractLeastSquaresSolver):
         return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
 
 
-_residual_fn_lm = dense_jacobian(_residual_fn)
+# same value as `_residual_fn`; each Levenberg-Marquardt step linearises it in one
+# forward-mode solve per log, with that log's nuisances only (`identify.residuals`)
+_residual_fn_lm = log_blocked(_unpack)
 
 
 @eqx.filter_jit
@@ -543,16 +421,12 @@ def _grid_step(problem: Problem, z, horizon, safety: float):
 @eqx.filter_jit
 def _jacobian_natural(problem: Problem, x, y0_free, offset_free, sigma, step):
     """Weighted residuals, their Jacobian w.r.t. (x, y0_free, offsets) and whether every
-    log's simulation succeeded, full horizon; one forward-mode solve."""
+    log's simulation succeeded, full horizon; one forward-mode solve per log
+    (`identify.residuals.log_jacobian`)."""
 
-    def fn(v):
-        theta = _theta_from_x(problem, v["x"])
-        r, ok = _residuals_from(problem, theta, v["y0"], v["offset"], sigma, None, step)
-        return r, (r, jnp.all(ok))
-
-    v = {"x": x, "y0": y0_free, "offset": offset_free}
-    J, (r, ok) = jax.jacfwd(fn, has_aux=True)(v)
-    return r, jnp.concatenate([J["x"], J["y0"], J["offset"]], axis=1), ok
+    theta_of = lambda x_: _theta_from_x(problem, x_)  # noqa: E731
+    jac = log_jacobian(problem, theta_of, x, y0_free, offset_free, sigma, None, step)
+    return jac.r.reshape(-1), jac.dense(len(problem.y0_free), len(problem.offset_free)), jnp.all(jac.ok)
 
 
 # ---------------------------------------------------------------------------

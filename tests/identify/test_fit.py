@@ -429,72 +429,6 @@ def test_far_off_guess_convergence(arm):
     assert rate >= 0.95, f"only {100 * rate:.0f}% of far-off guesses converged"
 
 
-# ---------------------------------------------------------------------------
-# The dense forward-mode rule used inside Levenberg-Marquardt
-# ---------------------------------------------------------------------------
-
-
-def test_dense_jacobian_matches_closed_form_and_linearize():
-    """`identify.fit.dense_jacobian(fn)` has fn's value, and the linear map that
-    `jax.linearize` (what optimistix's Levenberg-Marquardt calls) builds from it is the
-    closed-form Jacobian of an exponential decay r_k = a exp(-b t_k) + c - m_k, for a
-    pytree argument with an empty leaf (a log with no free initial state)."""
-    import jax
-    import jax.numpy as jnp
-
-    from identify.fit import dense_jacobian
-
-    t = jnp.linspace(0.0, 2.0, 7)
-    m = jnp.cos(t)
-
-    def residuals(z, args):
-        scale, data = args
-        a, b = z["ab"]
-        return scale * (a * jnp.exp(-b * t) + z["c"][0] + jnp.sum(z["empty"]) - data)
-
-    z = {"ab": jnp.array([1.3, 0.7]), "c": jnp.array([0.2]), "empty": jnp.zeros(0)}
-    args = (2.0, m)
-    dense = dense_jacobian(residuals)
-    np.testing.assert_array_equal(dense(z, args), residuals(z, args))
-    r, lin = jax.linearize(lambda z_: dense(z_, args), z)
-    a, b = 1.3, 0.7
-    expected = 2.0 * np.stack([np.exp(-b * t), -a * t * np.exp(-b * t), np.ones_like(t)], axis=1)
-    columns = [
-        lin({"ab": jnp.array([1.0, 0.0]), "c": jnp.zeros(1), "empty": jnp.zeros(0)}),
-        lin({"ab": jnp.array([0.0, 1.0]), "c": jnp.zeros(1), "empty": jnp.zeros(0)}),
-        lin({"ab": jnp.zeros(2), "c": jnp.ones(1), "empty": jnp.zeros(0)}),
-    ]
-    np.testing.assert_allclose(np.stack(columns, axis=1), expected, rtol=1e-14, atol=1e-15)
-    np.testing.assert_allclose(r, residuals(z, args), rtol=0, atol=0)
-    # differentiating `args` is not what the rule is for: a clear error, not a wrong answer
-    with pytest.raises(NotImplementedError, match="only the first argument"):
-        jax.jvp(lambda s: dense(z, (s, m)), (2.0,), (1.0,))
-
-
-def test_dense_jacobian_levenberg_marquardt_reaches_the_closed_form_optimum():
-    """Fitting y = a exp(-b t) to exact data with optimistix's Levenberg-Marquardt through
-    `dense_jacobian` recovers (a, b) (the data's own parameters) and takes the same
-    iterates as the plain residual function."""
-    import jax.numpy as jnp
-    import optimistix as optx
-
-    from identify.fit import dense_jacobian
-
-    t = jnp.linspace(0.0, 3.0, 40)
-    data = 2.5 * jnp.exp(-0.8 * t)
-
-    def residuals(z, args):
-        return z[0] * jnp.exp(-z[1] * t) - args
-
-    solver = optx.LevenbergMarquardt(rtol=1e-12, atol=1e-14)
-    z0 = jnp.array([1.0, 0.3])
-    dense = optx.least_squares(dense_jacobian(residuals), solver, z0, args=data, max_steps=100)
-    plain = optx.least_squares(residuals, solver, z0, args=data, max_steps=100)
-    np.testing.assert_allclose(dense.value, [2.5, 0.8], rtol=1e-10)
-    assert int(dense.stats["num_steps"]) == int(plain.stats["num_steps"])
-    np.testing.assert_allclose(dense.value, plain.value, rtol=1e-12)
-
-
 def test_problems_differing_only_in_their_log_names_share_compiled_programs():
     """The logs' names are labels (`_LogLabels`): two problems that differ only in them
     trace a jitted function once; a different number of logs traces again. A fit of the
@@ -527,3 +461,19 @@ def test_problems_differing_only_in_their_log_names_share_compiled_programs():
     assert list(ra.initial_states) == ["drop_a"] and list(rb.initial_states) == ["drop_b"]
     assert list(identify.fitted_outputs(rb)) == ["drop_b"]
     assert rb.values[0] == pytest.approx(2e-3, rel=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("fit_initial", ("theta1", "theta1_rate", "theta1"), "fit_initial lists 'theta1' more than once"),
+        ("offsets", ("theta1", "theta1"), "offsets lists 'theta1' more than once"),
+        ("fit_initial", ("q1_1",), "fit_initial entry 'q1_1' is not one of"),
+    ],
+)
+def test_make_problem_rejects_bad_nuisances_naming_the_log(field, value, message):
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(11) / 100.0
+    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7", **{field: value})
+    with pytest.raises(ValueError, match=f"log 'drop_7': {message}"):
+        identify.make_problem(chain, [identify.Parameter("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})

@@ -1,0 +1,232 @@
+"""Benchmark: fitting many logs at once, the block-arrow Jacobian vs the dense one.
+
+A joint fit of `L` logs has shared physical parameters (`P` of them) and per-log
+nuisances (`k` per log: free initial-state entries, sensor offsets). The Jacobian is
+block-arrow shaped (`identify.residuals`). The generic forward-mode Jacobian (`jax.jacfwd`
+of the whole residual vector, what `identify` did before and what a user would write)
+pushes all `P + L k` column tangents through every log's solve: `L (P + L k)` tangent
+solves, quadratic in `L`. `identify.residuals.log_jacobian` carries `P + k_y0` tangents per
+log (the offsets' columns are closed-form): linear in `L`.
+
+Scenario: the 4-parameter flexible-arm problem of `bench_fit_convergence.py` (one
+flexible link, horizontal plane; free EI, joint damping, hub inertia, payload mass), `L`
+logs of 1.2 s at 4 ms (`theta1`, `tip1`, 1 % noise), each driven by the scenario's
+doublets scaled by 1 + 0.1 l, each with its initial angle and rate and a `tip1` offset
+free (k = 3), Tsit5 at a constant 1 ms step (what a fit stage integrates with).
+
+Rows, per `L`:
+- `jacobian`: residuals and whole Jacobian at the guess; ours (`log_jacobian` + `dense`)
+  vs the peer (`jax.jacfwd` of `identify.residuals.residuals`) in the same process; the
+  ratio column is the warm time over one residual evaluation.
+- `LM solve`: one Levenberg-Marquardt solve (optimistix, the fit's settings, single
+  shooting from a guess 10 % off) with our rule (`identify.fit._residual_fn_lm`) vs the
+  same solver with the dense rule (a custom JVP materialising `jax.jacfwd` once per
+  linearisation, the rule `identify` used before). Both take the same iterates; steps and
+  final costs are reported.
+
+Usage: `python benchmarks/bench_fit_many_logs.py [--logs 1,2,4,8,16,32] [--repeats 3] [--json out.json]`
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import equinox as eqx  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import optimistix as optx  # noqa: E402
+from _common import environment, format_environment, format_table, median_time, timed, write_json  # noqa: E402
+from bench_fit_convergence import TRUTH, scenario  # noqa: E402
+
+import flexdyn as fd  # noqa: E402, F401  (enables float64)
+import identify  # noqa: E402
+from identify.residuals import log_jacobian, residuals  # noqa: E402
+
+F = sys.modules["identify.fit"]  # `identify.fit` is the function
+
+COLUMNS = [
+    ("run", "run", ""),
+    ("logs", "logs", "d"),
+    ("columns", "Jacobian columns", "d"),
+    ("cold_s", "cold [s]", ".2f"),
+    ("warm_s", "warm [s]", ".4f"),
+    ("ratio", "warm / residual", ".1f"),
+    ("speedup", "speed-up vs dense", ".2f"),
+    ("steps", "LM steps", "d"),
+    ("cost", "final cost", ".6g"),
+]
+STEP = 1e-3
+
+
+def problem(L: int):
+    chain, t, tau, noise = scenario(modes=1, duration=1.2, dt=4e-3)
+    logs = [
+        identify.simulate_log(
+            chain,
+            t,
+            torque=tau * (1 + 0.1 * l),
+            channels=("theta1", "tip1"),
+            noise=noise,
+            rng=np.random.default_rng(100 + l),
+            initial={"theta1": 0.01 * l},
+            fit_initial=("theta1", "theta1_rate"),
+            offsets=("tip1",),
+            name=f"log{l}",
+        )
+        for l in range(L)
+    ]
+    params = [identify.Parameter(n, v * (1.1 if i % 2 else 1 / 1.1)) for i, (n, v) in enumerate(TRUTH.items())]
+    p = identify.make_problem(chain, params, logs, noise)
+    x = jnp.asarray(F._x_from_theta(p, [q.guess for q in params]))
+    z = {
+        "phys": jnp.asarray(F._z_from_x(p, np.asarray(x))),
+        "y0": jnp.asarray([p.y0_known[a, b] for a, b in p.y0_free]),
+        "offset": jnp.zeros(len(p.offset_free)),
+    }
+    return p, x, z
+
+
+def dense_rule(fn):
+    """The peer's linearisation: `jax.jacfwd` of the whole residual vector, once per
+    linearisation, and the linear map a product with it."""
+
+    @eqx.filter_custom_jvp
+    def wrapped(z, args):
+        return fn(z, args)
+
+    @wrapped.def_jvp
+    def wrapped_jvp(primals, tangents):
+        z, args = primals
+        tz, _ = tangents
+        J, r = jax.jacfwd(lambda z_: (lambda out: (out, out))(fn(z_, args)), has_aux=True)(z)
+        dr = jnp.zeros_like(r)
+        for key in z:
+            if tz[key] is not None:
+                dr = dr + J[key].reshape(r.shape[0], -1) @ tz[key].reshape(-1)
+        return r, dr
+
+    return wrapped
+
+
+@eqx.filter_jit
+def jac_ours(p, x, z):
+    jac = log_jacobian(p, lambda x_: F._theta_from_x(p, x_), x, z["y0"], z["offset"], p.sigma, None, STEP)
+    return jac.r.reshape(-1), jac.dense(len(p.y0_free), len(p.offset_free))
+
+
+@eqx.filter_jit
+def jac_dense(p, x, z):
+    def fn(v):
+        return residuals(p, F._theta_from_x(p, v["x"]), v["y0"], v["offset"], p.sigma, None, STEP)[0]
+
+    v = {"x": x, "y0": z["y0"], "offset": z["offset"]}
+    J = jax.jacfwd(fn)(v)
+    return fn(v), jnp.concatenate([J["x"], J["y0"], J["offset"]], axis=1)
+
+
+@eqx.filter_jit
+def residual(p, x, z):
+    return residuals(p, F._theta_from_x(p, x), z["y0"], z["offset"], p.sigma, None, STEP)[0]
+
+
+_dense_lm = dense_rule(F._residual_fn)
+
+
+def lm(rule):
+    @eqx.filter_jit
+    def solve(p, z0):
+        solver = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-10, norm=optx.rms_norm)
+        args = (p, p.sigma, None, STEP)
+        sol = optx.least_squares(rule, solver, z0, args=args, max_steps=100, throw=False)
+        return sol.value, sol.stats["num_steps"], jnp.sum(F._residual_fn(sol.value, args) ** 2)
+
+    return solve
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--logs", default="1,2,4,8,16,32", help="comma-separated numbers of logs")
+    parser.add_argument("--lm-logs", default="2,16", help="numbers of logs for the Levenberg-Marquardt rows")
+    parser.add_argument("--repeats", type=int, default=3, help="warm runs per case (median)")
+    parser.add_argument("--json", default=None, help="also write the results as JSON to this path")
+    args = parser.parse_args(argv)
+    env = environment()
+    rows = []
+    lm_ours, lm_dense = lm(F._residual_fn_lm), lm(_dense_lm)
+    for L in [int(s) for s in args.logs.split(",")]:
+        p, x, z = problem(L)
+        ncol = len(p.names) + len(p.y0_free) + len(p.offset_free)
+        block = lambda: jax.block_until_ready(residual(p, x, z))  # noqa: E731
+        timed(block)
+        t_res = median_time(block, args.repeats)
+        out = {}
+        for name, fn in (("ours", jac_ours), ("dense", jac_dense)):
+            call = lambda fn=fn: jax.block_until_ready(fn(p, x, z))  # noqa: E731
+            (r, J), cold = timed(call)
+            out[name] = (np.asarray(J), cold, median_time(call, args.repeats))
+        J_ours, J_dense = out["ours"][0], out["dense"][0]
+        err = float(np.max(np.abs(J_ours - J_dense)) / np.max(np.abs(J_dense)))
+        for name in ("ours", "dense"):
+            _, cold, warm = out[name]
+            rows.append(
+                dict(
+                    run=f"jacobian, {L} logs, {name}",
+                    logs=L,
+                    columns=ncol,
+                    cold_s=cold,
+                    warm_s=warm,
+                    ratio=warm / t_res,
+                    speedup=out["dense"][2] / warm if name == "ours" else None,
+                    max_rel_difference=err,
+                )
+            )
+        print(
+            f"  {L:3d} logs ({ncol} columns): residual {t_res:.4f} s; Jacobian ours {out['ours'][2]:.4f} s "
+            f"({out['ours'][2] / t_res:.1f}x), dense {out['dense'][2]:.4f} s ({out['dense'][2] / t_res:.1f}x); "
+            f"largest difference {err:.1e} of the largest entry",
+            flush=True,
+        )
+        if str(L) in args.lm_logs.split(","):
+            res = {}
+            for name, solve in (("ours", lm_ours), ("dense", lm_dense)):
+                call = lambda solve=solve: jax.block_until_ready(solve(p, z))  # noqa: E731
+                (_, steps, cost), cold = timed(call)
+                res[name] = (int(steps), float(cost), cold, median_time(call, args.repeats))
+            for name in ("ours", "dense"):
+                steps, cost, cold, warm = res[name]
+                rows.append(
+                    dict(
+                        run=f"LM solve, {L} logs, {name}",
+                        logs=L,
+                        columns=ncol,
+                        cold_s=cold,
+                        warm_s=warm,
+                        speedup=res["dense"][3] / warm if name == "ours" else None,
+                        steps=steps,
+                        cost=cost,
+                    )
+                )
+            print(
+                f"  {L:3d} logs: LM ours {res['ours'][3]:.3f} s ({res['ours'][0]} steps, cost {res['ours'][1]:.6g}), "
+                f"dense {res['dense'][3]:.3f} s ({res['dense'][0]} steps, cost {res['dense'][1]:.6g})",
+                flush=True,
+            )
+    print()
+    print("bench_fit_many_logs: 4 shared parameters, 3 nuisances per log (1.2 s logs at 4 ms, Tsit5 1 ms)")
+    print(format_environment(env))
+    print()
+    print(format_table(rows, COLUMNS))
+    write_json(
+        args.json,
+        {"benchmark": "fit_many_logs", "environment": env, "columns": [c[0] for c in COLUMNS], "results": rows},
+    )
+    return rows
+
+
+if __name__ == "__main__":
+    main()

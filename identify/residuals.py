@@ -1,0 +1,321 @@
+"""Simulated outputs, weighted residuals and their Jacobian, for a fitting `Problem`.
+
+A problem's residuals are
+
+    r[l, k, c] = (y_c(t_lk; theta, x0_l) + o_lc - m_lkc) / sigma_c
+
+(simulated minus measured output `c` of log `l` at sample `k`, plus a per-log sensor
+offset `o_lc`; see `identify.fit`). The physical parameters `theta` are shared by every
+log; the nuisances (free initial-state entries of `x0_l`, offsets `o_l`) belong to one log
+each. So the Jacobian is block-arrow shaped: a dense column block for `theta`, then one
+small block per log for its own nuisances, zero elsewhere.
+
+**Why it matters.** Forward-mode differentiation of the whole residual vector (`jax.jacfwd`)
+pushes every column's tangent through every log's ODE solve: with `L` logs of `k`
+nuisances each, each solve carries `P + L k` tangents, and a Jacobian costs `L (P + L k)`
+tangent solves, quadratic in the number of logs (measured, flexible pendulum with
+4 parameters and 3 nuisances per log: 3x a residual evaluation for one log, 32x for 32).
+`log_jacobian` differentiates each log's residuals w.r.t. the shared parameters and that
+log's own initial-state entries only (`P + k_y0` tangents per solve, `vmap` over logs),
+and the offsets in closed form (`dr/do_lc = 1/sigma_c` where the sample is used): linear
+in the number of logs. `log_blocked` wraps a residual function so that
+Levenberg-Marquardt (optimistix) linearises it this way.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+import flexdyn as fd
+
+from . import channels as ch, measurement as meas
+
+
+def _chain(problem, theta):
+    values = {n: theta[i] for i, n in enumerate(problem.names) if not meas.is_measurement_parameter(n)}
+    return fd.with_parameters(problem.chain, values)
+
+
+def _measurement(problem, theta):
+    values = {n: theta[i] for i, n in enumerate(problem.names) if meas.is_measurement_parameter(n)}
+    return meas.with_parameters(problem.measurement, values)
+
+
+def _initial_states(problem, y0_free):
+    """Initial states `(L, 2n)`: the known ones with the free entries `y0_free` (in
+    `problem.y0_free` order) set."""
+    y0 = problem.y0_known
+    if problem.y0_free:
+        rows = np.array([a for a, _ in problem.y0_free])
+        cols = np.array([b for _, b in problem.y0_free])
+        y0 = y0.at[rows, cols].set(y0_free)
+    return y0
+
+
+def _offsets(problem, offset_free):
+    """Sensor offsets `(L, C)`: zero but for the free ones (`problem.offset_free` order)."""
+    off = jnp.zeros(problem.present.shape)
+    if problem.offset_free:
+        rows = np.array([a for a, _ in problem.offset_free])
+        cols = np.array([b for _, b in problem.offset_free])
+        off = off.at[rows, cols].set(offset_free)
+    return off
+
+
+def _strictly_increasing(t):
+    # Padded logs repeat their last time; SampledTorque needs increasing knots.
+    k = jnp.arange(t.shape[0], dtype=t.dtype)
+    return jnp.where(jnp.concatenate([jnp.ones(1, bool), t[1:] > t[:-1]]), t, t[-1] + 1e-6 * k)
+
+
+def _simulate_log(problem, theta, t, torque_v, y0, horizon, step, stats: bool):
+    """Outputs `(T, C)` of one log (times `t`, commanded torque samples `torque_v`,
+    initial state `y0`) and whether its solve succeeded."""
+    asm = fd.assemble(_chain(problem, theta))
+    sensors = _measurement(problem, theta)
+    t_end = t[-1] if horizon is None else jnp.minimum(t[-1], t[0] + horizon)
+    ts = jnp.minimum(t, t_end)
+    torque_v = meas.apply_actuators(sensors, t, torque_v)
+    torque = fd.SampledTorque(_strictly_increasing(t), torque_v, hold="linear")
+    field = fd.ChainVectorField(asm, torque)
+    if step is not None:
+        solver, controller, dt0 = diffrax.Tsit5(), diffrax.ConstantStepSize(), step
+    elif problem.dt is None:
+        solver, controller, dt0 = diffrax.Tsit5(), diffrax.PIDController(rtol=problem.rtol, atol=problem.atol), None
+    else:
+        solver, controller, dt0 = fd.RK4(), diffrax.ConstantStepSize(), problem.dt
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(field),
+        solver,
+        t0=t[0],
+        t1=t_end,
+        dt0=dt0,
+        y0=y0,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=controller,
+        max_steps=problem.max_steps,
+        adjoint=diffrax.ForwardMode(),
+        throw=False,
+    )
+    ok = (sol.result == diffrax.RESULTS.successful) & jnp.all(jnp.isfinite(sol.ys))
+    ys = jnp.where(ok, sol.ys, 0.0)
+    evaluate = lambda tk, yk: ch.evaluate(asm, problem.channels, tk, yk, torque)  # noqa: E731
+    out = jax.vmap(evaluate)(ts, ys)
+    if meas.needs_rates(sensors, problem.channels):
+        # time derivatives of the outputs (for delayed sensors): d out/dt = d out/dy . f(t, y)
+        ydot = jax.vmap(lambda tk, yk: field(tk, yk, None))(ts, ys)
+        dout = jax.vmap(lambda tk, yk, vk: jax.jvp(lambda y_: evaluate(tk, y_), (yk,), (vk,))[1])(ts, ys, ydot)
+    else:
+        dout = out
+    out = meas.apply_sensors(sensors, problem.channels, ts, out, dout)
+    return (out, ok, sol.stats["num_accepted_steps"]) if stats else (out, ok)
+
+
+def predict(problem, theta, y0s, horizon=None, step=None, *, stats: bool = False):
+    """Simulated outputs `(L, T, C)` and a success flag per log, for physical parameters
+    `theta` (SI, in `problem.names` order) and initial states `y0s` `(L, 2n)`. Samples
+    after `t0 + horizon` are not simulated (their value is that at the horizon).
+
+    `step` (s, may be traced): integrate with Tsit5 at this constant step. Otherwise
+    the problem's fixed `dt` (RK4) or its adaptive tolerances are used. With `stats`,
+    also return the number of accepted steps per log."""
+    one = lambda t, tv, y0: _simulate_log(problem, theta, t, tv, y0, horizon, step, stats)  # noqa: E731
+    return jax.vmap(one)(problem.t, problem.torque_v, y0s)
+
+
+def _used(problem, horizon):
+    """`(L, T, C)` mask of the residuals that count: valid samples of recorded channels,
+    within the horizon."""
+    mask = problem.valid[:, :, None] & problem.present[:, None, :]
+    if horizon is not None:
+        mask = mask & (problem.t <= problem.t[:, :1] + horizon)[:, :, None]
+    return mask
+
+
+def residuals(problem, theta, y0_free, offset_free, sigma, horizon, step=None):
+    """Weighted residuals (flat, log-major: `(L, T, C)` raveled; unused entries 0) and a
+    success flag per log. A failed solve (wild parameters during the search) gives
+    residuals of 1e6, so the optimiser rejects the step; the final solution is checked
+    separately."""
+    y0s = _initial_states(problem, y0_free)
+    pred, ok = predict(problem, theta, y0s, horizon, step)
+    r = (pred + _offsets(problem, offset_free)[:, None, :] - problem.measured) / sigma
+    r = jnp.where(ok[:, None, None], r, 1e6)
+    return jnp.where(_used(problem, horizon), r, 0.0).reshape(-1), ok
+
+
+# ---------------------------------------------------------------------------
+# The block-arrow Jacobian
+# ---------------------------------------------------------------------------
+
+
+def _slots(entries, L: int):
+    """Per-log slots of the free nuisances `entries` ((log, index) pairs, in vector order):
+    `(pos, index, used)`, each `(L, k)` with `k` the most any log has; `pos` is the
+    entry's position in the vector, `index` the state (channel) index, `used` False on
+    the padding of logs with fewer entries."""
+    per = [[(p, i) for p, (l, i) in enumerate(entries) if l == k] for k in range(L)]
+    k = max((len(e) for e in per), default=0)
+    pos, index, used = np.zeros((L, k), int), np.zeros((L, k), int), np.zeros((L, k), bool)
+    for l, e in enumerate(per):
+        for j, (p, i) in enumerate(e):
+            pos[l, j], index[l, j], used[l, j] = p, i, True
+    return pos, index, used
+
+
+def _spread(vector, pos, used):
+    """`(L, k)` per-log slot values of a nuisance vector (0 on padding)."""
+    if pos.shape[1] == 0:
+        return jnp.zeros(pos.shape, vector.dtype)
+    return jnp.where(used, vector[pos], 0.0)
+
+
+def _static(pos, used):
+    return tuple(map(tuple, pos.tolist())), tuple(map(tuple, used.tolist())), pos.shape
+
+
+def _arrays(slots):
+    pos, used, shape = slots
+    return np.asarray(pos, int).reshape(shape), np.asarray(used, bool).reshape(shape)
+
+
+class LogJacobian(eqx.Module):
+    """Residuals and their block-arrow Jacobian (see the module docstring).
+
+    - `r`: `(L, n)` weighted residuals per log (`n = T C`).
+    - `shared`: `(L, n, P)` w.r.t. the flattened shared variables.
+    - `y0`: `(L, n, k)` w.r.t. each log's free initial-state entries (its slots; padding
+      slots have zero columns).
+    - `offset`: `(L, n, m)` w.r.t. each log's free offsets (slots, likewise).
+    - `ok`: `(L,)` whether each log's solve succeeded."""
+
+    r: jax.Array
+    shared: jax.Array
+    y0: jax.Array
+    offset: jax.Array
+    ok: jax.Array
+    y0_slots: tuple = eqx.field(static=True)  # (pos, used) of `_slots`, as nested tuples
+    offset_slots: tuple = eqx.field(static=True)
+
+    def apply(self, t_shared, t_y0, t_offset):
+        """`J @ (t_shared, t_y0, t_offset)`: flat `(L n,)` (tangents in vector order)."""
+        dr = self.shared @ t_shared
+        dr = dr + jnp.einsum("lnk,lk->ln", self.y0, _spread(t_y0, *_arrays(self.y0_slots)))
+        dr = dr + jnp.einsum("lnk,lk->ln", self.offset, _spread(t_offset, *_arrays(self.offset_slots)))
+        return dr.reshape(-1)
+
+    def dense(self, n_y0: int, n_offset: int):
+        """The whole Jacobian `(L n, P + n_y0 + n_offset)`, columns: shared, initial-state
+        entries, offsets (each in vector order)."""
+        L, n, _ = self.shared.shape
+
+        def place(block, slots, width):
+            pos, used = _arrays(slots)
+            onehot = np.zeros((L, pos.shape[1], width))
+            for l, j in zip(*np.nonzero(used)):
+                onehot[l, j, pos[l, j]] = 1.0
+            return jnp.einsum("lnk,lkm->lnm", block, onehot).reshape(L * n, width)
+
+        return jnp.concatenate(
+            [
+                self.shared.reshape(L * n, -1),
+                place(self.y0, self.y0_slots, n_y0),
+                place(self.offset, self.offset_slots, n_offset),
+            ],
+            axis=1,
+        )
+
+
+def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigma, horizon, step=None) -> LogJacobian:
+    """Residuals of `problem` at `theta_of(shared)` (physical parameters from any pytree
+    of shared variables) with nuisances `y0_free`, `offset_free`, and their Jacobian:
+    each log's solve carries `P + k` tangents (`P` shared variables, `k` initial-state
+    entries of the log), `vmap`ped over logs; the offsets' columns are exact in closed
+    form. Same values and derivatives as `jax.jacfwd` of `residuals`."""
+    L = problem.t.shape[0]
+    dtype = problem.y0_known.dtype
+    flat, unravel = ravel_pytree(shared)
+    flat = flat.astype(dtype)  # (an empty pytree ravels to float32)
+    y0_pos, y0_index, y0_used = _slots(problem.y0_free, L)
+    off_pos, off_index, off_used = _slots(problem.offset_free, L)
+    u = _spread(jnp.asarray(y0_free, dtype), y0_pos, y0_used)
+    offsets = _offsets(problem, offset_free)
+    mask = _used(problem, horizon)
+
+    def one(t, tv, y0_known, measured, off, used, idx, u_l, slot_used):
+        def f(flat_, u_):
+            y0 = y0_known.at[idx].add(jnp.where(slot_used, u_ - y0_known[idx], 0.0))
+            out, ok = _simulate_log(problem, theta_of(unravel(flat_)), t, tv, y0, horizon, step, False)
+            r = jnp.where(ok, (out + off - measured) / sigma, 1e6)
+            r = jnp.where(used, r, 0.0).reshape(-1)
+            return r, (r, ok)
+
+        (J_shared, J_y0), (r, ok) = jax.jacfwd(f, argnums=(0, 1), has_aux=True)(flat, u_l)
+        return r, J_shared, J_y0, ok
+
+    r, J_shared, J_y0, ok = jax.vmap(one)(
+        problem.t, problem.torque_v, problem.y0_known, problem.measured, offsets, mask, y0_index, u, y0_used
+    )
+    # dr[l, k, c] / do_lc = 1 / sigma_c where the residual is used (and the solve succeeded)
+    d_off = jnp.where(mask & ok[:, None, None], 1.0 / sigma, 0.0)  # (L, T, C)
+    onehot = jnp.asarray(np.eye(mask.shape[2])[off_index] * off_used[..., None])  # (L, m, C)
+    J_off = jnp.einsum("ltc,lmc->ltcm", d_off, onehot).reshape(L, r.shape[1], off_index.shape[1])
+    return LogJacobian(r, J_shared, J_y0, J_off, ok, _static(y0_pos, y0_used), _static(off_pos, off_used))
+
+
+def log_blocked(unpack: Callable) -> Callable:
+    """A residual function `fn(v, args)` for optimistix's least squares whose linearisation
+    is the block-arrow Jacobian (`log_jacobian`), computed once per linearisation.
+
+    `v` is a dict with the nuisances under `"y0"` and `"offset"` (in `problem.y0_free` /
+    `problem.offset_free` order) and the shared variables under any other keys;
+    `unpack(args)` returns `(problem, theta_of, sigma, horizon, step)`, `theta_of` mapping
+    the dict of shared variables to the physical parameters. The value is `residuals(...)`.
+
+    Levenberg-Marquardt (`optx.LevenbergMarquardt`) takes `jax.linearize` of the residuals
+    at every trial point and keeps the linear map lazy: `jax.linearize` through a
+    `while_loop` (diffrax's) re-runs the whole loop, primal included, each time the map is
+    applied, and each step applies it twice (the predicted reduction of the trust region,
+    then once per column when the damped system is factorised by QR). That is a primal
+    solve, a one-tangent solve and an n-tangent solve per step. With this rule the
+    linearisation computes the residuals and the Jacobian in one forward-mode solve per log
+    and the linear map is a product with the stored blocks. Only `v` may be differentiated;
+    `args` are constants of the fit."""
+
+    def shared_of(v):
+        return {k: x for k, x in v.items() if k not in ("y0", "offset")}
+
+    @eqx.filter_custom_jvp
+    def wrapped(v, args):
+        problem, theta_of, sigma, horizon, step = unpack(args)
+        return residuals(problem, theta_of(shared_of(v)), v["y0"], v["offset"], sigma, horizon, step)[0]
+
+    @wrapped.def_jvp
+    def wrapped_jvp(primals, tangents):
+        v, args = primals
+        tv, targs = tangents
+        if any(t is not None for t in jax.tree_util.tree_leaves(targs)):
+            raise NotImplementedError("log_blocked: only the first argument (the variables) may be differentiated")
+        problem, theta_of, sigma, horizon, step = unpack(args)
+        jac = log_jacobian(problem, theta_of, shared_of(v), v["y0"], v["offset"], sigma, horizon, step)
+
+        def flat(primal, tangent):
+            # the tangent in `ravel_pytree`'s order; None (not differentiated) is zero
+            leaves = jax.tree_util.tree_leaves(primal)
+            parts = jax.tree_util.tree_structure(primal).flatten_up_to(tangent) if leaves else []
+            parts = [jnp.zeros_like(p) if t is None else t for p, t in zip(leaves, parts)]
+            return jnp.concatenate([jnp.reshape(t, (-1,)) for t in parts]) if parts else jnp.zeros((0,), jac.r.dtype)
+
+        t_shared = flat(shared_of(v), {k: tv[k] for k in shared_of(v)}) if tv is not None else None
+        if t_shared is None:
+            return jac.r.reshape(-1), jnp.zeros_like(jac.r.reshape(-1))
+        return jac.r.reshape(-1), jac.apply(t_shared, flat(v["y0"], tv["y0"]), flat(v["offset"], tv["offset"]))
+
+    return wrapped

@@ -1,0 +1,156 @@
+"""The residuals' block-arrow Jacobian (`identify.residuals`).
+
+The oracle is `jax.jacfwd` of the plain residual function (every column's tangent through
+every log's solve, the definition of the Jacobian the fit needs), and, for the offsets'
+columns, the closed form `dr/do = 1/sigma` on the samples that count. The logs differ in
+length and in which nuisances they estimate (including none), so the per-log slots, their
+padding and the columns' order are all exercised.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+import flexdyn as fd
+import identify
+from identify.residuals import log_blocked, log_jacobian, residuals
+
+fit_module = sys.modules["identify.fit"]  # `identify.fit` is the function
+
+# per log: free initial-state entries, free offsets (log 1: none of either)
+FIT_INITIAL = [("theta1", "theta1_rate"), (), ("theta1_rate",)]
+OFFSETS = [("theta1",), (), ("theta1", "end_x")]
+
+
+@pytest.fixture(scope="module")
+def problem():
+    truth = fd.rigs.rigid_pendulum(joint_damping=3e-3)
+    chain = fd.rigs.rigid_pendulum(joint_damping=2e-3)
+    logs = []
+    for l in range(3):
+        t = np.arange(80 + 20 * l) * 5e-3
+        logs.append(
+            identify.simulate_log(
+                truth,
+                t,
+                initial={"theta1": 0.4 + 0.1 * l},
+                torque=0.01 * np.sin(3 * t)[:, None],
+                channels=("theta1", "end_x") if l == 2 else ("theta1",),
+                noise={"theta1": 1e-3, "end_x": 1e-4},
+                rng=np.random.default_rng(l),
+                fit_initial=FIT_INITIAL[l],
+                offsets=OFFSETS[l],
+                name=f"drop{l}",
+            )
+        )
+    params = [
+        identify.Parameter("joint1.damping", 2e-3, 1e-6, 1.0),
+        identify.Parameter("payload.mass", 0.03, 1e-3, 1.0),
+    ]
+    p = identify.make_problem(chain, params, logs, {"theta1": 1e-3, "end_x": 1e-4})
+    x = jnp.asarray(fit_module._x_from_theta(p, [q.guess for q in params]))
+    y0 = jnp.asarray([0.41, 0.05, -0.02])
+    off = jnp.asarray([1e-3, -2e-3, 5e-4])
+    return p, x, y0, off
+
+
+def _theta_of(p):
+    return lambda x: fit_module._theta_from_x(p, x)
+
+
+def _jacfwd(p, x, y0, off, horizon):
+    def fn(v):
+        return residuals(p, _theta_of(p)(v["x"]), v["y0"], v["off"], p.sigma, horizon, 2e-3)[0]
+
+    v = {"x": x, "y0": y0, "off": off}
+    J = jax.jacfwd(fn)(v)
+    return fn(v), np.concatenate([J["x"], J["y0"], J["off"]], axis=1)
+
+
+@pytest.mark.parametrize("horizon", [None, 0.3])
+def test_log_jacobian_is_the_forward_mode_jacobian(problem, horizon):
+    p, x, y0, off = problem
+    h = None if horizon is None else jnp.asarray(horizon)
+    r_ref, J_ref = _jacfwd(p, x, y0, off, h)
+    jac = log_jacobian(p, _theta_of(p), x, y0, off, p.sigma, h, 2e-3)
+    J = np.asarray(jac.dense(len(p.y0_free), len(p.offset_free)))
+    assert J.shape == J_ref.shape == (r_ref.size, 2 + 3 + 3)
+    np.testing.assert_array_equal(jac.r.reshape(-1), r_ref)
+    np.testing.assert_allclose(J, J_ref, rtol=1e-12, atol=1e-12 * np.abs(J_ref).max())
+    assert bool(np.all(jac.ok))
+    # the offsets' columns in closed form: 1/sigma_c on the log's used samples of channel c
+    used = np.asarray(p.valid[:, :, None] & p.present[:, None, :])
+    if h is not None:
+        used = used & (np.asarray(p.t) <= np.asarray(p.t[:, :1]) + horizon)[:, :, None]
+    for k, (l, c) in enumerate(p.offset_free):
+        expected = np.zeros(used.shape)
+        expected[l, :, c] = np.where(used[l, :, c], 1.0 / float(p.sigma[c]), 0.0)
+        np.testing.assert_allclose(J[:, 5 + k], expected.reshape(-1), rtol=1e-15)
+    # the block structure itself: a log's residuals do not depend on another log's nuisances
+    rows = np.arange(r_ref.size) // (used.shape[1] * used.shape[2])
+    for k, (l, _) in enumerate(p.y0_free):
+        assert not np.any(J[rows != l, 2 + k])
+
+
+def test_log_blocked_linearises_to_the_jacobian(problem):
+    """What optimistix's Levenberg-Marquardt sees (`jax.linearize` of the wrapped residuals)
+    is the forward-mode Jacobian, column by column; differentiating the arguments is an
+    error, not a wrong answer."""
+    p, x, y0, off = problem
+    z = {"phys": fit_module._z_from_x(p, np.asarray(x)), "y0": y0, "offset": off}
+    z["phys"] = jnp.asarray(z["phys"])
+    args = (p, p.sigma, None, 2e-3)
+    fn = log_blocked(fit_module._unpack)
+    plain = fit_module._residual_fn
+    np.testing.assert_array_equal(fn(z, args), plain(z, args))
+    r, lin = jax.linearize(lambda z_: fn(z_, args), z)
+    J_ref = jax.jacfwd(lambda z_: plain(z_, args))(z)
+    flat_ref = np.concatenate([J_ref["phys"], J_ref["y0"], J_ref["offset"]], axis=1)
+    sizes = {"phys": 2, "y0": 3, "offset": 3}
+    col = 0
+    for key, n in sizes.items():
+        for i in range(n):
+            tangent = {k: jnp.zeros(m) for k, m in sizes.items()}
+            tangent[key] = tangent[key].at[i].set(1.0)
+            np.testing.assert_allclose(lin(tangent), flat_ref[:, col], rtol=1e-12, atol=1e-12 * np.abs(flat_ref).max())
+            col += 1
+    with pytest.raises(NotImplementedError, match="only the first argument"):
+        jax.jvp(lambda s: fn(z, (p, s, None, 2e-3)), (p.sigma,), (jnp.ones_like(p.sigma),))
+
+
+def test_levenberg_marquardt_takes_the_same_steps(problem):
+    """Levenberg-Marquardt through the block rule takes the iterates of the plain residual
+    function (whose linear map JAX builds itself) and reaches the same optimum."""
+    p, x, y0, off = problem
+    z0 = {"phys": jnp.asarray(fit_module._z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
+    args = (p, p.sigma, None, 2e-3)
+    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
+    blocked = optx.least_squares(log_blocked(fit_module._unpack), solver, z0, args=args, max_steps=60)
+    plain = optx.least_squares(fit_module._residual_fn, solver, z0, args=args, max_steps=60)
+    assert int(blocked.stats["num_steps"]) == int(plain.stats["num_steps"])
+    for k in z0:
+        np.testing.assert_allclose(blocked.value[k], plain.value[k], rtol=1e-8, atol=1e-12)
+    theta = fit_module._theta_from_x(p, fit_module._x_from_z(p, blocked.value["phys"]))
+    np.testing.assert_allclose(theta[0], 3e-3, rtol=0.05)  # the data's own damping
+
+
+def test_nuisances_only(problem):
+    """With no shared variables (held-out logs: the physical parameters fixed, only each
+    log's own initial state and offsets fitted) the Jacobian is the nuisances' columns."""
+    p, x, y0, off = problem
+    theta = fit_module._theta_from_x(p, x)
+    r_ref, J_ref = _jacfwd(p, x, y0, off, None)
+    jac = log_jacobian(p, lambda shared: theta, {}, y0, off, p.sigma, None, 2e-3)
+    J = np.asarray(jac.dense(len(p.y0_free), len(p.offset_free)))
+    assert J.shape == (r_ref.size, 6) and J.dtype == np.float64
+    np.testing.assert_allclose(J, J_ref[:, 2:], rtol=1e-12, atol=1e-12 * np.abs(J_ref).max())
+    fn = log_blocked(lambda args: (p, lambda shared: theta, p.sigma, None, 2e-3))
+    v = {"y0": y0, "offset": off}
+    _, lin = jax.linearize(lambda v_: fn(v_, None), v)
+    np.testing.assert_allclose(lin({"y0": jnp.zeros(3), "offset": jnp.array([0.0, 1.0, 0.0])}), J_ref[:, 6], rtol=1e-15)
