@@ -60,6 +60,10 @@ DESCRIPTION = {
     "base_tilt": "a tilted base: gravity acts in the plane of a horizontal rig",
 }
 
+# Entries that can be applied again to their own result: from a model that gained a mode,
+# the next search offers one more mode on the same link (a link may miss several).
+REPEATABLE = ("missing_mode",)
+
 
 @dataclasses.dataclass(frozen=True)
 class Candidate:

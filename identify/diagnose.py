@@ -38,8 +38,9 @@ the model, and measure the gain on held-out data.
    parameters add. A structural winner changes the model's coordinates, which the joint
    model cannot hold: the search goes on (`diagnose_logs` again) from the structural
    model as a new baseline, with every accepted effect's parameters free, the accepted
-   labels excluded, and the remaining rounds; the two searches are then reported as one
-   (`_stacked`). A structural candidate is refitted in a later round only if the cost it
+   labels excluded (but `missing_mode`: a link may miss several modes, so the model that
+   gained one is offered the next), and the remaining rounds; the two searches are then
+   reported as one (`_stacked`). A structural candidate is refitted in a later round only if the cost it
    took off the model of its last round would pass the BIC test against the current one
    (`_promising`): each is a model of its own, the expensive part.
 
@@ -1169,8 +1170,11 @@ def diagnose_logs(
         say(f"the search goes on from the model with {accepted[-1][0].label} ...")
         struct_chain = model["chain"]
         inner_params = list(model["parameters"]) + [Parameter(n, val) for n, val, _ in current["layout"]]
-        skip = set(exclude) | {a.label for a, _ in accepted}
-        skip |= {c.label for c in cands if c.structural and c.label not in promising}
+        # accepted entries are not tried again, but for one that can be applied again to
+        # its own result (`catalogue.REPEATABLE`: one more mode on the link that gained one)
+        winner = accepted[-1][0]
+        skip = set(exclude) | {a.label for a, _ in accepted if a.name not in cat.REPEATABLE}
+        skip |= {c.label for c in cands if c.structural and c.label not in promising and c.label != winner.label}
         inner = diagnose_logs(
             struct_chain,
             inner_params,

@@ -100,7 +100,8 @@ def arm(n_modes=1, gravity=(0.0, 0.0), coulomb=None, drag=None, elastic=None):
     return fd.Chain([link], [joint], [hub], fd.Payload(0.05), gravity=gravity)
 
 
-def arm_logs(truth, seed, measurement=None, channels=("theta1", "tip1")):
+def arm_logs(truth, seed, measurement=None, channels=("theta1", "tip1"), noise=None):
+    noise = {**ARM_NOISE, **(noise or {})}
     rng = np.random.default_rng(seed)
     logs = []
     for k, (amp, w) in enumerate(TORQUES):
@@ -111,7 +112,7 @@ def arm_logs(truth, seed, measurement=None, channels=("theta1", "tip1")):
                 ARM_T,
                 torque=tq,
                 channels=channels,
-                noise={c: ARM_NOISE[c] for c in channels},
+                noise={c: noise[c] for c in channels},
                 rng=rng,
                 name=f"bangbang_{k}",
                 measurement=measurement,
@@ -120,13 +121,13 @@ def arm_logs(truth, seed, measurement=None, channels=("theta1", "tip1")):
     return logs
 
 
-def diagnose_arm(logs, base=None, **kw):
+def diagnose_arm(logs, base=None, noise=None, **kw):
     fit_logs, held, desc = split_logs(logs[:2], logs[2:])
     base = arm() if base is None else base
     # the tip's dominant frequency under bang-bang is the input's, not the mode's: no
     # frequency-domain EI initialisation (the guess is within 50 % anyway)
     kw.setdefault("fit_options", {"frequency_init": False})
-    noise = {c: ARM_NOISE[c] for c in logs[0].outputs}
+    noise = {c: {**ARM_NOISE, **(noise or {})}[c] for c in logs[0].outputs}
     return diagnose_logs(base, ARM_PARAMS, fit_logs, held, noise, split=desc, **kw)
 
 
