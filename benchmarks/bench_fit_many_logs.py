@@ -18,11 +18,12 @@ Rows, per `L`:
 - `jacobian`: residuals and whole Jacobian at the guess; ours (`log_jacobian` + `dense`)
   vs the peer (`jax.jacfwd` of `identify.residuals.residuals`) in the same process; the
   ratio column is the warm time over one residual evaluation.
-- `LM solve`: one Levenberg-Marquardt solve (optimistix, the fit's settings, single
-  shooting from a guess 10 % off) with our rule (`identify.fit._residual_fn_lm`) vs the
-  same solver with the dense rule (a custom JVP materialising `jax.jacfwd` once per
-  linearisation, the rule `identify` used before). Both take the same iterates; steps and
-  final costs are reported.
+- `LM solve`: one Levenberg-Marquardt solve (the fit's settings, single shooting from a
+  guess 10 % off): ours (`identify.fit._residual_fn_lm`, with the block-by-block step of
+  `identify.block_lm` from `identify.fit.BLOCK_SOLVE_MIN_LOGS` logs on), ours with
+  optimistix's dense QR step, and the peer: optimistix's `LevenbergMarquardt` with the dense
+  rule (a custom JVP materialising `jax.jacfwd` once per linearisation, the rule `identify`
+  used before). All take the same iterates; steps and final costs are reported.
 
 Usage: `python benchmarks/bench_fit_many_logs.py [--logs 1,2,4,8,16,32] [--repeats 3] [--json out.json]`
 """
@@ -137,10 +138,13 @@ def residual(p, x, z):
 _dense_lm = dense_rule(F._residual_fn)
 
 
-def lm(rule):
+def lm(rule, block: bool):
     @eqx.filter_jit
     def solve(p, z0):
-        solver = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-10, norm=optx.rms_norm)
+        if block:  # what `identify.fit` uses: the block solve from BLOCK_SOLVE_MIN_LOGS logs on
+            solver = F._levenberg_marquardt(p, 1e-3, 1e-10)
+        else:
+            solver = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-10, norm=optx.rms_norm)
         args = (p, p.sigma, None, STEP)
         sol = optx.least_squares(rule, solver, z0, args=args, max_steps=100, throw=False)
         return sol.value, sol.stats["num_steps"], jnp.sum(F._residual_fn(sol.value, args) ** 2)
@@ -157,7 +161,11 @@ def main(argv=None):
     args = parser.parse_args(argv)
     env = environment()
     rows = []
-    lm_ours, lm_dense = lm(F._residual_fn_lm), lm(_dense_lm)
+    lm_runs = (
+        ("ours", lm(F._residual_fn_lm, True)),
+        ("ours, dense QR", lm(F._residual_fn_lm, False)),
+        ("dense", lm(_dense_lm, False)),
+    )
     for L in [int(s) for s in args.logs.split(",")]:
         p, x, z = problem(L)
         ncol = len(p.names) + len(p.y0_free) + len(p.offset_free)
@@ -193,11 +201,11 @@ def main(argv=None):
         )
         if str(L) in args.lm_logs.split(","):
             res = {}
-            for name, solve in (("ours", lm_ours), ("dense", lm_dense)):
+            for name, solve in lm_runs:
                 call = lambda solve=solve: jax.block_until_ready(solve(p, z))  # noqa: E731
                 (_, steps, cost), cold = timed(call)
                 res[name] = (int(steps), float(cost), cold, median_time(call, args.repeats))
-            for name in ("ours", "dense"):
+            for name, _ in lm_runs:
                 steps, cost, cold, warm = res[name]
                 rows.append(
                     dict(
@@ -206,14 +214,14 @@ def main(argv=None):
                         columns=ncol,
                         cold_s=cold,
                         warm_s=warm,
-                        speedup=res["dense"][3] / warm if name == "ours" else None,
+                        speedup=res["dense"][3] / warm if name != "dense" else None,
                         steps=steps,
                         cost=cost,
                     )
                 )
             print(
-                f"  {L:3d} logs: LM ours {res['ours'][3]:.3f} s ({res['ours'][0]} steps, cost {res['ours'][1]:.6g}), "
-                f"dense {res['dense'][3]:.3f} s ({res['dense'][0]} steps, cost {res['dense'][1]:.6g})",
+                f"  {L:3d} logs: LM "
+                + ", ".join(f"{n} {res[n][3]:.3f} s ({res[n][0]} steps, cost {res[n][1]:.6g})" for n, _ in lm_runs),
                 flush=True,
             )
     print()

@@ -177,13 +177,26 @@ def _spread(vector, pos, used):
     return jnp.where(used, vector[pos], 0.0)
 
 
-def _static(pos, used):
-    return tuple(map(tuple, pos.tolist())), tuple(map(tuple, used.tolist())), pos.shape
+class Layout(eqx.Module):
+    """Where each log's nuisances sit in the variable vectors: per kind (0: `y0`, 1:
+    `offset`) the `(L, k)` positions in the vector and whether each slot is used (logs with
+    fewer entries are padded). Static; shared by `LogJacobian` and `identify.block_lm`."""
 
+    n_logs: int = eqx.field(static=True)
+    slots: tuple = eqx.field(static=True)  # ((pos rows, used rows), ...) for y0, then offset
 
-def _arrays(slots):
-    pos, used, shape = slots
-    return np.asarray(pos, int).reshape(shape), np.asarray(used, bool).reshape(shape)
+    @staticmethod
+    def of(problem) -> Layout:
+        L = problem.t.shape[0]
+        slots = []
+        for entries in (problem.y0_free, problem.offset_free):
+            pos, _, used = _slots(entries, L)
+            slots.append((tuple(map(tuple, pos.tolist())), tuple(map(tuple, used.tolist())), pos.shape))
+        return Layout(L, tuple(slots))
+
+    def arrays(self, kind: int):
+        pos, used, shape = self.slots[kind]
+        return np.asarray(pos, int).reshape(shape), np.asarray(used, bool).reshape(shape)
 
 
 class LogJacobian(eqx.Module):
@@ -201,14 +214,13 @@ class LogJacobian(eqx.Module):
     y0: jax.Array
     offset: jax.Array
     ok: jax.Array
-    y0_slots: tuple = eqx.field(static=True)  # (pos, used) of `_slots`, as nested tuples
-    offset_slots: tuple = eqx.field(static=True)
+    layout: Layout
 
     def apply(self, t_shared, t_y0, t_offset):
         """`J @ (t_shared, t_y0, t_offset)`: flat `(L n,)` (tangents in vector order)."""
         dr = self.shared @ t_shared
-        dr = dr + jnp.einsum("lnk,lk->ln", self.y0, _spread(t_y0, *_arrays(self.y0_slots)))
-        dr = dr + jnp.einsum("lnk,lk->ln", self.offset, _spread(t_offset, *_arrays(self.offset_slots)))
+        dr = dr + jnp.einsum("lnk,lk->ln", self.y0, _spread(t_y0, *self.layout.arrays(0)))
+        dr = dr + jnp.einsum("lnk,lk->ln", self.offset, _spread(t_offset, *self.layout.arrays(1)))
         return dr.reshape(-1)
 
     def dense(self, n_y0: int, n_offset: int):
@@ -216,8 +228,8 @@ class LogJacobian(eqx.Module):
         entries, offsets (each in vector order)."""
         L, n, _ = self.shared.shape
 
-        def place(block, slots, width):
-            pos, used = _arrays(slots)
+        def place(block, kind, width):
+            pos, used = self.layout.arrays(kind)
             onehot = np.zeros((L, pos.shape[1], width))
             for l, j in zip(*np.nonzero(used)):
                 onehot[l, j, pos[l, j]] = 1.0
@@ -226,8 +238,8 @@ class LogJacobian(eqx.Module):
         return jnp.concatenate(
             [
                 self.shared.reshape(L * n, -1),
-                place(self.y0, self.y0_slots, n_y0),
-                place(self.offset, self.offset_slots, n_offset),
+                place(self.y0, 0, n_y0),
+                place(self.offset, 1, n_offset),
             ],
             axis=1,
         )
@@ -267,7 +279,7 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
     d_off = jnp.where(mask & ok[:, None, None], 1.0 / sigma, 0.0)  # (L, T, C)
     onehot = jnp.asarray(np.eye(mask.shape[2])[off_index] * off_used[..., None])  # (L, m, C)
     J_off = jnp.einsum("ltc,lmc->ltcm", d_off, onehot).reshape(L, r.shape[1], off_index.shape[1])
-    return LogJacobian(r, J_shared, J_y0, J_off, ok, _static(y0_pos, y0_used), _static(off_pos, off_used))
+    return LogJacobian(r, J_shared, J_y0, J_off, ok, Layout.of(problem))
 
 
 def log_blocked(unpack: Callable) -> Callable:

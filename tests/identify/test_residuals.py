@@ -17,47 +17,9 @@ import numpy as np
 import optimistix as optx
 import pytest
 
-import flexdyn as fd
-import identify
 from identify.residuals import log_blocked, log_jacobian, residuals
 
 fit_module = sys.modules["identify.fit"]  # `identify.fit` is the function
-
-# per log: free initial-state entries, free offsets (log 1: none of either)
-FIT_INITIAL = [("theta1", "theta1_rate"), (), ("theta1_rate",)]
-OFFSETS = [("theta1",), (), ("theta1", "end_x")]
-
-
-@pytest.fixture(scope="module")
-def problem():
-    truth = fd.rigs.rigid_pendulum(joint_damping=3e-3)
-    chain = fd.rigs.rigid_pendulum(joint_damping=2e-3)
-    logs = []
-    for l in range(3):
-        t = np.arange(80 + 20 * l) * 5e-3
-        logs.append(
-            identify.simulate_log(
-                truth,
-                t,
-                initial={"theta1": 0.4 + 0.1 * l},
-                torque=0.01 * np.sin(3 * t)[:, None],
-                channels=("theta1", "end_x") if l == 2 else ("theta1",),
-                noise={"theta1": 1e-3, "end_x": 1e-4},
-                rng=np.random.default_rng(l),
-                fit_initial=FIT_INITIAL[l],
-                offsets=OFFSETS[l],
-                name=f"drop{l}",
-            )
-        )
-    params = [
-        identify.Parameter("joint1.damping", 2e-3, 1e-6, 1.0),
-        identify.Parameter("payload.mass", 0.03, 1e-3, 1.0),
-    ]
-    p = identify.make_problem(chain, params, logs, {"theta1": 1e-3, "end_x": 1e-4})
-    x = jnp.asarray(fit_module._x_from_theta(p, [q.guess for q in params]))
-    y0 = jnp.asarray([0.41, 0.05, -0.02])
-    off = jnp.asarray([1e-3, -2e-3, 5e-4])
-    return p, x, y0, off
 
 
 def _theta_of(p):
@@ -74,8 +36,8 @@ def _jacfwd(p, x, y0, off, horizon):
 
 
 @pytest.mark.parametrize("horizon", [None, 0.3])
-def test_log_jacobian_is_the_forward_mode_jacobian(problem, horizon):
-    p, x, y0, off = problem
+def test_log_jacobian_is_the_forward_mode_jacobian(multilog_problem, horizon):
+    p, x, y0, off = multilog_problem
     h = None if horizon is None else jnp.asarray(horizon)
     r_ref, J_ref = _jacfwd(p, x, y0, off, h)
     jac = log_jacobian(p, _theta_of(p), x, y0, off, p.sigma, h, 2e-3)
@@ -98,11 +60,11 @@ def test_log_jacobian_is_the_forward_mode_jacobian(problem, horizon):
         assert not np.any(J[rows != l, 2 + k])
 
 
-def test_log_blocked_linearises_to_the_jacobian(problem):
+def test_log_blocked_linearises_to_the_jacobian(multilog_problem):
     """What optimistix's Levenberg-Marquardt sees (`jax.linearize` of the wrapped residuals)
     is the forward-mode Jacobian, column by column; differentiating the arguments is an
     error, not a wrong answer."""
-    p, x, y0, off = problem
+    p, x, y0, off = multilog_problem
     z = {"phys": fit_module._z_from_x(p, np.asarray(x)), "y0": y0, "offset": off}
     z["phys"] = jnp.asarray(z["phys"])
     args = (p, p.sigma, None, 2e-3)
@@ -124,10 +86,10 @@ def test_log_blocked_linearises_to_the_jacobian(problem):
         jax.jvp(lambda s: fn(z, (p, s, None, 2e-3)), (p.sigma,), (jnp.ones_like(p.sigma),))
 
 
-def test_levenberg_marquardt_takes_the_same_steps(problem):
+def test_levenberg_marquardt_takes_the_same_steps(multilog_problem):
     """Levenberg-Marquardt through the block rule takes the iterates of the plain residual
     function (whose linear map JAX builds itself) and reaches the same optimum."""
-    p, x, y0, off = problem
+    p, x, y0, off = multilog_problem
     z0 = {"phys": jnp.asarray(fit_module._z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
     args = (p, p.sigma, None, 2e-3)
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
@@ -140,10 +102,10 @@ def test_levenberg_marquardt_takes_the_same_steps(problem):
     np.testing.assert_allclose(theta[0], 3e-3, rtol=0.05)  # the data's own damping
 
 
-def test_nuisances_only(problem):
+def test_nuisances_only(multilog_problem):
     """With no shared variables (held-out logs: the physical parameters fixed, only each
     log's own initial state and offsets fitted) the Jacobian is the nuisances' columns."""
-    p, x, y0, off = problem
+    p, x, y0, off = multilog_problem
     theta = fit_module._theta_from_x(p, x)
     r_ref, J_ref = _jacfwd(p, x, y0, off, None)
     jac = log_jacobian(p, lambda shared: theta, {}, y0, off, p.sigma, None, 2e-3)
