@@ -190,6 +190,15 @@ def main(argv=None):
     print(format_table(rows, COLUMNS))
     print()
     print("Targets: fit >= 20x faster than least_squares at the same final cost; fit compile < 30 s on 2 cores.")
+    peer_cost = rows[-1]["cost_common"]
+    for r in rows[:-1]:
+        speed = "met" if r["speedup"] >= 20 else f"missed by {20 / r['speedup']:.1f}x"
+        cost = "same or lower final cost" if r["cost_common"] <= peer_cost * (1 + 1e-6) else "HIGHER final cost"
+        comp = ""
+        if r is rows[0]:  # the first fit of the process pays the pipeline's compilation
+            c = r["compile_s"]
+            comp = f"; compile {c:.1f} s, " + ("met" if c < 30 else f"missed by {c / 30:.1f}x")
+        print(f"  {r['run']}: speed-up {r['speedup']:.1f}x, {speed} ({cost}){comp}")
     write_json(
         args.json,
         {

@@ -1199,6 +1199,7 @@ def diagnose_logs(
                 "n_starts": 1,
                 "max_restarts": 0,
                 "frequency_init": False,
+                "first_damping": 0.0,  # a warm start (the accepted model's values)
             },
             progress=(lambda msg: say("  " + msg)) if progress else None,
         )
@@ -1391,6 +1392,7 @@ def _structural_score(
             horizons=None,
             n_stages=2,
             n_starts=8 if new else 1,
+            first_damping=0.0,  # without new parameters, a warm start from the baseline's values
             start_spread=3.0,
             estimate_noise=False,
             frequency_init=False,

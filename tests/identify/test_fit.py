@@ -477,3 +477,16 @@ def test_make_problem_rejects_bad_nuisances_naming_the_log(field, value, message
     log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7", **{field: value})
     with pytest.raises(ValueError, match=f"log 'drop_7': {message}"):
         identify.make_problem(chain, [identify.Parameter("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
+
+
+@pytest.mark.parametrize("value", [-1e-3, float("nan"), float("inf")])
+def test_fit_rejects_a_bad_first_damping(value):
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(11) / 100.0
+    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7")
+    params = [identify.Parameter("joint1.damping", 1e-3)]
+    problem = identify.make_problem(chain, params, [log], {"theta1": 1e-3})
+    with pytest.raises(ValueError, match="first_damping must be a finite number >= 0"):
+        identify.fit(problem, params, first_damping=value)
+    with pytest.raises(ValueError, match="first_damping must be a finite number >= 0"):
+        identify.fit_independent(problem, params, first_damping=value)
