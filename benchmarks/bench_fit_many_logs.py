@@ -24,6 +24,11 @@ Rows, per `L`:
   optimistix's dense QR step, and the peer: optimistix's `LevenbergMarquardt` with the dense
   rule (a custom JVP materialising `jax.jacfwd` once per linearisation, the rule `identify`
   used before). All take the same iterates; steps and final costs are reported.
+- `covariance`: the standard errors at a point (what `identify.fit` does once at the
+  optimum): ours (`identify.fit._covariance_at`: from `BLOCK_SOLVE_MIN_LOGS` logs on, the
+  Jacobian's blocks and `identify.covariance.blocked`, no dense Jacobian) vs the dense path
+  (`_jacobian_natural`'s dense `J`, its SVD: `identify.covariance.dense`), with the dense
+  `J`'s size and the largest relative difference of the standard errors.
 
 Usage: `python benchmarks/bench_fit_many_logs.py [--logs 1,2,4,8,16,32] [--repeats 3] [--json out.json]`
 """
@@ -59,6 +64,7 @@ COLUMNS = [
     ("ratio", "warm / residual", ".1f"),
     ("speedup", "speed-up vs dense", ".2f"),
     ("steps", "LM steps", "d"),
+    ("dense_mb", "dense J [MB]", ".0f"),
     ("cost", "final cost", ".6g"),
 ]
 STEP = 1e-3
@@ -152,10 +158,45 @@ def lm(rule, block: bool):
     return solve
 
 
+def covariance_rows(L: int, repeats: int):
+    p, x, z = problem(L)
+    ncol = len(p.names) + len(p.y0_free) + len(p.offset_free)
+
+    def dense():
+        r, J, _ = F._jacobian_natural(p, x, z["y0"], z["offset"], p.sigma, STEP)
+        return F._dense_covariance(p, r, J), J.nbytes
+
+    out = {}
+    for name, fn in (("ours", lambda: (F._covariance_at(p, x, z, p.sigma, STEP), None)), ("dense", dense)):
+        (cov, nbytes), cold = timed(fn)
+        out[name] = (cov, nbytes, cold, median_time(fn, repeats))
+    a, b = out["ours"][0].std_errors, out["dense"][0].std_errors
+    err = float(np.max(np.abs(a - b) / np.abs(b)))
+    print(
+        f"  {L:3d} logs: covariance ours {out['ours'][3]:.3f} s, dense {out['dense'][3]:.3f} s "
+        f"(dense J {out['dense'][1] / 1e6:.0f} MB); standard errors differ by {err:.1e} at most",
+        flush=True,
+    )
+    return [
+        dict(
+            run=f"covariance, {L} logs, {name}",
+            logs=L,
+            columns=ncol,
+            cold_s=out[name][2],
+            warm_s=out[name][3],
+            speedup=out["dense"][3] / out[name][3] if name == "ours" else None,
+            dense_mb=out[name][1] / 1e6 if out[name][1] else None,
+            max_rel_difference=err,
+        )
+        for name in ("ours", "dense")
+    ]
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--logs", default="1,2,4,8,16,32", help="comma-separated numbers of logs")
     parser.add_argument("--lm-logs", default="2,16", help="numbers of logs for the Levenberg-Marquardt rows")
+    parser.add_argument("--cov-logs", default="16,64", help="numbers of logs for the covariance rows")
     parser.add_argument("--repeats", type=int, default=3, help="warm runs per case (median)")
     parser.add_argument("--json", default=None, help="also write the results as JSON to this path")
     args = parser.parse_args(argv)
@@ -224,6 +265,8 @@ def main(argv=None):
                 + ", ".join(f"{n} {res[n][3]:.3f} s ({res[n][0]} steps, cost {res[n][1]:.6g})" for n, _ in lm_runs),
                 flush=True,
             )
+    for L in [int(s) for s in args.cov_logs.split(",") if s]:
+        rows += covariance_rows(L, args.repeats)
     print()
     print("bench_fit_many_logs: 4 shared parameters, 3 nuisances per log (1.2 s logs at 4 ms, Tsit5 1 ms)")
     print(format_environment(env))

@@ -44,7 +44,11 @@ at the optimum and `s^2 = RSS / (N - P)` the residual variance (so the error
 bars are honest even when the noise levels given were not). 95 % intervals are
 `x +- 1.96 SE` in the natural coordinate (`exp` of it for log-scaled
 parameters, hence asymmetric). Combinations the data cannot separate are
-found from the singular values of the column-normalised Jacobian.
+found from the singular values of the column-normalised Jacobian. From
+`BLOCK_SOLVE_MIN_LOGS` logs with nuisances on, the covariance is computed block by
+block without forming the dense Jacobian (`identify.covariance.blocked`: the Schur
+complement of the per-log nuisance blocks; the same numbers when every block has full
+rank).
 """
 
 from __future__ import annotations
@@ -62,9 +66,10 @@ import optimistix as optx
 
 import flexdyn as fd
 
-from . import channels as ch, measurement as meas
+from . import channels as ch, covariance, measurement as meas
 from .block_lm import BlockLevenbergMarquardt, Layout
 from .channels import state_names  # noqa: F401  (re-exported)
+from .covariance import Covariance
 from .measurement import Measurement
 from .residuals import (  # noqa: F401  (re-exported: identify.predict, diagnose)
     _chain,
@@ -407,10 +412,15 @@ class _BudgetedLM(optx.AbstractLeastSquaresSolver):
 BLOCK_SOLVE_MIN_LOGS = 8
 
 
+def _blocked(problem: Problem) -> bool:
+    """Whether `problem`'s Levenberg-Marquardt steps and covariance are solved block by block."""
+    return problem.t.shape[0] >= BLOCK_SOLVE_MIN_LOGS and bool(problem.y0_free or problem.offset_free)
+
+
 def _levenberg_marquardt(problem: Problem, rtol: float, atol: float, tau=0.0):
     """Levenberg-Marquardt for `problem`, its first damping `tau * max diag(J^T J)`
     (`identify.trust_region`)."""
-    if problem.t.shape[0] >= BLOCK_SOLVE_MIN_LOGS and (problem.y0_free or problem.offset_free):
+    if _blocked(problem):
         solver = BlockLevenbergMarquardt(rtol, atol, Layout.of(problem), norm=optx.rms_norm)
     else:
         solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, norm=optx.rms_norm)
@@ -455,6 +465,13 @@ def _jacobian_natural(problem: Problem, x, y0_free, offset_free, sigma, step):
     theta_of = lambda x_: _theta_from_x(problem, x_)  # noqa: E731
     jac = log_jacobian(problem, theta_of, x, y0_free, offset_free, sigma, None, step)
     return jac.r.reshape(-1), jac.dense(len(problem.y0_free), len(problem.offset_free)), jnp.all(jac.ok)
+
+
+@eqx.filter_jit
+def _jacobian_blocks(problem: Problem, x, y0_free, offset_free, sigma, step):
+    """As `_jacobian_natural`, the blocks (`identify.residuals.LogJacobian`), no dense `J`."""
+    theta_of = lambda x_: _theta_from_x(problem, x_)  # noqa: E731
+    return log_jacobian(problem, theta_of, x, y0_free, offset_free, sigma, None, step)
 
 
 # ---------------------------------------------------------------------------
@@ -718,10 +735,46 @@ def fit(
     stages.extend(tried)
     say("  computing standard errors (exact Jacobian at the optimum) ...")
     x = _x_from_z(problem, z["phys"])
-    r, J, ok = _jacobian_natural(problem, x, z["y0"], z["offset"], sigma, step)
-    if not bool(ok):
-        raise RuntimeError("fit: the simulation at the fitted parameters failed; check bounds and solver settings")
-    return _finish(problem, parameters, z, x, sigma, step, r, J, stages, time.perf_counter() - start)
+    cov = _covariance_at(problem, x, z, sigma, step)
+    return _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start)
+
+
+def _dense_covariance(problem: Problem, r, J) -> Covariance:
+    """`identify.covariance.dense` of the residuals that count."""
+    used = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :]).reshape(-1)
+    return covariance.dense(problem.names, problem.log_scale, np.asarray(r)[used], np.asarray(J)[used])
+
+
+def _covariance_at(problem: Problem, x, z, sigma, step) -> Covariance:
+    """The covariance at the optimum: block by block (`identify.covariance.blocked`, no
+    dense Jacobian) when the Levenberg-Marquardt steps were (`BLOCK_SOLVE_MIN_LOGS` logs
+    with nuisances), else from the dense Jacobian."""
+    fail = "fit: the simulation at the fitted parameters failed; check bounds and solver settings"
+    if not _blocked(problem):
+        r, J, ok = _jacobian_natural(problem, x, z["y0"], z["offset"], sigma, step)
+        if not bool(ok):
+            raise RuntimeError(fail)
+        return _dense_covariance(problem, r, J)
+    jac = _jacobian_blocks(problem, x, z["y0"], z["offset"], sigma, step)
+    if not bool(jnp.all(jac.ok)):
+        raise RuntimeError(fail)
+    L, n, _ = jac.shared.shape
+    slots = []
+    start = 0
+    for kind, width in ((0, len(problem.y0_free)), (1, len(problem.offset_free))):
+        pos, used = jac.layout.arrays(kind)
+        slots.append(np.where(used, start + pos, -1))
+        start += width
+    used = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :]).reshape(L, n)
+    return covariance.blocked(
+        problem.names,
+        problem.log_scale,
+        np.asarray(jac.r),
+        np.asarray(jac.shared),
+        np.concatenate([np.asarray(jac.y0), np.asarray(jac.offset)], axis=2),
+        np.concatenate(slots, axis=1),
+        used,
+    )
 
 
 def _check_damping(first_damping):
@@ -784,19 +837,10 @@ def _at_bounds(problem: Problem, xs: np.ndarray) -> list[str]:
     return out
 
 
-def _finish(problem: Problem, parameters, z, x, sigma, step, r, J, stages, wall_time) -> FitResult:
-    """Host-side statistics of a converged fit: covariance, intervals, identifiability."""
-    r, J = np.asarray(r), np.asarray(J)
-    used = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :]).reshape(-1)
-    r, J = r[used], J[used]
-    n_res, n_par = J.shape
-    rss = float(r @ r)
-    s2 = rss / max(n_res - n_par, 1)
-    U, S, Vt = np.linalg.svd(J, full_matrices=False)
-    tol = S[0] * max(J.shape) * np.finfo(float).eps
-    Sinv2 = np.where(S > tol, 1.0 / np.where(S > tol, S, 1.0) ** 2, 0.0)
-    cov = s2 * (Vt.T * Sinv2) @ Vt
-    se_nat = np.sqrt(np.clip(np.diag(cov), 0, None))
+def _finish(problem: Problem, parameters, z, x, sigma, step, cov: Covariance, stages, wall_time) -> FitResult:
+    """Host-side statistics of a converged fit: intervals, nuisances, convergence (the
+    covariance and identifiability from `identify.covariance`)."""
+    se_nat = cov.std_errors
     p = len(problem.names)
     xs = np.asarray(x)
     values = np.array([np.exp(v) if s else v for v, s in zip(xs, problem.log_scale)])
@@ -809,9 +853,6 @@ def _finish(problem: Problem, parameters, z, x, sigma, step, r, J, stages, wall_
             [np.exp(xs[i] + Z95 * se_nat[i]) if problem.log_scale[i] else xs[i] + Z95 * se_nat[i] for i in range(p)]
         )
         se = np.where(np.isfinite(se), se, np.inf)
-    d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    corr = (cov / np.outer(d, d))[:p, :p]
-    ident, sv = _identifiability(problem, J)
     states = state_names(problem.chain)
     init, offs = {}, {}
     for k, (l, s) in enumerate(problem.y0_free):
@@ -830,18 +871,18 @@ def _finish(problem: Problem, parameters, z, x, sigma, step, r, J, stages, wall_
         std_errors=se,
         ci_low=lo,
         ci_high=hi,
-        correlation=corr,
+        correlation=cov.correlation,
         initial_states=init,
         offsets=offs,
         sigma={c: float(s) for c, s in zip(problem.channels, sigma)},
-        residual_variance=s2,
-        cost=rss,
-        n_residuals=n_res,
+        residual_variance=cov.residual_variance,
+        cost=cov.rss,
+        n_residuals=cov.n_residuals,
         stages=stages,
         converged=converged,
         at_bounds=at_bounds,
-        identifiability=ident,
-        singular_values=sv,
+        identifiability=cov.identifiability,
+        singular_values=cov.singular_values,
         wall_time=wall_time,
         problem=problem,
         z=z,
@@ -962,8 +1003,7 @@ def fit_independent(
             x[k],
             sigma,
             step[k],
-            r[k],
-            J[k],
+            _dense_covariance(singles[k], r[k], J[k]),
             stages[k],
             wall,
         )
@@ -1151,30 +1191,6 @@ def _reestimate_sigma(problem: Problem, z, sigma, channels, step):
             rms = math.sqrt(float(np.mean(r[:, :, j][mask[:, :, j]] ** 2)))
             new[j] = max(rms, 1e-12)
     return jnp.asarray(new)
-
-
-def _identifiability(problem: Problem, J: np.ndarray, threshold: float = 1e-6):
-    """Warnings for parameter combinations the data cannot separate: the right singular
-    vectors (restricted to the physical parameters) of the column-normalised Jacobian
-    whose singular value is below `threshold` times the largest."""
-    p = len(problem.names)
-    norms = np.linalg.norm(J, axis=0)
-    norms = np.where(norms > 0, norms, 1.0)
-    _, S, Vt = np.linalg.svd(J / norms, full_matrices=False)
-    warnings = []
-    for k in range(len(S)):
-        ratio = S[k] / S[0] if S[0] > 0 else 0.0
-        if ratio < threshold:
-            v = Vt[k, :p]
-            if np.linalg.norm(v) < 0.5:  # the weak direction is in the nuisances
-                continue
-            terms = [
-                f"{v[i]:+.2f} {'log ' if problem.log_scale[i] else ''}{problem.names[i]}"
-                for i in np.argsort(-np.abs(v))
-                if abs(v[i]) > 0.1
-            ]
-            warnings.append({"combination": " ".join(terms), "ratio": float(ratio)})
-    return warnings, S
 
 
 def fitted_outputs(result: FitResult) -> dict:

@@ -131,3 +131,16 @@ def test_a_fit_of_many_logs_recovers_the_truth():
         assert abs(angle - angles[l]) < 4 * se, (l, angle, angles[l], se)
         offset, se = res.offsets[f"release_{l}"]["theta1"]
         assert abs(offset - offsets[l]) < 4 * se, (l, offset, offsets[l], se)
+    # its standard errors came block by block (identify.covariance.blocked); the dense
+    # Jacobian's SVD at the same optimum gives the same ones
+    x = fit_module._x_from_z(problem, res.z["phys"])
+    sigma = jnp.asarray([res.sigma[c] for c in problem.channels])
+    r, J, ok = fit_module._jacobian_natural(problem, x, res.z["y0"], res.z["offset"], sigma, res.step)
+    dense = fit_module._dense_covariance(problem, r, J)
+    assert bool(ok)
+    np.testing.assert_allclose(res.std_errors, res.values * dense.std_errors[:2], rtol=1e-8)
+    for l in range(L):
+        assert res.initial_states[f"release_{l}"]["theta1"][1] == pytest.approx(dense.std_errors[2 + l], rel=1e-8)
+        assert res.offsets[f"release_{l}"]["theta1"][1] == pytest.approx(dense.std_errors[2 + L + l], rel=1e-8)
+    np.testing.assert_allclose(res.correlation, dense.correlation, rtol=1e-8, atol=1e-12)
+    assert res.cost == pytest.approx(dense.rss, rel=1e-12)

@@ -1,0 +1,97 @@
+"""The fit's covariance, dense and block by block (`identify.covariance`).
+
+Oracles: NumPy's inverse of `J^T J` for a dense block-arrow `J` assembled from the blocks
+(standard errors, correlation), and the dense path's identifiability check for a
+combination that is degenerate only after the nuisances are eliminated.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from identify import covariance
+
+NAMES = ("link1.EI", "joint1.damping", "payload.mass")
+LOG_SCALE = (True, True, False)
+
+
+def _blocks(seed, L=5, n=40, k=3):
+    rng = np.random.default_rng(seed)
+    P = len(NAMES)
+    r = rng.normal(size=(L, n))
+    S = rng.normal(size=(L, n, P)) * np.array([1e3, 2.0, 30.0])
+    U = rng.normal(size=(L, n, k)) * 10.0
+    slots = -np.ones((L, k), int)
+    nxt = 0
+    for l in range(L):
+        k_l = [k, 1, 0, k, 2][l % 5]  # padding, and a log with no nuisances
+        slots[l, :k_l] = np.arange(nxt, nxt + k_l)
+        nxt += k_l
+        U[l, :, k_l:] = rng.normal(size=(n, k - k_l))  # padding columns are ignored, whatever they hold
+    used = rng.uniform(size=(L, n)) > 0.15
+    return r, S, U, slots, used
+
+
+def _dense(r, S, U, slots, used):
+    L, n, P = S.shape
+    n_nuis = slots.max(initial=-1) + 1
+    J = np.zeros((L, n, P + n_nuis))
+    J[:, :, :P] = S
+    for l in range(L):
+        for j in np.flatnonzero(slots[l] >= 0):
+            J[l, :, P + slots[l, j]] = U[l, :, j]
+    m = used.reshape(-1)
+    return r.reshape(-1)[m], J.reshape(L * n, -1)[m]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_blocked_equals_the_inverse_of_the_dense_normal_matrix(seed):
+    r, S, U, slots, used = _blocks(seed)
+    rd, Jd = _dense(r, S, U, slots, used)
+    cov = covariance.blocked(NAMES, LOG_SCALE, r, S, U, slots, used)
+    n_res, n_par = Jd.shape
+    s2 = float(rd @ rd) / (n_res - n_par)
+    ref = s2 * np.linalg.inv(Jd.T @ Jd)
+    assert cov.n_residuals == n_res
+    assert cov.rss == pytest.approx(float(rd @ rd), rel=1e-12)
+    assert cov.residual_variance == pytest.approx(s2, rel=1e-12)
+    np.testing.assert_allclose(cov.std_errors, np.sqrt(np.diag(ref)), rtol=1e-9)
+    d = np.sqrt(np.diag(ref))[:3]
+    np.testing.assert_allclose(cov.correlation, ref[:3, :3] / np.outer(d, d), rtol=1e-9, atol=1e-12)
+    assert cov.identifiability == []
+    # and the dense path agrees with the same oracle
+    dense = covariance.dense(NAMES, LOG_SCALE, rd, Jd)
+    np.testing.assert_allclose(dense.std_errors, np.sqrt(np.diag(ref)), rtol=1e-9)
+    np.testing.assert_allclose(dense.correlation, cov.correlation, rtol=1e-9, atol=1e-12)
+
+
+def test_a_combination_degenerate_after_eliminating_the_nuisances_is_reported_by_both():
+    r, S, U, slots, used = _blocks(3)
+    # damping's column = 2 x EI's plus something each log's nuisances absorb: separable
+    # only through the nuisances, i.e. not at all once they are free
+    for l in range(S.shape[0]):
+        cols = np.flatnonzero(slots[l] >= 0)
+        extra = U[l][:, cols] @ (1e-3 * np.linspace(1.0, 2.0, cols.size)) if cols.size else 0.0
+        S[l, :, 1] = 2e-3 * S[l, :, 0] + extra
+    rd, Jd = _dense(r, S, U, slots, used)
+    blocked = covariance.blocked(NAMES, LOG_SCALE, r, S, U, slots, used)
+    dense = covariance.dense(NAMES, LOG_SCALE, rd, Jd)
+    for cov in (blocked, dense):
+        assert len(cov.identifiability) == 1, cov.identifiability
+        combo = cov.identifiability[0]["combination"]
+        assert "log link1.EI" in combo and "log joint1.damping" in combo and "payload.mass" not in combo
+
+
+def test_no_nuisances_and_no_shared_parameters():
+    r, S, U, slots, used = _blocks(4)
+    rd, Jd = _dense(r, S, U[:, :, :0], slots[:, :0], used)
+    cov = covariance.blocked(NAMES, LOG_SCALE, r, S, U[:, :, :0], slots[:, :0], used)
+    s2 = float(rd @ rd) / (Jd.shape[0] - Jd.shape[1])
+    np.testing.assert_allclose(cov.std_errors, np.sqrt(np.diag(s2 * np.linalg.inv(Jd.T @ Jd))), rtol=1e-9)
+    # nuisances only (every physical parameter fixed)
+    rd, Jd = _dense(r, S[:, :, :0], U, slots, used)
+    cov = covariance.blocked((), (), r, S[:, :, :0], U, slots, used)
+    s2 = float(rd @ rd) / (Jd.shape[0] - Jd.shape[1])
+    np.testing.assert_allclose(cov.std_errors, np.sqrt(np.diag(s2 * np.linalg.inv(Jd.T @ Jd))), rtol=1e-9)
+    assert cov.correlation.shape == (0, 0)
