@@ -30,7 +30,8 @@ Rows, per `L`:
   (`_jacobian_natural`'s dense `J`, its SVD: `identify.covariance.dense`), with the dense
   `J`'s size and the largest relative difference of the standard errors.
 
-Usage: `python benchmarks/bench_fit_many_logs.py [--logs 1,2,4,8,16,32] [--repeats 3] [--json out.json]`
+Usage: `python benchmarks/bench_fit_many_logs.py [--logs 1,2,4,8,16,32] [--lm-logs 2,16] [--cov-logs 16,64]
+[--repeats 3] [--json out.json]`
 """
 
 from __future__ import annotations

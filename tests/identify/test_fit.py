@@ -176,6 +176,23 @@ def test_converges_from_far_off_corner(arm, seed, factors):
         assert abs(e) <= BARS[n], f"{n} off by {100 * e:+.3f}% (bar {100 * BARS[n]:.0f}%)\n{result.summary()}"
 
 
+def test_one_start_growing_horizon_needs_the_scaled_first_damping(arm):
+    """A growing horizon from a single start (no frequency initialisation), guess EI +100 %,
+    damping, hub and payload -50 % (`benchmarks/bench_fit_convergence.py`, trial 8): with
+    optimistix's first damping (1, an undamped Gauss-Newton step here) the short first stage
+    jumps to a spurious optimum, the joint damping on its lower bound; with the scaled first
+    damping (`first_damping`, the default) the fit reaches the truth within the bars."""
+    options = dict(n_starts=1, max_restarts=0, frequency_init=False)
+    factors = (2.0, 0.5, 0.5, 0.5)
+    result, seconds = arm.fit(3008, factors, **options)
+    print(describe(result, seconds, "scaled first damping:"))
+    assert result.converged and within_bars(result), result.summary()
+    classical, seconds = arm.fit(3008, factors, first_damping=0.0, **options)
+    print(describe(classical, seconds, "optimistix's first damping:"))
+    assert not within_bars(classical)
+    assert classical.value["joint1.damping"] < 0.05 * TRUTH["joint1.damping"]
+
+
 # ---------------------------------------------------------------------------
 # CI-sized: multi-log fit
 # ---------------------------------------------------------------------------
