@@ -49,12 +49,12 @@ class Covariance:
     identifiability: list
 
 
-def _pinv_parts(A: np.ndarray, rel: float | None = None):
-    """SVD of `A` truncated at `s_max max(A.shape) eps` (or `rel s_max`): `(W, s, Vt)`."""
+def _pinv_parts(A: np.ndarray):
+    """SVD of `A` truncated at `s_max max(A.shape) eps`: `(W, s, Vt)`."""
     W, s, Vt = np.linalg.svd(A, full_matrices=False)
     if s.size == 0:
         return W, s, Vt
-    tol = s[0] * (rel if rel is not None else max(A.shape) * np.finfo(float).eps)
+    tol = s[0] * max(A.shape) * np.finfo(float).eps
     keep = s > tol
     return W[:, keep], s[keep], Vt[keep]
 

@@ -76,6 +76,7 @@ class ScaledTrustRegion(optx.ClassicalTrustRegion):
             # optimistix's start
             return jnp.where(jnp.isfinite(lam) & (lam > 0), 1.0 / lam, step_size).astype(step_size.dtype)
 
-        step_size = jax.lax.cond(first_step, scaled, lambda: step_size)
+        # `tau = 0` (optimistix's start) skips the column norms
+        step_size = jax.lax.cond(first_step & (self.tau > 0), scaled, lambda: step_size)
         new_state = eqx.tree_at(lambda s: s.step_size, new_state, step_size)
         return step_size, accept, result, new_state

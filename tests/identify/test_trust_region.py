@@ -68,6 +68,17 @@ def test_later_steps_update_the_damping_as_optimistix_does(scale):
     assert float(a[3].step_size) == float(b[3].step_size)
 
 
+def test_tau_zero_is_optimistix_start():
+    rng = np.random.default_rng(5)
+    y = {"a": jnp.zeros(2), "b": jnp.zeros(3)}
+    info = _info(jnp.asarray(rng.normal(size=(10, 5)) * 1e3), jnp.ones(10), y)
+    ours, theirs = ScaledTrustRegion(tau=jnp.asarray(0.0)), optx.ClassicalTrustRegion()
+    a = ours.step(jnp.array(True), y, y, info, info, ours.init(y, info))
+    b = theirs.step(jnp.array(True), y, y, info, info, theirs.init(y, info))
+    assert float(a[0]) == float(b[0]) == 1.0
+    assert bool(a[1]) and bool(b[1])
+
+
 def test_zero_jacobian_keeps_optimistix_start():
     y = {"a": jnp.zeros(2), "b": jnp.zeros(3)}
     info = _info(jnp.zeros((10, 5)), jnp.ones(10), y)
