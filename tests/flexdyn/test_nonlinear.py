@@ -143,3 +143,55 @@ def test_absent_terms_are_not_parameters():
         fd.RigidJoint(coulomb=1e-3, coulomb_velocity=0.0)
     with pytest.raises(ValueError, match="RigidJoint.coulomb"):
         fd.RigidJoint(coulomb=-1e-3)
+
+
+def test_forward_dynamics_derivatives_with_friction_drag_and_backlash_match_finite_differences():
+    """`fd.accelerations` has its own derivative rule (implicit function of the Lagrange
+    residual, `flexdyn.chain`); with dry friction, drag on a flexible link and backlash in
+    the residual, its forward- and reverse-mode derivatives w.r.t. those parameters, a few
+    others, Q and Q_dot equal central finite differences (step 1e-4 in log-parameters, 1e-6
+    in the state) to 1e-6 of each column's largest entry (measured: 1.2e-7 at worst), at a
+    state inside the backlash's smooth transition zone."""
+    rig = fd.rigs.flexible_link_joint_arm(structural_damping=0.01)
+    j = rig.joints[0]
+    joint1 = fd.ElasticJoint(
+        j.stiffness,
+        j.rotor_inertia,
+        j.gear_ratio,
+        spong_approximation=j.spong_approximation,
+        backlash=0.004,
+        coulomb=0.01,
+    )
+    chain = eqx.tree_at(lambda c: c.joints, rig, (joint1, rig.joints[1]))
+    chain = eqx.tree_at(lambda c: c.links[0].drag, chain, 0.05, is_leaf=lambda x: x is None)
+    names = ["joint1.coulomb", "link1.drag", "joint1.backlash", "joint1.stiffness", "link2.EI", "payload.mass"]
+    p0 = np.array([float(fd.get_parameter(chain, n)) for n in names])
+    n = chain.layout.n_dof
+    rng = np.random.default_rng(11)
+    Q0 = rng.normal(0.0, 0.01, n)
+    Q0[chain.layout.rotor[0]] = Q0[chain.layout.theta[0]] + 0.003  # inside the dead zone's smooth part
+    Qd0 = rng.normal(0.0, 0.5, n)
+    x0 = np.concatenate([np.log(p0), Q0, Qd0])
+    tau = jnp.asarray([0.05, -0.02])
+
+    def acc(x):
+        c = fd.with_parameters(chain, dict(zip(names, jnp.exp(x[: len(names)]))))
+        return fd.accelerations(c, x[len(names) : len(names) + n], x[len(names) + n :], tau)
+
+    forward = np.asarray(jax.jit(jax.jacfwd(acc))(jnp.asarray(x0)))
+    reverse = np.asarray(jax.jit(jax.jacrev(acc))(jnp.asarray(x0)))
+    f = jax.jit(acc)
+    steps = np.concatenate([np.full(len(names), 1e-4), np.full(2 * n, 1e-6)])
+    central = np.stack(
+        [
+            (np.asarray(f(jnp.asarray(x0 + h * e))) - np.asarray(f(jnp.asarray(x0 - h * e)))) / (2 * h)
+            for h, e in zip(steps, np.eye(len(x0)))
+        ],
+        axis=1,
+    )
+    colmax = np.max(np.abs(central), axis=0)
+    floor = 1e-12 * np.max(colmax)  # columns that are exactly zero (a rate that enters nothing here)
+    for ad in (forward, reverse):
+        assert np.all(np.max(np.abs(ad - central), axis=0) <= 1e-6 * colmax + floor)
+    # measured: coulomb, drag, backlash columns 0.5, 1.7, 1.1e3 (the largest 4.9e6): not vacuous
+    assert np.all(colmax[:3] > 1e-2)
