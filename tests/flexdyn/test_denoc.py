@@ -141,6 +141,12 @@ def _both(chain, Q, Qd, torque):
             "F": (F, generalised_forces(asm, Q, Qd, tau)),
             "Qdd": (dn.denoc_accelerations(asm, Q, Qd, tau), Qdd_core),
             "Qdd_recursive": (dn.denoc_forward_dynamics_recursive(asm, Q, Qd, tau), Qdd_core),
+            # inverse dynamics (formed without M in the core) at an arbitrary Q_ddot (here tau
+            # reused as a scale): DeNOC's M Q_ddot + h - F(torque = 0)
+            "inverse_dynamics": (
+                M @ (Qd * tau[0]) + h - dn.denoc_equations(asm, Q, Qd, jnp.zeros_like(tau))[2],
+                fd.inverse_dynamics(asm, Q, Qd, Qd * tau[0]),
+            ),
         }
 
     return jax.vmap(one)(Q, Qd, torque)
@@ -309,9 +315,9 @@ def test_twists_and_bias_match_kinematics(rng):
 
 @pytest.mark.parametrize("name", list(STRUCTURES))
 def test_denoc_equals_lagrange(name, rng):
-    """M, h, F and Q_ddot (dense and recursive) of the DeNOC formulation equal the core's to
-    1e-10 relative (of the largest entry, per state): 2 random parameter sets x 6 random
-    states per structure."""
+    """M, h, F, Q_ddot (dense and recursive) and the inverse dynamics of the DeNOC
+    formulation equal the core's to 1e-10 relative (of the largest entry, per state): 2
+    random parameter sets x 6 random states per structure."""
     worst = {}
     for _ in range(2):
         chain = _random_chain(STRUCTURES[name], rng)
