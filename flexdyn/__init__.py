@@ -68,6 +68,12 @@ from .parts import (
     RigidJoint as RigidJoint,
     RigidLink as RigidLink,
 )
+from .program_cache import (
+    MappingLimitWarning as MappingLimitWarning,
+    ensure_mapping_headroom as ensure_mapping_headroom,
+    mapping_count as mapping_count,
+    mapping_limit as mapping_limit,
+)
 from .simulate import (
     ChainVectorField as ChainVectorField,
     Outputs as Outputs,

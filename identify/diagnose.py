@@ -705,6 +705,7 @@ def diagnose_logs(
         """Fit the continuous candidates `remaining` (multi-start, screened when there are
         more than `n_fit`) from the model state `v_start`, each extending the current
         model; score them against it. Returns the scores and the fits (to extend from)."""
+        fd.ensure_mapping_headroom()  # each candidate batch compiles programs of its own
         batch, owners = [], []
         for c in remaining:
             for s in c.starts:

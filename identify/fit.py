@@ -643,6 +643,7 @@ def fit(
     - `progress`: callable taking a message string (e.g. `print`), or None.
     """
     _check_damping(first_damping)
+    fd.ensure_mapping_headroom()  # a fit compiles ~10-50 programs (flexdyn.program_cache)
     start = time.perf_counter()
     say = progress or (lambda msg: None)
     x0 = _x_from_theta(problem, [p.guess for p in parameters])
@@ -934,6 +935,7 @@ def fit_independent(
     first stage starts with the damping `first_damping` (as in `fit` with one start).
     Returns one `FitResult` per log."""
     _check_damping(first_damping)
+    fd.ensure_mapping_headroom()  # flexdyn.program_cache
     start = time.perf_counter()
     say = progress or (lambda msg: None)
     stacked, singles = _split(problem)

@@ -28,9 +28,11 @@ def tree_allclose(x, y, *, rtol, atol):
 
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_programs():
-    """Drop JAX's compiled programs after each test module. A full run compiles hundreds of
-    programs in one process; keeping them all was followed by a segfault inside XLA's
-    compiler late in the run (seen once on a fresh clone), so each module starts clean."""
+    """Drop JAX's compiled programs after each test module. A full run compiles thousands of
+    programs in one process, and each holds memory mappings until it is dropped: at the
+    kernel's limit (vm.max_map_count, 65,530 by default) XLA's compiler crashes (seen on a
+    fresh clone and in the slow diagnosis grid; `flexdyn.program_cache` has the measurements
+    and the guard that `identify` runs before each fit). So each module starts clean."""
     yield
     jax.clear_caches()
     gc.collect()

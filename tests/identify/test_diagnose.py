@@ -115,10 +115,36 @@ def test_sensor_delay_hidden():
     assert_found(diag, "sensor_delay", "sensor.theta1.delay", d)
 
 
-def test_no_effect_names_no_cause():
+def test_no_effect_names_no_cause(monkeypatch):
+    # also: the memory-mapping guard (flexdyn.program_cache) is consulted before the
+    # baseline fit and before each batch of candidates (the places that compile programs)
+    checks = []
+    guard = fd.ensure_mapping_headroom
+    monkeypatch.setattr(fd, "ensure_mapping_headroom", lambda *a, **k: checks.append(1) or guard(*a, **k))
     diag = run(logs_of(pendulum(), 14))
     assert diag.named == [], diag.summary()
     assert "no catalogue entry explains" in diag.summary()
+    assert len(checks) >= 1 + len(diag.rounds), (len(checks), len(diag.rounds))
+
+
+@pytest.mark.slow
+def test_clearing_the_compiled_programs_mid_diagnosis_changes_nothing(monkeypatch):
+    """The guard clears JAX's caches when the process nears vm.max_map_count; forced here at
+    every check (a limit just above the current count), the diagnosis recompiles its
+    programs and must reach the same result as with the programs kept."""
+    logs = logs_of(pendulum(coulomb=1.0e-3), 15)
+    kept = run(logs)
+    pc = sys.modules["flexdyn.program_cache"]
+    monkeypatch.setattr(pc, "mapping_limit", lambda: fd.mapping_count() + 1)
+    monkeypatch.setattr(pc, "_warned", False)
+    with pytest.warns(fd.MappingLimitWarning):
+        cleared = run(logs)
+    assert cleared.named == kept.named == ["coulomb_friction"]
+    np.testing.assert_allclose(cleared.baseline.cost, kept.baseline.cost, rtol=1e-12)
+    a = {s.name: s.delta_bic for s in cleared.rounds[0]}
+    b = {s.name: s.delta_bic for s in kept.rounds[0]}
+    assert a.keys() == b.keys()
+    np.testing.assert_allclose([a[k] for k in sorted(a)], [b[k] for k in sorted(b)], rtol=1e-9, atol=1e-6)
 
 
 @pytest.mark.slow
