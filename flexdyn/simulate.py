@@ -3,8 +3,9 @@
 `simulate` integrates `y = [Q, Q_dot]` with an adaptive solver (default Tsit5,
 `rtol`/`atol`) or with a fixed step (`dt`, default RK4: papers 002/004 use RK4 at
 1 ms). It is pure and jit-compiled once per chain structure; `jax.grad`,
-`jax.jacfwd` and `jax.vmap` work through it (parameters are pytree leaves of the
-chain and the input). Failures are raised, never returned as NaNs: reaching
+`jax.jacfwd` (with `adjoint=diffrax.ForwardMode()`: diffrax's default adjoint is reverse
+mode only, and says "can't apply forward-mode autodiff (jvp) to a custom_vjp function")
+and `jax.vmap` work through it (parameters are pytree leaves of the chain and the input). Failures are raised, never returned as NaNs: reaching
 `max_steps`, or a non-finite state, is an error that says what to change.
 """
 
