@@ -5,8 +5,9 @@
 1 ms). It is pure and jit-compiled once per chain structure; `jax.grad`,
 `jax.jacfwd` (with `adjoint=diffrax.ForwardMode()`: diffrax's default adjoint is reverse
 mode only, and says "can't apply forward-mode autodiff (jvp) to a custom_vjp function")
-and `jax.vmap` work through it (parameters are pytree leaves of the chain and the input). Failures are raised, never returned as NaNs: reaching
-`max_steps`, or a non-finite state, is an error that says what to change.
+and `jax.vmap` work through it (parameters are pytree leaves of the chain and the input).
+Failures are raised, never returned as NaNs: reaching `max_steps`, or a non-finite state,
+is an error that says what to change.
 """
 
 from __future__ import annotations
