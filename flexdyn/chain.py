@@ -24,6 +24,35 @@ linearised rotation `E_i = [[1, -v'], [v', 1]]`; we add the slope to the angle,
 which is the same to first order and keeps `R` orthogonal. Large rigid
 rotations are exact; no small-angle assumption is made anywhere.
 
+**Geometric stiffening** (`FlexibleLink(geometric_stiffening=True)`). The linear
+kinematics above keep every point at its undeformed axial station `x`, so a bent link
+gets longer, and nothing resists bending but `EI`: a spinning link's centrifugal load
+then *softens* its in-plane modes (`-1/2 omega^2 q^T Mq q` in `V - T`), and a floppy
+link spinning faster than its first frequency diverges. With the option, the centreline
+keeps its length to second order in the deflection: the point at `x` is at
+`[x + u(x), v(x)]` with the axial shortening (the "foreshortening" of Kane, Ryan &
+Banerjee, J. Guidance 10 (1987) 139; Banerjee & Dickens, J. Guidance 13 (1990) 221)
+
+    u(x) = -1/2 int_0^x v'(s)^2 ds = -1/2 q^T G(x) q,    G(x) = int_0^x phi' phi'^T ds.
+
+The distal parts ride on the shortened tip `[l + u(l), v(l)]` exactly, and the link's
+own kinetic and gravitational energies gain, to second order in `(q, q_dot)` (terms
+of third order, e.g. `omega v u_dot`, dropped):
+
+    T += -u_x (q^T H0 q_dot) - 1/2 u_y omega (q^T H0 q) - 1/2 omega^2 (q^T H1 q),
+    int rho r += R(phi) [-1/2 q^T H0 q, 0],
+
+`H0 = int rho G(x) dx`, `H1 = int rho x G(x) dx` (`LinkMatrices`). For a link spinning
+at a steady rate `Omega` about a fixed joint, `-1/2 Omega^2 q^T H1 q` is the potential
+`1/2 int N(x) v'^2` of the centrifugal tension `N(x) = rho Omega^2 (l^2 - x^2)/2`: the
+in-plane rotating-beam equation `EI v'''' - (N v')' - rho Omega^2 v = -rho v_tt` is
+recovered (tested against an independent Rayleigh-Ritz solution and the published
+frequencies of rotating cantilevers). Gravity does the same through the `H0` term:
+tension in a hanging link, compression in a standing one (tested against Greenhill's
+self-weight buckling load, `rho g l^3 / EI = 7.837`). `T` stays a quadratic form in
+`Q_dot`, so energy is still conserved exactly. Not included: the shortening in the
+aerodynamic drag's normal velocity (`omega u`, second order) and axial elasticity.
+
 **Kinetic energy.** With `w = [u, omega, q_dot]` (origin velocity `u = R^T
 o_dot` in the body frame, `omega = phi_dot`) the link's kinetic energy is, exactly
 for the kinematics above,
@@ -203,7 +232,11 @@ class LinkMatrices(eqx.Module):
     `stiffness = EI int phi'' phi''^T dx`, `damping` (modal), `tip_shape = phi(l)`,
     `tip_slope = phi'(l)` [1/m], `root_curvature = phi''(0)` [1/m^2], `lam = beta l`,
     `coef` (shape coefficients, `flexdyn.modes`), `frequency` = clamped-mass
-    natural frequencies [rad/s].
+    natural frequencies [rad/s]. With geometric stiffening (zero otherwise):
+    `shortening = int phi' phi'^T dx` [1/m] (the tip moves in by `1/2 q^T shortening q`),
+    `shortening_mass = int rho G(x) dx = int rho (l - x) phi' phi'^T dx` [kg/m] and
+    `shortening_moment = int rho x G(x) dx = int rho (l^2 - x^2)/2 phi' phi'^T dx` [kg],
+    `G(x) = int_0^x phi' phi'^T`.
     """
 
     length: Array
@@ -222,6 +255,9 @@ class LinkMatrices(eqx.Module):
     coef: Array
     frequency: Array
     tip_load: Array  # (M, S, J) used for the clamped-mass shapes
+    shortening: Array
+    shortening_mass: Array
+    shortening_moment: Array
 
 
 class AssembledChain(eqx.Module):
@@ -285,6 +321,9 @@ def _assemble_link(chain: Chain, i: int) -> LinkMatrices:
             jnp.zeros((0, 4)),
             empty,
             jnp.stack([M, S, J]),
+            jnp.zeros((0, 0)),
+            jnp.zeros((0, 0)),
+            jnp.zeros((0, 0)),
         )
     rho = link.rho
     EI = checked(link.EI, "FlexibleLink", "EI", positive=True)
@@ -307,6 +346,14 @@ def _assemble_link(chain: Chain, i: int) -> LinkMatrices:
     generalised_mass = jnp.diag(modal_mass) + M * tip_shape**2 + 2.0 * S * tip_shape * tip_slope + J * tip_slope**2
     k_diag = jnp.diag(stiffness)
     d = 2.0 * link.damping_ratio * jnp.sqrt(k_diag * generalised_mass) + link.sqrt_stiffness_damping * jnp.sqrt(k_diag)
+    if link.geometric_stiffening:
+        slope = evaluate_shapes(lam, coef, xi, 1) / length  # phi'(x), 1/m
+        # double integrals int_0^l f(x) int_0^x phi' phi'^T, with the order of integration swapped
+        shortening = (slope.T * w) @ slope
+        shortening_mass = rho * (slope.T * (w * (length - x))) @ slope
+        shortening_moment = rho * (slope.T * (w * 0.5 * (length**2 - x**2))) @ slope
+    else:
+        shortening = shortening_mass = shortening_moment = jnp.zeros((n, n))
     return LinkMatrices(
         length,
         mass,
@@ -324,6 +371,9 @@ def _assemble_link(chain: Chain, i: int) -> LinkMatrices:
         coef,
         frequency,
         jnp.stack([M, S, J]),
+        shortening,
+        shortening_mass,
+        shortening_moment,
     )
 
 
@@ -366,7 +416,7 @@ def frames(asm: AssembledChain, Q) -> Frames:
         origins.append(o)
         angles.append(phi)
         carriers.append(psi)
-        tip_local = jnp.stack([lm.length, jnp.dot(lm.tip_shape, q)])
+        tip_local = jnp.stack([_reach(asm, i, q), jnp.dot(lm.tip_shape, q)])
         o = o + _rot(phi) @ tip_local
         psi = phi + jnp.dot(lm.tip_slope, q)
         tips.append(psi)
@@ -377,11 +427,13 @@ def frames_and_rates(asm: AssembledChain, Q, Qd) -> tuple[Frames, Frames]:
     """`frames(asm, Q)` and its time derivative along `Qd`, by the velocity recursion
 
         phi_dot_i = psi_dot_{i-1} + theta_dot_i,
-        o_dot_{i+1} = o_dot_i + phi_dot_i S R(phi_i) [l_i, v_i(l_i)] + R(phi_i) [0, v_dot_i(l_i)],
+        o_dot_{i+1} = o_dot_i + phi_dot_i S R(phi_i) [l_i + u_i(l_i), v_i(l_i)]
+                    + R(phi_i) [u_dot_i(l_i), v_dot_i(l_i)],
         psi_dot_i = phi_dot_i + v_dot_i'(l_i),
 
-    (`S` the 90-degree rotation), written out so that the kinetic energy carries no nested
-    derivative (smaller graphs to compile and to differentiate)."""
+    (`S` the 90-degree rotation; `u_i = 0` without geometric stiffening), written out so
+    that the kinetic energy carries no nested derivative (smaller graphs to compile and to
+    differentiate)."""
     lay = asm.layout
     o, o_dot = jnp.zeros(2), jnp.zeros(2)
     psi, psi_dot = jnp.zeros(()), jnp.zeros(())
@@ -396,8 +448,8 @@ def frames_and_rates(asm: AssembledChain, Q, Qd) -> tuple[Frames, Frames]:
         for lst, val in zip(vel, (o_dot, phi_dot, None, psi_dot)):
             lst.append(val)
         R = _rot(phi)
-        tip_local = jnp.stack([lm.length, jnp.dot(lm.tip_shape, q)])
-        tip_rate = jnp.stack([jnp.zeros(()), jnp.dot(lm.tip_shape, qd)])
+        tip_local = jnp.stack([_reach(asm, i, q), jnp.dot(lm.tip_shape, q)])
+        tip_rate = jnp.stack([_reach_rate(asm, i, q, qd), jnp.dot(lm.tip_shape, qd)])
         arm = R @ tip_local
         o_dot = o_dot + phi_dot * jnp.stack([-arm[1], arm[0]]) + R @ tip_rate
         o = o + arm
@@ -413,6 +465,30 @@ def frames_and_rates(asm: AssembledChain, Q, Qd) -> tuple[Frames, Frames]:
 def _modal(lay: Layout, Q, i):
     idx = lay.modal[i]
     return Q[idx[0] : idx[-1] + 1] if idx else jnp.zeros((0,), Q.dtype)
+
+
+def _stiffening(asm: AssembledChain, i: int) -> bool:
+    """Whether link i has geometric stiffening (static structure)."""
+    return bool(getattr(asm.chain.links[i], "geometric_stiffening", False))
+
+
+def _quadratic(A, x, y):
+    """`x^T A y` on scalar components (see `kinetic_energy`)."""
+    return jnp.sum(x[:, None] * A * y[None, :])
+
+
+def _reach(asm: AssembledChain, i: int, q):
+    """Axial position of link i's tip in its root frame, m: `l + u(l)`, `u(l) = -1/2 q^T
+    shortening q` with geometric stiffening, `l` without."""
+    lm = asm.links[i]
+    return lm.length - 0.5 * _quadratic(lm.shortening, q, q) if _stiffening(asm, i) else lm.length
+
+
+def _reach_rate(asm: AssembledChain, i: int, q, qd):
+    """Time derivative of `_reach`, m/s."""
+    if not _stiffening(asm, i):
+        return jnp.zeros((), q.dtype)
+    return -_quadratic(asm.links[i].shortening, q, qd)
 
 
 def kinetic_energy(asm: AssembledChain, Q, Qd):
@@ -443,6 +519,10 @@ def kinetic_energy(asm: AssembledChain, Q, Qd):
         T = T + 0.5 * lm.mass * (ux * ux + uy * uy)
         T = T + 0.5 * omega**2 * (lm.c2 + qMq) + uy * omega * lm.c1
         T = T - ux * omega * aq + uy * aqd + omega * bqd + 0.5 * qdMqd
+        if _stiffening(asm, i):  # the axial shortening u(x) = -1/2 q^T G(x) q, to second order
+            H0, H1 = lm.shortening_mass, lm.shortening_moment
+            T = T - ux * _quadratic(H0, q, qd) - 0.5 * uy * omega * _quadratic(H0, q, q)
+            T = T - 0.5 * omega**2 * _quadratic(H1, q, q)
         hub, joint = chain.hubs[i], chain.joints[i]
         T = T + 0.5 * hub.mass * (vx * vx + vy * vy) + 0.5 * hub.inertia * omega**2
         s_dot = Qd[lay.actuated[i]]
@@ -452,8 +532,9 @@ def kinetic_energy(asm: AssembledChain, Q, Qd):
             T = T + 0.5 * joint.rotor_inertia * (carrier_rate + joint.gear_ratio * s_dot) ** 2
         # next joint: o_dot += omega S R(phi) [l, d] + R(phi) [0, d_dot] (the position o itself is not needed)
         d, d_dot = jnp.sum(lm.tip_shape * q), jnp.sum(lm.tip_shape * qd)
-        ax, ay = c * lm.length - s * d, s * lm.length + c * d
-        vx, vy = vx - omega * ay - s * d_dot, vy + omega * ax + c * d_dot
+        reach, reach_dot = _reach(asm, i, q), _reach_rate(asm, i, q, qd)
+        ax, ay = c * reach - s * d, s * reach + c * d
+        vx, vy = vx - omega * ay - s * d_dot + c * reach_dot, vy + omega * ax + c * d_dot + s * reach_dot
         psi = phi + jnp.sum(lm.tip_slope * q)
         psi_dot = omega + jnp.sum(lm.tip_slope * qd)
     p = chain.payload
@@ -475,8 +556,9 @@ def potential_energy(asm: AssembledChain, Q):
         c, s = jnp.cos(phi), jnp.sin(phi)
         aq = jnp.sum(lm.a * q)
         m = lm.mass + chain.hubs[i].mass
-        wx = wx + m * ox + c * lm.c1 - s * aq  # + R(phi) [c1, a.q]
-        wy = wy + m * oy + s * lm.c1 + c * aq
+        c1 = lm.c1 - 0.5 * _quadratic(lm.shortening_mass, q, q) if _stiffening(asm, i) else lm.c1
+        wx = wx + m * ox + c * c1 - s * aq  # + R(phi) [c1 + int rho u, a.q]
+        wy = wy + m * oy + s * c1 + c * aq
         V = V + 0.5 * jnp.sum(q[:, None] * lm.stiffness * q[None, :])
         joint = chain.joints[i]
         if joint.elastic:
@@ -485,8 +567,8 @@ def potential_energy(asm: AssembledChain, Q):
                 V = V + 0.5 * joint.stiffness * delta**2
             else:
                 V = V + backlash_energy(joint.stiffness, delta, joint.backlash)
-        d = jnp.sum(lm.tip_shape * q)
-        ox, oy = ox + c * lm.length - s * d, oy + s * lm.length + c * d
+        d, reach = jnp.sum(lm.tip_shape * q), _reach(asm, i, q)
+        ox, oy = ox + c * reach - s * d, oy + s * reach + c * d
         psi = phi + jnp.sum(lm.tip_slope * q)
     mp = chain.payload.mass
     wx, wy = wx + mp * ox, wy + mp * oy

@@ -372,6 +372,12 @@ class _Recursion(NamedTuple):
 
 def _recursion(asm, Q, Qd=None):
     lay, chain = asm.layout, asm.chain
+    for i, link in enumerate(chain.links, start=1):
+        if getattr(link, "geometric_stiffening", False):
+            raise ValueError(
+                f"Chain.links[{i - 1}] (link{i}): geometric_stiffening=True is not in the DeNOC formulation "
+                "(paper 000's linear kinematics); use flexdyn.accelerations, or a link without it"
+            )
     n = chain.n_links
     A, P, bodies, ts, zetas, locs, ws = [], [], [], [], [], [], []
     phi_parent = jnp.zeros(())

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import as_float_array, check_parameter
@@ -86,6 +87,13 @@ class FlexibleLink(eqx.Module):
       the shapes (unit mean square, `q` in metres; see `flexdyn.modes`).
     - `drag`: aerodynamic drag per unit length, kg/m^2, as for `RigidLink` (the
       normal velocity includes the elastic rate `v_dot(x)`).
+    - `geometric_stiffening`: if True (structure, static), the link's points move inwards
+      as it bends, `u(x) = -1/2 int_0^x v'^2`, so that the centreline keeps its length
+      (to second order in the deflection). This is what gives a spinning link its
+      centrifugal stiffening and a hanging (or standing) link its gravity stiffening
+      (softening); see `flexdyn.chain`. Default False: the linear assumed-modes model of
+      papers 000/002/004, which has neither, and diverges when a floppy link spins faster
+      than its first flexural frequency.
     """
 
     length: Scalar
@@ -95,11 +103,25 @@ class FlexibleLink(eqx.Module):
     sqrt_stiffness_damping: Scalar
     drag: Scalar | None
     n_modes: int = eqx.field(static=True)
+    geometric_stiffening: bool = eqx.field(static=True)
 
-    def __init__(self, length, rho, EI, n_modes: int = 2, damping_ratio=0.0, sqrt_stiffness_damping=0.0, drag=None):
+    def __init__(
+        self,
+        length,
+        rho,
+        EI,
+        n_modes: int = 2,
+        damping_ratio=0.0,
+        sqrt_stiffness_damping=0.0,
+        drag=None,
+        geometric_stiffening: bool = False,
+    ):
         if isinstance(n_modes, bool) or not isinstance(n_modes, int) or n_modes < 1:
             raise ValueError(f"FlexibleLink.n_modes: expected an integer >= 1, got {n_modes!r}")
+        if not isinstance(geometric_stiffening, (bool, np.bool_)):
+            raise ValueError(f"FlexibleLink.geometric_stiffening: expected True or False, got {geometric_stiffening!r}")
         self.n_modes = n_modes
+        self.geometric_stiffening = bool(geometric_stiffening)
         self.length = as_float_array(length)
         self.rho = as_float_array(rho)
         self.EI = as_float_array(EI)

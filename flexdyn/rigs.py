@@ -57,7 +57,13 @@ def rigid_pendulum(joint_damping=1.9e-3, payload_mass=0.020, hub_inertia=2e-5) -
 
 
 def flexible_pendulum(
-    n_modes=1, mass=None, joint_damping=1.9e-3, damping_ratio=0.0, hub_inertia=2e-5, payload_mass=0.0
+    n_modes=1,
+    mass=None,
+    joint_damping=1.9e-3,
+    damping_ratio=0.0,
+    hub_inertia=2e-5,
+    payload_mass=0.0,
+    geometric_stiffening=False,
 ) -> Chain:
     """Paper 000's flexible pendulum (Table 1, eq. 10): spring-steel strip 0.30 x 0.025
     x 0.002 m, hinged at a hub of 2e-5 kg m^2, vertical plane, `n_modes` assumed
@@ -65,13 +71,23 @@ def flexible_pendulum(
 
     `mass` (kg) overrides the strip's mass from its dimensions (0.118 kg); see the
     module docstring for why the printed 0.60 kg is not the default. `damping_ratio`
-    is the modal damping ratio (the paper gives no value).
+    is the modal damping ratio (the paper gives no value). `geometric_stiffening`: see
+    `FlexibleLink` (the paper's model has none; its weight then stiffens the hanging strip).
     """
     width, thickness, length = 0.025, 0.002, 0.30
     rho = SPRING_STEEL_DENSITY * width * thickness if mass is None else mass / length
     EI = SPRING_STEEL_YOUNG * width * thickness**3 / 12.0
     return Chain(
-        links=[FlexibleLink(length=length, rho=rho, EI=EI, n_modes=n_modes, damping_ratio=damping_ratio)],
+        links=[
+            FlexibleLink(
+                length=length,
+                rho=rho,
+                EI=EI,
+                n_modes=n_modes,
+                damping_ratio=damping_ratio,
+                geometric_stiffening=geometric_stiffening,
+            )
+        ],
         joints=[RigidJoint(damping=joint_damping)],
         hubs=[Hub(inertia=hub_inertia)],
         payload=Payload(mass=payload_mass),
@@ -79,13 +95,29 @@ def flexible_pendulum(
     )
 
 
-def two_link_flexible_arm(payload_mass=0.0, payload_inertia=0.0, n_modes=2, structural_damping=0.1) -> Chain:
+def _papers_002_004_link(n_modes, structural_damping, geometric_stiffening) -> FlexibleLink:
+    """The flexible link of papers 002 and 004 (Table I / Table 1): l = 0.5 m, rho = 0.2
+    kg/m, EI = 1.0 N m^2, structural damping D = `structural_damping` * sqrt(K)."""
+    return FlexibleLink(
+        length=0.5,
+        rho=0.2,
+        EI=1.0,
+        n_modes=n_modes,
+        sqrt_stiffness_damping=structural_damping,
+        geometric_stiffening=geometric_stiffening,
+    )
+
+
+def two_link_flexible_arm(
+    payload_mass=0.0, payload_inertia=0.0, n_modes=2, structural_damping=0.1, geometric_stiffening=False
+) -> Chain:
     """Paper 002's two-link flexible arm in the horizontal plane (Table I): both links
     l = 0.5 m, rho = 0.2 kg/m, EI = 1.0 N m^2; motor and hub inertia J_h = 0.02 kg m^2
     at both joints (gear ratio 1, so rotor and hub turn with the link); centre motor
     mass M_h2 = 1 kg; payload `payload_mass` (0-0.1 kg in the paper) at the tip;
-    structural damping D = `structural_damping` * sqrt(K) (paper: 0.1)."""
-    link = FlexibleLink(length=0.5, rho=0.2, EI=1.0, n_modes=n_modes, sqrt_stiffness_damping=structural_damping)
+    structural damping D = `structural_damping` * sqrt(K) (paper: 0.1). `geometric_stiffening`:
+    see `FlexibleLink` (not in the paper's model)."""
+    link = _papers_002_004_link(n_modes, structural_damping, geometric_stiffening)
     return Chain(
         links=[link, link],
         joints=[RigidJoint(), RigidJoint()],
@@ -103,13 +135,15 @@ def flexible_link_joint_arm(
     payload_mass=0.1,
     payload_inertia=0.005,
     hub2_mass=0.0,
+    geometric_stiffening=False,
 ) -> Chain:
     """Paper 004's two-link arm with flexible links and flexible joints (Table 1):
     l = 0.5 m, rho = 0.2 kg/m, EI = 1.0 N m^2, rotor and hub inertia I_r = 0.02 kg m^2,
     gear ratio 1, joint stiffness k_s = 100 N m/rad, payload 0.1 kg and 0.005 kg m^2,
     horizontal plane. `rigid_joints=True` gives the flexible-link/rigid-joint model of
-    eq. (55) that the paper compares with (k_s -> infinity)."""
-    link = FlexibleLink(length=0.5, rho=0.2, EI=1.0, n_modes=n_modes, sqrt_stiffness_damping=structural_damping)
+    eq. (55) that the paper compares with (k_s -> infinity). `geometric_stiffening`: see
+    `FlexibleLink` (not in the paper's model)."""
+    link = _papers_002_004_link(n_modes, structural_damping, geometric_stiffening)
     if rigid_joints:
         joints = [RigidJoint(rotor_inertia=0.02, spong_approximation=True) for _ in range(2)]
     else:

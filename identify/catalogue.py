@@ -267,7 +267,12 @@ def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: floa
         link = chain.links[i]
         fields = {f: getattr(link, f) for f in ("length", "rho", "EI", "sqrt_stiffness_damping", "drag")}
         ratio = np.asarray(link.damping_ratio)
-        new = fd.FlexibleLink(n_modes=link.n_modes + 1, damping_ratio=np.concatenate([ratio, ratio[-1:]]), **fields)
+        new = fd.FlexibleLink(
+            n_modes=link.n_modes + 1,
+            damping_ratio=np.concatenate([ratio, ratio[-1:]]),
+            geometric_stiffening=link.geometric_stiffening,
+            **fields,
+        )
         links = list(chain.links)
         links[i] = new
         return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity), {}

@@ -10,6 +10,7 @@ import sys
 import numpy as np
 from scipy.integrate import quad
 from scipy.linalg import eigh
+from scipy.optimize import brentq
 
 sys.path.insert(0, os.path.dirname(__file__))
 import oracles as O  # noqa: E402
@@ -301,6 +302,46 @@ for _ in range(3):
 # hub with rotary inertia but zero mass, payload inertia only
 m_i = O.mujoco_planar_chain([lk], hub_masses=[0.0], hub_inertias=[0.05], payload_mass=0.0, payload_inertia=0.02)
 check("zero-mass hub/payload rotary inertia only", O.mujoco_mass_matrix(m_i, [0.3]), M0 + 0.07, 1e-12)
+
+# ---------------------------------------------------------------- axially loaded cantilever
+# Ritz with the polynomial basis: unloaded = the cantilever roots squared; rotating beam
+# (out-of-plane) = the published table of Hodges & Rutkowski (1981), Table 1 (also Wright et
+# al. 1982), first two modes at lam = 1, 2, 5, 10, 12; Greenhill's load from the Bessel zero =
+# Timoshenko & Gere's 7.837 and = where the standing column's first Ritz frequency vanishes.
+check(
+    "cantilever, no load: (beta_k l)^2",
+    O.axially_loaded_cantilever_frequencies(lambda x: 0.0)[:3],
+    O.cantilever_roots(3) ** 2,
+    1e-9,
+)
+PUBLISHED_ROTATING = {
+    1: (3.6816, 22.1810),
+    2: (4.1373, 22.6149),
+    5: (6.4495, 25.4461),
+    10: (11.2023, 33.6404),
+    12: (13.1702, 37.6031),
+}
+for lam_, want in PUBLISHED_ROTATING.items():
+    got = O.axially_loaded_cantilever_frequencies(lambda x, lam_=lam_: lam_**2 * (1 - x * x) / 2)[:2]
+    check(f"rotating cantilever lam={lam_}: Hodges & Rutkowski", got, want, 6e-5)
+    inplane = O.axially_loaded_cantilever_frequencies(lambda x, lam_=lam_: lam_**2 * (1 - x * x) / 2, lam_**2)[:2]
+    check(f"rotating cantilever lam={lam_}: in-plane^2 = out-of-plane^2 - lam^2", inplane**2, got**2 - lam_**2, 1e-9)
+check(
+    "rotating cantilever: basis converged (14 vs 20 polynomials)",
+    O.axially_loaded_cantilever_frequencies(lambda x: 50 * (1 - x * x), n_basis=14)[:2],
+    O.axially_loaded_cantilever_frequencies(lambda x: 50 * (1 - x * x), n_basis=20)[:2],
+    1e-9,
+)
+check(
+    "cantilever with a tip mass, no load: clamped-mass roots squared",
+    O.axially_loaded_cantilever_frequencies(lambda x: 0.0, tip_mass=0.7, n_basis=20)[:3],
+    O.clamped_mass_roots(3, 0.7, 0.0) ** 2,
+    1e-8,
+)
+gamma_cr = O.greenhill_critical_load()
+check("Greenhill 9/4 j^2 = 7.837 (Timoshenko & Gere)", gamma_cr, 7.837, 1e-4)
+gamma_ritz = brentq(lambda g: O.axially_loaded_cantilever_frequencies(lambda x: -g * (1 - x))[0], 5.0, 10.0, xtol=1e-13)
+check("Greenhill = standing column's Ritz frequency at zero", gamma_ritz, gamma_cr, 1e-9)
 
 print()
 print("ALL OK" if not FAIL else f"FAILED: {FAIL}")

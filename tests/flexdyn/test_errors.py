@@ -82,6 +82,19 @@ def test_damping_ratio_of_the_wrong_length_is_rejected():
         fd.FlexibleLink(length=0.5, rho=0.2, EI=1.0, n_modes=2, damping_ratio=[0.01, 0.02, 0.03])
 
 
+@pytest.mark.parametrize("value", [1, 0.0, "true", None])
+def test_non_boolean_geometric_stiffening_is_rejected(value):
+    with pytest.raises(ValueError, match=r"FlexibleLink\.geometric_stiffening: expected True or False"):
+        fd.FlexibleLink(length=0.5, rho=0.2, EI=1.0, geometric_stiffening=value)
+
+
+def test_denoc_refuses_a_stiffened_link_by_name():
+    link = fd.FlexibleLink(length=0.5, rho=0.2, EI=1.0, n_modes=1, geometric_stiffening=True)
+    chain = fd.Chain([fd.RigidLink(length=0.3, mass=0.1), link])
+    with pytest.raises(ValueError, match=r"links\[1\] \(link2\): geometric_stiffening=True is not in the DeNOC"):
+        fd.denoc.denoc_accelerations(chain, jnp.zeros(3), jnp.zeros(3), jnp.zeros(2))
+
+
 @pytest.mark.parametrize("n_modes", [2.0, 0, -1, "2", 1.5])
 def test_non_integer_or_non_positive_n_modes_is_rejected(n_modes):
     with pytest.raises(ValueError, match=r"FlexibleLink\.n_modes"):

@@ -49,14 +49,14 @@ def _undamped_flexible_link_joint_arm():
     return chain, fd.initial_state(chain, [0.2, 0.3], [1.0, -0.5], modal=[1e-3, 0.0, 0.0, 0.0])
 
 
-def mixed_three_link_arm():
+def mixed_three_link_arm(geometric_stiffening=False):
     """Two flexible links around a rigid one, elastic joints (exact and Spong rotor
     energy), a geared rigid joint with a rotor, hubs with mass and inertia, a payload
     with inertia and gravity in an oblique direction. No damping anywhere."""
     links = (
-        fd.FlexibleLink(length=0.4, rho=0.3, EI=2.0, n_modes=2),
+        fd.FlexibleLink(length=0.4, rho=0.3, EI=2.0, n_modes=2, geometric_stiffening=geometric_stiffening),
         fd.RigidLink(length=0.3, mass=0.2, com=0.12, inertia=2e-3),
-        fd.FlexibleLink(length=0.35, rho=0.25, EI=1.5, n_modes=1),
+        fd.FlexibleLink(length=0.35, rho=0.25, EI=1.5, n_modes=1, geometric_stiffening=geometric_stiffening),
     )
     joints = (
         fd.ElasticJoint(stiffness=50.0, rotor_inertia=0.01, gear_ratio=2.0),
@@ -67,12 +67,18 @@ def mixed_three_link_arm():
     return fd.Chain(links, joints, hubs, fd.Payload(mass=0.1, inertia=2e-3), gravity=(3.0, -8.0))
 
 
-def _undamped_mixed_arm():
-    chain = mixed_three_link_arm()
+def _undamped_mixed_arm(geometric_stiffening=False, rates=(0.5, -0.4, 0.6)):
+    chain = mixed_three_link_arm(geometric_stiffening)
     y0 = fd.initial_state(
-        chain, [-0.8, 0.4, -0.3], [0.5, -0.4, 0.6], modal=[1e-3, 0.0, -5e-4], rotor_angles=[-0.799, 0.4, -0.301]
+        chain, [-0.8, 0.4, -0.3], list(rates), modal=[1e-3, 0.0, -5e-4], rotor_angles=[-0.799, 0.4, -0.301]
     )
     return chain, y0
+
+
+def _undamped_stiffened_arm():
+    """The mixed arm with geometric stiffening on both flexible links, spun up (8 rad/s at
+    the base) so that the centrifugal terms of the shortening carry weight."""
+    return _undamped_mixed_arm(True, rates=(8.0, -3.0, 4.0))
 
 
 # (factory, rtol, atol) of the adaptive Tsit5 solve. Tsit5 is not symplectic: the energy
@@ -88,6 +94,7 @@ CONSERVATIVE_RIGS = {
     "two_link_flexible_arm_payload": (_undamped_two_link_arm, 1e-10, 1e-12),
     "flexible_link_joint_arm": (_undamped_flexible_link_joint_arm, 1e-8, 1e-10),
     "mixed_three_link_arm": (_undamped_mixed_arm, 1e-10, 1e-12),
+    "mixed_three_link_arm_geometric_stiffening": (_undamped_stiffened_arm, 1e-10, 1e-12),
 }
 
 

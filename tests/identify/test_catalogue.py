@@ -29,3 +29,14 @@ def test_pair_of_a_structural_entry_is_refused_by_name():
     mode = _entry("missing_mode", "link1", (), ((),), structural=True)
     with pytest.raises(ValueError, match="missing_mode:link1"):
         cat.pair(drag, (1e-3,), mode)
+
+
+def test_missing_mode_keeps_the_links_geometric_stiffening():
+    import flexdyn as fd
+
+    for stiffening in (True, False):
+        chain = fd.rigs.two_link_flexible_arm(n_modes=1, geometric_stiffening=stiffening)
+        mode = _entry("missing_mode", "link2", (), ((),), structural=True)
+        extended, guesses = cat.structural_model(chain, mode, max_frequency_hz=50.0)
+        assert extended.links[1].n_modes == 2 and guesses == {}
+        assert extended.links[1].geometric_stiffening is stiffening

@@ -168,6 +168,7 @@ def test_explicit_chain(tmp_path):
         EI = 3.3
         n_modes = 2
         damping_ratio = [0.01, 0.02]
+        geometric_stiffening = true
 
         [[rig.joints]]
         type = "rigid"
@@ -216,6 +217,7 @@ def test_explicit_chain(tmp_path):
     for name in fd.parameter_names(ref):
         assert float(fd.get_parameter(exp.chain, name)) == float(fd.get_parameter(ref, name)), name
     assert exp.chain.joints[1].spong_approximation
+    assert exp.chain.links[1].geometric_stiffening
     assert exp.chain.coordinate_names() == ["theta1", "alpha2", "theta2", "q2_1", "q2_2"]
     # Rotor angle and rate default to the link's (unloaded spring).
     assert exp.logs[0].initial == {"theta2": 0.5, "theta2_rate": 0.1, "alpha2": 0.5, "alpha2_rate": 0.1}
@@ -263,6 +265,14 @@ def test_unknown_rig_base(tmp_path):
         load_experiment(path)
 
 
+def test_named_rig_with_geometric_stiffening(tmp_path):
+    path = experiment(tmp_path, '[rig]\nbase = "flexible_pendulum"\noptions = { geometric_stiffening = true }\n' + LOG)
+    assert load_experiment(path).chain.links[0].geometric_stiffening
+    path = experiment(tmp_path, '[rig]\nbase = "flexible_pendulum"\noptions = { geometric_stiffening = "yes" }\n' + LOG)
+    with pytest.raises(ExperimentError, match=msg("rig.options.geometric_stiffening", "expected true or false")):
+        load_experiment(path)
+
+
 def test_bad_rig_option(tmp_path):
     path = experiment(tmp_path, '[rig]\nbase = "flexible_pendulum"\noptions = { modes = 2 }\n' + LOG)
     with pytest.raises(
@@ -297,6 +307,9 @@ def test_explicit_chain_errors(tmp_path):
         load_experiment(path)
     path = experiment(tmp_path, "[rig]\n" + link + "EI = 3.3\nwidth = 0.02\n" + LOG)
     with pytest.raises(ExperimentError, match=msg("line 7: rig.links[1].width", "no parameter 'width'", "EI")):
+        load_experiment(path)
+    path = experiment(tmp_path, "[rig]\n" + link + "EI = 3.3\ngeometric_stiffening = 1\n" + LOG)
+    with pytest.raises(ExperimentError, match=msg("line 7: rig.links[1].geometric_stiffening", "true or false", "1")):
         load_experiment(path)
     joints = "[[rig.joints]]\ndamping = 0.1\n[[rig.joints]]\ndamping = 0.1\n"
     path = experiment(tmp_path, "[rig]\n" + link + "EI = 3.3\n" + joints + LOG)
