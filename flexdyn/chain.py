@@ -532,9 +532,12 @@ def kinetic_energy(asm: AssembledChain, Q, Qd):
             T = T + 0.5 * joint.rotor_inertia * (carrier_rate + joint.gear_ratio * s_dot) ** 2
         # next joint: o_dot += omega S R(phi) [l, d] + R(phi) [0, d_dot] (the position o itself is not needed)
         d, d_dot = jnp.sum(lm.tip_shape * q), jnp.sum(lm.tip_shape * qd)
-        reach, reach_dot = _reach(asm, i, q), _reach_rate(asm, i, q, qd)
+        reach = _reach(asm, i, q)
         ax, ay = c * reach - s * d, s * reach + c * d
-        vx, vy = vx - omega * ay - s * d_dot + c * reach_dot, vy + omega * ax + c * d_dot + s * reach_dot
+        vx, vy = vx - omega * ay - s * d_dot, vy + omega * ax + c * d_dot
+        if _stiffening(asm, i):  # the tip also moves along the link as it bends: + R(phi) [reach_dot, 0]
+            reach_dot = _reach_rate(asm, i, q, qd)
+            vx, vy = vx + c * reach_dot, vy + s * reach_dot
         psi = phi + jnp.sum(lm.tip_slope * q)
         psi_dot = omega + jnp.sum(lm.tip_slope * qd)
     p = chain.payload
