@@ -520,9 +520,9 @@ def kinetic_energy(asm: AssembledChain, Q, Qd):
         T = T + 0.5 * omega**2 * (lm.c2 + qMq) + uy * omega * lm.c1
         T = T - ux * omega * aq + uy * aqd + omega * bqd + 0.5 * qdMqd
         if _stiffening(asm, i):  # the axial shortening u(x) = -1/2 q^T G(x) q, to second order
-            H0, H1 = lm.shortening_mass, lm.shortening_moment
-            T = T - ux * _quadratic(H0, q, qd) - 0.5 * uy * omega * _quadratic(H0, q, q)
-            T = T - 0.5 * omega**2 * _quadratic(H1, q, q)
+            H0q = jnp.sum(lm.shortening_mass * q[None, :], axis=1)
+            qH1q = _quadratic(lm.shortening_moment, q, q)
+            T = T - ux * jnp.sum(qd * H0q) - 0.5 * uy * omega * jnp.sum(q * H0q) - 0.5 * omega**2 * qH1q
         hub, joint = chain.hubs[i], chain.joints[i]
         T = T + 0.5 * hub.mass * (vx * vx + vy * vy) + 0.5 * hub.inertia * omega**2
         s_dot = Qd[lay.actuated[i]]
@@ -532,11 +532,14 @@ def kinetic_energy(asm: AssembledChain, Q, Qd):
             T = T + 0.5 * joint.rotor_inertia * (carrier_rate + joint.gear_ratio * s_dot) ** 2
         # next joint: o_dot += omega S R(phi) [l, d] + R(phi) [0, d_dot] (the position o itself is not needed)
         d, d_dot = jnp.sum(lm.tip_shape * q), jnp.sum(lm.tip_shape * qd)
-        reach = _reach(asm, i, q)
+        if _stiffening(asm, i):  # the tip also moves along the link as it bends: + R(phi) [reach_dot, 0]
+            Gq = jnp.sum(lm.shortening * q[None, :], axis=1)
+            reach, reach_dot = lm.length - 0.5 * jnp.sum(q * Gq), -jnp.sum(qd * Gq)
+        else:
+            reach, reach_dot = lm.length, None
         ax, ay = c * reach - s * d, s * reach + c * d
         vx, vy = vx - omega * ay - s * d_dot, vy + omega * ax + c * d_dot
-        if _stiffening(asm, i):  # the tip also moves along the link as it bends: + R(phi) [reach_dot, 0]
-            reach_dot = _reach_rate(asm, i, q, qd)
+        if reach_dot is not None:
             vx, vy = vx + c * reach_dot, vy + s * reach_dot
         psi = phi + jnp.sum(lm.tip_slope * q)
         psi_dot = omega + jnp.sum(lm.tip_slope * qd)
