@@ -1009,10 +1009,12 @@ def diagnose_logs(
         )
         winners = [s for s in scores if s.accepted]
         for s in scores[:5]:
-            say(
-                f"  {s.label:<32} dBIC {s.delta_bic:10.1f}  held-out gain {s.held_out_gain:6.3f}x "
-                f"{'ACCEPTED' if s.accepted else ''}"
+            outcome = (
+                "(screened out: predicted by one Gauss-Newton step)"
+                if s.screened
+                else f"held-out gain {s.held_out_gain:6.3f}x {'ACCEPTED' if s.accepted else ''}"
             )
+            say(f"  {s.label:<32} dBIC {s.delta_bic:10.1f}  {outcome}")
         if not winners:
             break
         w = winners[0]
