@@ -112,7 +112,11 @@ def stiffness_matrix(chain: Chain | AssembledChain, Q0) -> Float[Array, "n n"]:
 @eqx.filter_jit
 def modal_analysis(chain: Chain | AssembledChain, Q0=None) -> Modes:
     """Undamped natural frequencies and mode shapes about the configuration `Q0`
-    (default zero; it should be an equilibrium). Pure JAX: jit- and grad-able."""
+    (default zero; it should be an equilibrium at rest). Pure JAX: jit- and grad-able.
+    About a steady motion (a link spinning at a constant rate), use the eigenvalues of
+    `linearize(chain, y0).A` with the rates in `y0` instead: they carry the centrifugal
+    and gyroscopic terms (and, with `FlexibleLink(geometric_stiffening=True)`, the
+    centrifugal stiffening; `notebooks/geometric_stiffening.ipynb`)."""
     asm = assemble(chain)
     n = asm.layout.n_dof
     Q0 = jnp.zeros(n) if Q0 is None else jnp.asarray(Q0, dtype=float)

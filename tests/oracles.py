@@ -308,7 +308,7 @@ def greenhill_critical_load() -> float:
     """Greenhill's self-weight buckling load of a uniform column clamped at its foot and
     free at the top: `(rho g l^3 / EI)_cr = 9/4 j^2`, `j` the first zero of the Bessel
     function `J_{-1/3}` (Greenhill 1881; Timoshenko & Gere, Theory of Elastic Stability,
-    2nd ed. (1961), sec. 2.13: 7.837)."""
+    2nd ed. (1961), ch. 2, a bar under its own weight: 7.837)."""
     from scipy.special import jv
 
     j = brentq(lambda z: jv(-1.0 / 3.0, z), 1.0, 2.5, **_BRENT_KW)
