@@ -514,15 +514,19 @@ def kinetic_energy(asm: AssembledChain, Q, Qd):
         c, s = jnp.cos(phi), jnp.sin(phi)
         ux, uy = c * vx + s * vy, c * vy - s * vx  # R(phi)^T o_dot
         aq, aqd, bqd = jnp.sum(lm.a * q), jnp.sum(lm.a * qd), jnp.sum(lm.b * qd)
-        qMq = jnp.sum(q[:, None] * lm.modal_mass * q[None, :])
         qdMqd = jnp.sum(qd[:, None] * lm.modal_mass * qd[None, :])
-        T = T + 0.5 * lm.mass * (ux * ux + uy * uy)
-        T = T + 0.5 * omega**2 * (lm.c2 + qMq) + uy * omega * lm.c1
-        T = T - ux * omega * aq + uy * aqd + omega * bqd + 0.5 * qdMqd
-        if _stiffening(asm, i):  # the axial shortening u(x) = -1/2 q^T G(x) q, to second order
+        c1 = lm.c1
+        if _stiffening(asm, i):  # the axial shortening u(x) = -1/2 q^T G(x) q, to second order:
+            # c1 -> c1 - 1/2 q^T H0 q, Mq -> Mq - H1 in the omega^2 term, and -u_x q^T H0 q_dot
             H0q = jnp.sum(lm.shortening_mass * q[None, :], axis=1)
-            qH1q = _quadratic(lm.shortening_moment, q, q)
-            T = T - ux * jnp.sum(qd * H0q) - 0.5 * uy * omega * jnp.sum(q * H0q) - 0.5 * omega**2 * qH1q
+            c1 = c1 - 0.5 * jnp.sum(q * H0q)
+            qMq = _quadratic(lm.modal_mass - lm.shortening_moment, q, q)
+            T = T - ux * jnp.sum(qd * H0q)
+        else:
+            qMq = jnp.sum(q[:, None] * lm.modal_mass * q[None, :])
+        T = T + 0.5 * lm.mass * (ux * ux + uy * uy)
+        T = T + 0.5 * omega**2 * (lm.c2 + qMq) + uy * omega * c1
+        T = T - ux * omega * aq + uy * aqd + omega * bqd + 0.5 * qdMqd
         hub, joint = chain.hubs[i], chain.joints[i]
         T = T + 0.5 * hub.mass * (vx * vx + vy * vy) + 0.5 * hub.inertia * omega**2
         s_dot = Qd[lay.actuated[i]]
