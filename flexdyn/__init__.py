@@ -22,6 +22,7 @@ from . import (
     response as response,
     rigs as rigs,
     shaping as shaping,
+    stiffening as stiffening,
 )
 from .chain import (
     AssembledChain as AssembledChain,
@@ -83,6 +84,7 @@ from .simulate import (
     simulate as simulate,
 )
 from .solvers import RK4 as RK4
+from .stiffening import FirstModeStiffening as FirstModeStiffening, first_mode_stiffening as first_mode_stiffening
 
 __version__ = "0.1.0"
 from .params import (

@@ -359,7 +359,7 @@ def _fit_command(args) -> int:
     import jax
     import numpy as np
 
-    from . import report as plots
+    from . import evidence, report as plots
     from .fit import fitted_outputs
     from .run import fit_experiment, residual_report
 
@@ -423,6 +423,11 @@ def _fit_command(args) -> int:
     print()
     nf = ", ".join(f"{f:.4g}" for f in freqs if f > 0) or "none (rigid-body modes only)"
     print(f"Natural frequencies of the fitted model ({where}): {nf} Hz")
+    model_checks = evidence.stiffening_checks(
+        fitted_chain, evidence.link_spin_rates(fitted_chain, {**outputs, **val_outputs}, key="simulated")
+    )
+    for check in model_checks:
+        print(f"{'WARNING: ' if check['flagged'] else ''}model check: {check['message']}")
     print()
     print("Residuals (fitted - measured; [val] = validation log, not used by the fit):")
     combined_report = {**resid, **val_report}
@@ -452,6 +457,7 @@ def _fit_command(args) -> int:
     doc["residuals"] = resid
     doc["validation"] = {name: {"residuals": val_report[name], **val_nuisances[name]} for name in val_outputs}
     doc["natural_frequencies_hz"] = freqs
+    doc["model_checks"] = model_checks
     doc["modal_configuration"] = where
     doc["options"] = {"stages": args.stages}
     doc["command"] = ["identify", "fit", *map(str, _argv_tail(args))]

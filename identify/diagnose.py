@@ -404,6 +404,9 @@ class Diagnosis:
     # extended model on the fit and held-out data; N (`n_fit`, `n_held_out`) and the
     # number of added parameters `k`: what the totals are computed from
     costs: dict = dataclasses.field(default_factory=dict)
+    # what the baseline model assumes that the logs may break (`evidence.stiffening_checks`:
+    # a flexible link spinning or hanging enough to need geometric stiffening)
+    model_checks: list = dataclasses.field(default_factory=list)
 
     @property
     def named(self) -> list[str]:
@@ -433,6 +436,9 @@ class Diagnosis:
                     )
         else:
             lines.append("no catalogue entry explains the residual significantly (see the evidence and the scores)")
+        for check in self.model_checks:
+            if check["flagged"]:
+                lines.append(f"model check: {check['message']}")
         lines.append("")
         lines.append("held-out RMS per channel (baseline -> extended, gain):")
         for c in self.held_out["baseline"]:
@@ -475,6 +481,7 @@ class Diagnosis:
             "extended_parameters": self.extended_parameters,
             "extended_intervals": self.extended_intervals,
             "costs": self.costs,
+            "model_checks": self.model_checks,
             "modal_frequencies_hz": self.modal_frequencies_hz,
             "wall_time_s": self.wall_time,
         }
@@ -1144,6 +1151,7 @@ def diagnose_logs(
             if np.any(tv != 0):
                 torques[name] = tv
     evidence = ev.evidence(outs, base.sigma, modal, torques)
+    model_checks = ev.stiffening_checks(fitted_chain, ev.link_spin_rates(fitted_chain, traces))
     diag = Diagnosis(
         split=split,
         baseline=base,
@@ -1162,6 +1170,7 @@ def diagnose_logs(
         wall_time=0.0,
         extended_intervals=ext_intervals,
         costs=costs,
+        model_checks=model_checks,
     )
     if stack_on is not None:
         # A structural change was accepted: the search goes on from its model, a new

@@ -226,6 +226,16 @@ def markdown(diag, title: str = "") -> str:
                 f"| `{n}` | {p['value']:.5g} | {p['std_error']:.3g} | [{p['ci95'][0]:.5g}, {p['ci95'][1]:.5g}] |"
             )
         lines.append("")
+    if diag.model_checks:
+        lines.append("## Model checks (baseline)")
+        lines.append("")
+        lines.append(
+            "What the baseline model assumes that these logs may break (first-order estimates, `flexdyn.stiffening`):"
+        )
+        lines.append("")
+        for check in diag.model_checks:
+            lines.append(f"- {'**flagged**: ' if check['flagged'] else ''}{check['message']}")
+        lines.append("")
     lines.append("## Evidence (baseline fit)")
     lines.append("")
     lines.extend(ev.summary_lines(diag.evidence))

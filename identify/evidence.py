@@ -18,13 +18,26 @@ read and check, computed after the baseline fit by `identify.diagnose`.
   motion (sign of velocity, velocity |velocity|, position, velocity, acceleration, the
   input): dry friction correlates with sign(v), drag with v|v|, a delay with v, a gain
   error with the position itself.
+
+Model checks (not residual statistics: what the fitted model assumes that the logs may
+break):
+
+- `stiffening_checks`: for every flexible link without geometric stiffening, how much
+  the stiffening it leaves out would raise its first mode's squared frequency at the
+  fastest spin of the logs and under the rig's gravity (`flexdyn.stiffening`); above 1 %
+  the check is flagged. A fitted EI absorbs the missing stiffness: on a chain fitted
+  without it, `EI_fitted / EI_true = 1 / (1 - shift)` (`ei_bias_factor`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from flexdyn.stiffening import first_mode_stiffening
+
 from . import diagnostics
+
+STIFFENING_THRESHOLD = 0.01  # relative change of omega_1^2 above which a check is flagged
 
 
 def _uniform(t, y):
@@ -227,3 +240,87 @@ def summary_lines(ev: dict) -> list[str]:
                 )
             lines.append(f"  - whiteness: Ljung-Box p = {item['whiteness']['p_value']:.3g}")
     return lines
+
+
+def link_spin_rates(chain, traces: dict, key: str = "baseline") -> dict:
+    """Largest absolute angular rate (rad/s) of each link's root frame over the logs, from
+    the simulated angle channels of `traces` (`{log: {"t": ..., key: {channel: values}}}`:
+    diagnose's traces with `key="baseline"`, `identify.fitted_outputs` with
+    `key="simulated"`): `phi<i>` if recorded, else the sum of `theta1..theta<i>` (the tip
+    slopes of flexible links in between left out); None where neither is available."""
+    out = {}
+    for i in range(1, chain.n_links + 1):
+        best = None
+        for entry in traces.values():
+            sim, t = entry.get(key, {}), np.asarray(entry["t"], float)
+            if len(t) < 3:
+                continue
+            if f"phi{i}" in sim:
+                angle = np.asarray(sim[f"phi{i}"], float)
+            elif all(f"theta{j}" in sim for j in range(1, i + 1)):
+                angle = sum(np.asarray(sim[f"theta{j}"], float) for j in range(1, i + 1))
+            else:
+                continue
+            peak = float(np.max(np.abs(np.gradient(angle, t))))
+            best = peak if best is None else max(best, peak)
+        out[f"link{i}"] = best
+    return out
+
+
+def stiffening_checks(chain, spin_rates: dict, threshold: float = STIFFENING_THRESHOLD) -> list[dict]:
+    """One entry per flexible link of `chain` without geometric stiffening (module
+    docstring): its first clamped-mass frequency, the largest spin rate of the logs
+    (`spin_rates`, from `link_spin_rates`; None if unknown), the first-order change of
+    `omega_1^2` that stiffening would make from the spin and from gravity (`flexdyn.
+    stiffening`), whether that exceeds `threshold`, and a sentence saying so."""
+    estimates = first_mode_stiffening(chain)
+    g = float(np.hypot(*np.asarray(chain.gravity, float)))
+    out = []
+    for name, e in estimates.items():
+        link = chain.links[int(name[4:]) - 1]
+        if link.geometric_stiffening:
+            continue
+        rate = spin_rates.get(name)
+        spin = e.relative_shift(spin_rate=rate) if rate is not None else None
+        grav = e.relative_shift(axial_gravity=g)
+        worst = max(spin or 0.0, grav)
+        flagged = worst > threshold
+        w1 = e.frequency
+        parts = []
+        if rate is not None:
+            parts.append(
+                f"spins at up to {rate:.3g} rad/s, {rate / w1:.2f} of its first clamped frequency "
+                f"({w1:.3g} rad/s): stiffening {100 * spin:.2g} % of omega_1^2"
+            )
+        else:
+            parts.append(f"spin rate unknown (no angle channel for it); first clamped frequency {w1:.3g} rad/s")
+        if g > 0:
+            parts.append(f"gravity {g:.3g} m/s^2 along the link: +-{100 * grav:.2g} %")
+        # a fitted EI' absorbs the missing stiffness: omega_1'^2 = omega_1^2 + spin Omega^2, and
+        # `worst` is that over omega_1'^2 (this chain is the fitted one), so EI' / EI = 1 / (1 - worst)
+        bias = 1.0 / (1.0 - worst) if worst < 1.0 else None
+        if flagged:
+            verdict = (
+                "the model has no geometric stiffening, so a fitted EI absorbs it ("
+                + (f"EI / true EI about {bias:.3g}" if bias is not None else "the linear model is far off")
+                + "); set `geometric_stiffening = true` on this link ([[rig.links]]) and fit again"
+            )
+        else:
+            verdict = f"below {100 * threshold:.2g} %: the linear link model is adequate here"
+        out.append(
+            {
+                "check": "geometric_stiffening",
+                "link": name,
+                "first_frequency_rad_s": w1,
+                "spin_rate_max_rad_s": rate,
+                "spin_coefficient": e.spin,
+                "gravity_m_s2": g,
+                "gravity_coefficient_per_m": e.gravity,
+                "relative_shift_spin": spin,
+                "relative_shift_gravity": grav,
+                "ei_bias_factor": bias,
+                "flagged": bool(flagged),
+                "message": f"{name}: " + "; ".join(parts) + f"; {verdict}.",
+            }
+        )
+    return out

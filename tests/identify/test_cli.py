@@ -84,6 +84,7 @@ def test_fit_succeeds_and_writes_results(fitted):
     assert doc["validation"]["drop_m97deg"]["residuals"]["theta1"]["rms"] < 3 * 0.1 * 3.14159 / 180  # ~noise
     # small-amplitude frequency of the pendulum about the hanging equilibrium
     assert any(0.9 < f < 1.2 for f in doc["natural_frequencies_hz"])
+    assert doc["model_checks"] == []  # a rigid link: no stiffening check (tests/identify/test_evidence.py)
     assert doc["versions"]["jax"]
 
 

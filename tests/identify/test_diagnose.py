@@ -14,6 +14,7 @@ split.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -31,7 +32,7 @@ from diagnose_cases import (  # tests/ is on sys.path
 )
 
 import flexdyn as fd
-from identify import measurement as meas
+from identify import diagnosis_report, evidence, measurement as meas
 from identify.cli import main
 from identify.diagnose import diagnose_logs, split_logs
 
@@ -125,6 +126,17 @@ def test_no_effect_names_no_cause(monkeypatch):
     assert diag.named == [], diag.summary()
     assert "no catalogue entry explains" in diag.summary()
     assert len(checks) >= 1 + len(diag.rounds), (len(checks), len(diag.rounds))
+    # model checks: none for a rigid pendulum; a flagged one (a flexible link spinning at 0.57
+    # of its first frequency, tests/identify/test_evidence.py) shows in every output
+    assert diag.model_checks == []
+    assert "## Model checks" not in diagnosis_report.markdown(diag)
+    spinning = fd.Chain([fd.FlexibleLink(0.5, 0.2, 1.0, n_modes=2)])
+    flagged = evidence.stiffening_checks(spinning, {"link1": 2.0 * math.sqrt(1.0 / (0.2 * 0.5**4))})
+    checked = dataclasses.replace(diag, model_checks=flagged)
+    assert "## Model checks" in diagnosis_report.markdown(checked)
+    assert "**flagged**: link1" in diagnosis_report.markdown(checked)
+    assert "model check: link1" in checked.summary()
+    assert json.loads(json.dumps(checked.to_dict()["model_checks"]))[0]["flagged"] is True
 
 
 @pytest.mark.slow

@@ -1,0 +1,63 @@
+"""`identify.evidence`'s model checks: the spin rates read from the simulated angle channels
+and the geometric-stiffening check built on `flexdyn.stiffening` (whose coefficients are
+tested against the Ritz oracle in tests/flexdyn/test_stiffening.py)."""
+
+import math
+
+import numpy as np
+import pytest
+
+import flexdyn as fd
+from identify import evidence as ev
+
+L, RHO, EI = 0.5, 0.2, 1.0  # paper 002's link as in test_fit's spinning-link fit
+SCALE = math.sqrt(EI / (RHO * L**4))  # rad/s; the first clamped frequency is 3.5160 SCALE
+
+
+def _traces(**channels):
+    t = np.linspace(0.0, 2.0, 2001)
+    return t, {"log1": {"t": t, "baseline": {c: f(t) for c, f in channels.items()}}}
+
+
+def test_spin_rates_come_from_phi_or_the_sum_of_joint_angles():
+    chain = fd.Chain([fd.RigidLink(0.3, 0.2), fd.RigidLink(0.3, 0.2), fd.RigidLink(0.3, 0.2)])
+    _, traces = _traces(theta1=lambda t: 0.5 * np.sin(3.0 * t), theta2=lambda t: 2.0 * t, phi3=lambda t: -4.0 * t)
+    rates = ev.link_spin_rates(chain, traces)
+    assert rates["link1"] == pytest.approx(1.5, rel=1e-5)  # max |d theta1/dt| = 0.5 * 3
+    assert rates["link2"] == pytest.approx(3.5, rel=1e-5)  # theta1 + theta2: 1.5 + 2 at t = 0
+    assert rates["link3"] == pytest.approx(4.0, rel=1e-9)
+    # no angle channel for a link: unknown, not zero
+    _, tips = _traces(tip1=lambda t: 1e-3 * np.sin(t))
+    assert ev.link_spin_rates(fd.Chain([fd.RigidLink(0.3, 0.2)]), tips) == {"link1": None}
+
+
+def test_a_link_spinning_at_half_its_first_frequency_is_flagged_with_the_ei_bias():
+    chain = fd.Chain([fd.FlexibleLink(L, RHO, EI, n_modes=2)])
+    rate = 2.0 * SCALE  # lam = 2: 0.569 of the first clamped frequency
+    (check,) = ev.stiffening_checks(chain, {"link1": rate})
+    assert check["link"] == "link1" and check["flagged"]
+    assert check["first_frequency_rad_s"] == pytest.approx(3.5160153 * SCALE, rel=1e-6)
+    assert check["relative_shift_spin"] == pytest.approx(1.1933 * (2.0 / 3.5160153) ** 2, rel=1e-4)
+    assert check["relative_shift_gravity"] == 0.0  # horizontal plane
+    assert "geometric_stiffening = true" in check["message"] and "link1" in check["message"]
+    # slow: below the threshold, not flagged
+    (slow,) = ev.stiffening_checks(chain, {"link1": 0.05 * SCALE})
+    assert not slow["flagged"] and "adequate" in slow["message"]
+    # unknown rate: said so; gravity alone decides
+    (unknown,) = ev.stiffening_checks(chain, {"link1": None})
+    assert unknown["relative_shift_spin"] is None and not unknown["flagged"]
+    assert "spin rate unknown" in unknown["message"]
+
+
+def test_gravity_flags_a_long_floppy_vertical_link_and_stiffened_or_rigid_links_are_skipped():
+    # paper 000's strip: at 0.30 m (the paper's pendulum) gravity changes omega_1^2 by 0.4 %,
+    # at 1.0 m by 15 % (tests/flexdyn/test_stiffening.py, against the Ritz oracle)
+    strip = fd.rigs.flexible_pendulum(n_modes=2).links[0]
+    for length, flagged in ((0.30, False), (1.0, True)):
+        link = fd.FlexibleLink(length, strip.rho, strip.EI, n_modes=2)
+        (check,) = ev.stiffening_checks(fd.Chain([link], gravity=(0.0, -9.81)), {"link1": 0.0})
+        assert check["flagged"] == flagged, check
+    assert check["relative_shift_gravity"] == pytest.approx(0.147, abs=0.005)
+    stiffened = fd.FlexibleLink(1.0, 0.4, 0.3, n_modes=2, geometric_stiffening=True)
+    assert ev.stiffening_checks(fd.Chain([stiffened], gravity=(0.0, -9.81)), {"link1": 0.0}) == []
+    assert ev.stiffening_checks(fd.Chain([fd.RigidLink(0.3, 0.2)]), {"link1": 5.0}) == []
