@@ -423,8 +423,11 @@ def _fit_command(args) -> int:
     print()
     nf = ", ".join(f"{f:.4g}" for f in freqs if f > 0) or "none (rigid-body modes only)"
     print(f"Natural frequencies of the fitted model ({where}): {nf} Hz")
+    all_outputs = {**outputs, **val_outputs}
     model_checks = evidence.stiffening_checks(
-        fitted_chain, evidence.link_spin_rates(fitted_chain, {**outputs, **val_outputs}, key="simulated")
+        fitted_chain,
+        evidence.link_spin_rates(fitted_chain, all_outputs, key="simulated"),
+        evidence.link_root_accelerations(fitted_chain, all_outputs, key="simulated"),
     )
     for check in model_checks:
         print(f"{'WARNING: ' if check['flagged'] else ''}model check: {check['message']}")

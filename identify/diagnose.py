@@ -1151,7 +1151,9 @@ def diagnose_logs(
             if np.any(tv != 0):
                 torques[name] = tv
     evidence = ev.evidence(outs, base.sigma, modal, torques)
-    model_checks = ev.stiffening_checks(fitted_chain, ev.link_spin_rates(fitted_chain, traces))
+    model_checks = ev.stiffening_checks(
+        fitted_chain, ev.link_spin_rates(fitted_chain, traces), ev.link_root_accelerations(fitted_chain, traces)
+    )
     diag = Diagnosis(
         split=split,
         baseline=base,

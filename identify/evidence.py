@@ -24,7 +24,8 @@ break):
 
 - `stiffening_checks`: for every flexible link without geometric stiffening, how much
   the stiffening it leaves out would raise its first mode's squared frequency at the
-  fastest spin of the logs and under the rig's gravity (`flexdyn.stiffening`); above 1 %
+  fastest spin of the logs (and the largest acceleration of its root, on a chain) and
+  under the rig's gravity (`flexdyn.stiffening`); above 1 %
   the check is flagged. A fitted EI absorbs the missing stiffness: on a chain fitted
   without it, `EI_fitted / EI_true = 1 / (1 - shift)` (`ei_bias_factor`).
 """
@@ -242,37 +243,83 @@ def summary_lines(ev: dict) -> list[str]:
     return lines
 
 
+def _link_angles(chain, sim: dict) -> list:
+    """Absolute angle of each link's root frame (rad) from the channels in `sim`: `phi<i>` if
+    recorded, else the sum of `theta1..theta<i>` (tip slopes of flexible links in between
+    left out); None where neither is available."""
+    out = []
+    for i in range(1, chain.n_links + 1):
+        if f"phi{i}" in sim:
+            out.append(np.asarray(sim[f"phi{i}"], float))
+        elif all(f"theta{j}" in sim for j in range(1, i + 1)):
+            out.append(sum(np.asarray(sim[f"theta{j}"], float) for j in range(1, i + 1)))
+        else:
+            out.append(None)
+    return out
+
+
+def _over_logs(chain, traces: dict, key: str, per_log) -> dict:
+    """`{"link<i>": max over the logs of per_log(t, angles, i)}` (None where every log gives
+    None)."""
+    out = {f"link{i + 1}": None for i in range(chain.n_links)}
+    for entry in traces.values():
+        t = np.asarray(entry["t"], float)
+        if len(t) < 5:
+            continue
+        angles = _link_angles(chain, entry.get(key, {}))
+        for i in range(chain.n_links):
+            value = per_log(t, angles, i)
+            name = f"link{i + 1}"
+            if value is not None:
+                out[name] = value if out[name] is None else max(out[name], value)
+    return out
+
+
 def link_spin_rates(chain, traces: dict, key: str = "baseline") -> dict:
     """Largest absolute angular rate (rad/s) of each link's root frame over the logs, from
     the simulated angle channels of `traces` (`{log: {"t": ..., key: {channel: values}}}`:
     diagnose's traces with `key="baseline"`, `identify.fitted_outputs` with
-    `key="simulated"`): `phi<i>` if recorded, else the sum of `theta1..theta<i>` (the tip
-    slopes of flexible links in between left out); None where neither is available."""
-    out = {}
-    for i in range(1, chain.n_links + 1):
-        best = None
-        for entry in traces.values():
-            sim, t = entry.get(key, {}), np.asarray(entry["t"], float)
-            if len(t) < 3:
-                continue
-            if f"phi{i}" in sim:
-                angle = np.asarray(sim[f"phi{i}"], float)
-            elif all(f"theta{j}" in sim for j in range(1, i + 1)):
-                angle = sum(np.asarray(sim[f"theta{j}"], float) for j in range(1, i + 1))
-            else:
-                continue
-            peak = float(np.max(np.abs(np.gradient(angle, t))))
-            best = peak if best is None else max(best, peak)
-        out[f"link{i}"] = best
-    return out
+    `key="simulated"`); see `_link_angles`. None where unknown."""
+
+    def rate(t, angles, i):
+        return None if angles[i] is None else float(np.max(np.abs(np.gradient(angles[i], t, edge_order=2))))
+
+    return _over_logs(chain, traces, key, rate)
 
 
-def stiffening_checks(chain, spin_rates: dict, threshold: float = STIFFENING_THRESHOLD) -> list[dict]:
+def link_root_accelerations(chain, traces: dict, key: str = "baseline") -> dict:
+    """Largest acceleration (m/s^2) of each link's root over the logs, from the angles of
+    the links before it (`_link_angles`; the root of link i is at `sum_{j<i} l_j [cos phi_j,
+    sin phi_j]`, deflections left out): 0 for the first link (the base is fixed), None
+    where an angle is unknown. On a spinning chain its centripetal part pulls the link
+    outwards like gravity along it (`flexdyn.stiffening`: `gravity` coefficient)."""
+
+    def acceleration(t, angles, i):
+        if i == 0:
+            return 0.0
+        if any(a is None for a in angles[:i]):
+            return None
+        pos = sum(float(chain.links[j].length) * np.stack([np.cos(angles[j]), np.sin(angles[j])]) for j in range(i))
+        acc = np.gradient(np.gradient(pos, t, axis=1, edge_order=2), t, axis=1, edge_order=2)
+        return float(np.max(np.hypot(acc[0], acc[1])))
+
+    return _over_logs(chain, traces, key, acceleration)
+
+
+def stiffening_checks(
+    chain, spin_rates: dict, root_accelerations: dict | None = None, threshold: float = STIFFENING_THRESHOLD
+) -> list[dict]:
     """One entry per flexible link of `chain` without geometric stiffening (module
     docstring): its first clamped-mass frequency, the largest spin rate of the logs
     (`spin_rates`, from `link_spin_rates`; None if unknown), the first-order change of
-    `omega_1^2` that stiffening would make from the spin and from gravity (`flexdyn.
-    stiffening`), whether that exceeds `threshold`, and a sentence saying so."""
+    `omega_1^2` that stiffening would make from the motion and from gravity (`flexdyn.
+    stiffening`), whether that exceeds `threshold`, and a sentence saying so.
+
+    The motion's part is `spin Omega^2 + gravity a_root` with `a_root` the largest
+    acceleration of the link's root (`root_accelerations`, from `link_root_accelerations`;
+    0 if not given), counted as if it pulled along the link: exact to first order for a
+    straight chain spinning as one body (the root's centripetal `Omega^2 R`), an upper
+    estimate otherwise, like the largest rate and the whole of gravity."""
     estimates = first_mode_stiffening(chain)
     g = float(np.hypot(*np.asarray(chain.gravity, float)))
     out = []
@@ -281,7 +328,8 @@ def stiffening_checks(chain, spin_rates: dict, threshold: float = STIFFENING_THR
         if link.geometric_stiffening:
             continue
         rate = spin_rates.get(name)
-        spin = e.relative_shift(spin_rate=rate) if rate is not None else None
+        a_root = (root_accelerations or {}).get(name) or 0.0
+        spin = e.relative_shift(spin_rate=rate, axial_gravity=a_root) if rate is not None else None
         grav = e.relative_shift(axial_gravity=g)
         worst = max(spin or 0.0, grav)
         flagged = worst > threshold
@@ -290,7 +338,9 @@ def stiffening_checks(chain, spin_rates: dict, threshold: float = STIFFENING_THR
         if rate is not None:
             parts.append(
                 f"spins at up to {rate:.3g} rad/s, {rate / w1:.2f} of its first clamped frequency "
-                f"({w1:.3g} rad/s): stiffening {100 * spin:.2g} % of omega_1^2"
+                f"({w1:.3g} rad/s)"
+                + (f", its root accelerating at up to {a_root:.3g} m/s^2" if a_root > 0 else "")
+                + f": stiffening {100 * spin:.2g} % of omega_1^2"
             )
         else:
             parts.append(f"spin rate unknown (no angle channel for it); first clamped frequency {w1:.3g} rad/s")
@@ -313,6 +363,7 @@ def stiffening_checks(chain, spin_rates: dict, threshold: float = STIFFENING_THR
                 "link": name,
                 "first_frequency_rad_s": w1,
                 "spin_rate_max_rad_s": rate,
+                "root_acceleration_max_m_s2": a_root,
                 "spin_coefficient": e.spin,
                 "gravity_m_s2": g,
                 "gravity_coefficient_per_m": e.gravity,

@@ -5,6 +5,7 @@ tested against the Ritz oracle in tests/flexdyn/test_stiffening.py)."""
 import math
 
 import numpy as np
+import oracles
 import pytest
 
 import flexdyn as fd
@@ -61,3 +62,34 @@ def test_gravity_flags_a_long_floppy_vertical_link_and_stiffened_or_rigid_links_
     stiffened = fd.FlexibleLink(1.0, 0.4, 0.3, n_modes=2, geometric_stiffening=True)
     assert ev.stiffening_checks(fd.Chain([stiffened], gravity=(0.0, -9.81)), {"link1": 0.0}) == []
     assert ev.stiffening_checks(fd.Chain([fd.RigidLink(0.3, 0.2)]), {"link1": 5.0}) == []
+
+
+@pytest.mark.parametrize("offset", [0.5, 1.0])
+def test_a_link_at_the_end_of_a_spinning_link_feels_its_roots_centripetal_pull(offset):
+    """Paper 002's link at the end of a rigid link of length R = offset * l, the pair spinning
+    straight at Omega: the tension is N(x) = rho Omega^2 (R (l - x) + (l^2 - x^2)/2), so to
+    first order omega_1^2 rises by (spin + R gravity) Omega^2. Oracle: the slope of the
+    Ritz solution with that tension (tests/oracles.py); the angles are the traces a spinning
+    chain would record."""
+    chain = fd.Chain([fd.RigidLink(offset * L, 0.1), fd.FlexibleLink(L, RHO, EI, n_modes=2)])
+    rate = 0.5 * SCALE
+    t, traces = _traces(theta1=lambda t: rate * t, theta2=lambda t: 0.0 * t)
+    accelerations = ev.link_root_accelerations(chain, traces)
+    assert accelerations["link1"] == 0.0
+    # central differences of the sampled angles: relative error (Omega dt)^2 / 12 = 1.7e-6
+    assert accelerations["link2"] == pytest.approx(rate**2 * offset * L, rel=1e-5)
+    (check,) = ev.stiffening_checks(chain, ev.link_spin_rates(chain, traces), accelerations)
+    h = 1e-2
+    w2 = lambda lam2: (
+        oracles.axially_loaded_cantilever_frequencies(  # noqa: E731
+            lambda x: lam2 * ((1 - x * x) / 2 + offset * (1 - x)), 0.0, 0.0, 10
+        )[0]
+        ** 2
+    )
+    slope = (w2(h) - w2(-h)) / (2 * h)  # d omega~^2 / d lam^2
+    expected = slope * (rate / SCALE) ** 2 / w2(0.0)
+    assert check["relative_shift_spin"] == pytest.approx(expected, rel=1e-5)
+    assert "root accelerating" in check["message"]
+    # without the angles of the links before it, the root's motion is unknown: left out
+    _, partial = _traces(phi2=lambda t: rate * t)
+    assert ev.link_root_accelerations(chain, partial)["link2"] is None
