@@ -80,6 +80,8 @@ def first_mode_stiffening(chain: Chain) -> dict[str, FirstModeStiffening]:
     module docstring for the formula and what it leaves out."""
     if not isinstance(chain, Chain):
         raise TypeError(f"first_mode_stiffening: expected a flexdyn.Chain, got {type(chain).__name__}")
+    if not any(isinstance(k, FlexibleLink) for k in chain.links):
+        return {}
     stiffened = Chain([_stiffened(k) for k in chain.links], chain.joints, chain.hubs, chain.payload, chain.gravity)
     asm = assemble(stiffened)
     out = {}
