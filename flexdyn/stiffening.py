@@ -29,9 +29,10 @@ rotating cantilever (the in-plane mode of the linear model already softens by
 Rayleigh-Ritz solution of the axially loaded cantilever in
 `tests/flexdyn/test_stiffening.py`.
 
-What it leaves out: the tension from the root's own motion on a chain (a distal link
-mounted at radius `R` on a spinning link also feels `Omega^2 R` times its mass), the
-other modes, and second-order terms. It is a screening number: `identify.diagnose`
+What it leaves out: the other modes and second-order terms. The tension from the root's
+own motion on a chain (a distal link mounted at radius `R` on a spinning link feels its
+root's centripetal acceleration `Omega^2 R` like gravity along it) is the caller's to add
+through `axial_gravity` (`identify.evidence.stiffening_checks` does). It is a screening number: `identify.diagnose`
 uses it to say when a fitted EI is biased by the missing stiffening (a linear model
 fitted to a link spinning at `Omega` absorbs it into EI, about `spin (Omega /
 omega_1)^2` too high).
@@ -39,6 +40,7 @@ omega_1)^2` too high).
 
 from __future__ import annotations
 
+import dataclasses
 import typing
 
 from .chain import Chain, assemble
@@ -60,18 +62,9 @@ class FirstModeStiffening(typing.NamedTuple):
 
 
 def _stiffened(link):
-    if not isinstance(link, FlexibleLink) or link.geometric_stiffening:
+    if not isinstance(link, FlexibleLink):
         return link
-    return FlexibleLink(
-        link.length,
-        link.rho,
-        link.EI,
-        n_modes=link.n_modes,
-        damping_ratio=link.damping_ratio,
-        sqrt_stiffness_damping=link.sqrt_stiffness_damping,
-        drag=link.drag,
-        geometric_stiffening=True,
-    )
+    return dataclasses.replace(link, geometric_stiffening=True)  # FlexibleLink's fields are its arguments
 
 
 def first_mode_stiffening(chain: Chain) -> dict[str, FirstModeStiffening]:

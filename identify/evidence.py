@@ -25,9 +25,9 @@ break):
 - `stiffening_checks`: for every flexible link without geometric stiffening, how much
   the stiffening it leaves out would raise its first mode's squared frequency at the
   fastest spin of the logs (and the largest acceleration of its root, on a chain) and
-  under the rig's gravity (`flexdyn.stiffening`); above 1 %
-  the check is flagged. A fitted EI absorbs the missing stiffness: on a chain fitted
-  without it, `EI_fitted / EI_true = 1 / (1 - shift)` (`ei_bias_factor`).
+  under the rig's gravity (`flexdyn.stiffening`); above 1 % the check is flagged. A
+  fitted EI absorbs the missing stiffness: on a chain fitted without it, `EI_fitted /
+  EI_true = 1 / (1 - shift)` (`ei_bias_factor`).
 """
 
 from __future__ import annotations
