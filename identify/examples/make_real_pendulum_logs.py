@@ -7,7 +7,9 @@ Source: `dynamicslab/MultiArm-Pendulum` (MIT licence), commit e99a7e13, the MATL
 
     python identify/examples/make_real_pendulum_logs.py PATH/TO/multiarm-pendulum-dynamicslab
 
-to rewrite `logs/*.csv` and `experiment.toml` in both example folders (nothing else).
+to rewrite `logs/*.csv`, `experiment.toml` (the authors' viscous model) and
+`experiment_drag_friction.toml` (the dissipation law `identify diagnose` names: air drag
+and dry friction) in both example folders (nothing else).
 
 What is done to the data, and nothing more:
 
@@ -101,6 +103,45 @@ damping = 1.0e-3      # N m s/rad; fitted (start: 4x the authors')
 theta1 = "estimate"
 """
 
+SINGLE_DRAG_FRICTION_HEAD = """\
+# The real single compound pendulum of Kaheman et al. (arXiv:2205.06231) with the dissipation
+# law `identify diagnose experiment.toml` names: air drag on the arm and dry friction in the
+# pivot, in place of the authors' viscous damping. Same logs as experiment.toml; see
+# README.md. Written by ../make_real_pendulum_logs.py.
+#
+#   identify fit identify/examples/real_single_pendulum/experiment_drag_friction.toml
+
+[experiment]
+name = "real single pendulum (Kaheman et al. 2022), air drag + dry friction"
+description = "one compound pendulum arm on a clamped cart, 4 identification + 2 validation swings, encoder at 200 Hz"
+
+[rig]
+# Angles from UPRIGHT (hanging = pi): the base x axis points up, gravity along -x.
+gravity = [-9.81, 0.0]
+
+[[rig.links]]
+type = "rigid"
+length = 0.2955       # m; the drag acts along it (the arm's length is not measured: see README.md)
+mass = 0.14758        # kg, the authors' value: FIXED (a free swing cannot set the scale)
+com = 0.14775         # m, the authors' value: FIXED, so m1*a1 is the authors'
+inertia = 1.0e-3      # kg m^2 about the centre of mass; fitted (start: 10x the authors')
+drag = 1.0e-3         # kg/m^2, air drag per unit length, force -drag |v| v; fitted
+
+[[rig.joints]]
+type = "rigid"
+damping = 0.0         # N m s/rad: no viscous term (fitted together with the two below it
+                      # goes to its lower bound)
+coulomb = 1.0e-4      # N m, dry friction, smoothed -coulomb tanh(rate / 0.01 rad/s); fitted
+
+[parameters]
+"link1.inertia" = { guess = 1.0e-3, lower = 1.0e-6, upper = 1.0e-1 }   # kg m^2
+"joint1.coulomb" = { guess = 1.0e-4, lower = 1.0e-8, upper = 1.0e-1 }  # N m
+"link1.drag" = { guess = 1.0e-3, lower = 1.0e-7, upper = 1.0 }         # kg/m^2
+
+[noise]
+theta1 = "estimate"
+"""
+
 DOUBLE_HEAD = """\
 # The real double compound pendulum of Kaheman et al. (arXiv:2205.06231), free swings
 # recorded by two encoders; see README.md (data, licence, citation, what was fitted and why).
@@ -111,7 +152,7 @@ DOUBLE_HEAD = """\
 
 [experiment]
 name = "real double pendulum (Kaheman et al. 2022)"
-description = "two-arm compound pendulum on a clamped cart, 6 of the 26 identification + 4 validation swings, 200 Hz"
+description = "two-arm compound pendulum on a clamped cart, 26 identification + 4 validation swings, 200 Hz"
 
 [rig]
 # Angles from UPRIGHT (hanging = pi): the base x axis points up, gravity along -x.
@@ -153,6 +194,72 @@ damping = 1.0e-4      # k2, N m s/rad on phi2' - phi1' (joint 2's relative rate)
 "link2.inertia" = { guess = 6.0e-4, lower = 1.0e-6, upper = 1.0e-1 }    # kg m^2
 "joint1.damping" = { guess = 1.0e-4, lower = 1.0e-7, upper = 1.0e-1 }   # N m s/rad
 "joint2.damping" = { guess = 1.0e-4, lower = 1.0e-7, upper = 1.0e-1 }   # N m s/rad
+
+[noise]
+phi1 = "estimate"
+phi2 = "estimate"
+"""
+
+DOUBLE_DRAG_FRICTION_HEAD = """\
+# The real double compound pendulum of Kaheman et al. (arXiv:2205.06231), free swings
+# recorded by two encoders, with the dissipation `identify diagnose experiment.toml` names:
+# air drag on link 2 and dry friction in both joints, on top of viscous damping in joint 1
+# (joint 2's goes to zero). Same logs as experiment.toml; see README.md. Written by
+# ../make_real_pendulum_logs.py.
+#
+#   identify fit identify/examples/real_double_pendulum/experiment_drag_friction.toml
+
+[experiment]
+name = "real double pendulum (Kaheman et al. 2022), air drag + dry friction"
+description = "two-arm compound pendulum on a clamped cart, 26 identification + 4 validation swings, 200 Hz"
+
+[rig]
+# Angles from UPRIGHT (hanging = pi): the base x axis points up, gravity along -x.
+# The encoders give phi2, the ABSOLUTE angle of link 2: the logs map it to the channel
+# phi2 (= theta1 + theta2 for our relative joint angles), phi1 = theta1.
+gravity = [-9.81, 0.0]
+
+[[rig.links]]
+type = "rigid"
+length = 0.15         # L1, m, pivot to joint 2; fitted
+mass = 0.093844       # m1, kg, the authors' value: FIXED (only m1 a1 and I1 + m1 a1^2 matter)
+com = 0.09            # a1, m; fitted
+inertia = 3.0e-4      # I1, kg m^2 about the centre of mass; fitted
+
+[[rig.links]]
+type = "rigid"
+length = 0.233558     # m; the drag acts along it (not measured: the drag per unit length
+                      # fitted is relative to it)
+mass = 0.137596       # m2, kg, the authors' value: FIXED
+com = 0.116779        # a2, m, the authors' value: FIXED (sets the scale: m2 a2 is the authors')
+inertia = 6.0e-4      # I2, kg m^2 about the centre of mass; fitted
+drag = 1.0e-3         # kg/m^2, air drag per unit length, force -drag |v| v; fitted
+
+[[rig.joints]]
+type = "rigid"
+damping = 1.0e-4      # k1, N m s/rad on phi1'; fitted
+coulomb = 1.0e-5      # N m, dry friction, smoothed -coulomb tanh(rate / 0.01 rad/s); fitted
+
+[[rig.joints]]
+type = "rigid"
+damping = 0.0         # N m s/rad: no viscous term in joint 2 (fitted together with the
+                      # friction it goes to its lower bound)
+coulomb = 1.0e-5      # N m, dry friction on the relative rate phi2' - phi1'; fitted
+
+# The free double pendulum's equations depend on J1 = I1 + m1 a1^2 + m2 L1^2,
+# J2 = I2 + m2 a2^2, c = m2 L1 a2, G1 = m1 a1 + m2 L1, G2 = m2 a2, k1, k2, and only up to
+# one common scale factor. G2 = m2 a2 is fixed at the authors' value to set that scale,
+# m1 too (it only trades against a1 and I1); the other five are fitted through
+# L1 (c), a1 (G1), I1 (J1), I2 (J2), k1, k2.
+[parameters]
+"link1.length" = { guess = 0.15, lower = 0.05, upper = 0.4 }            # m
+"link1.com" = { guess = 0.09, lower = 0.0, upper = 0.3 }                # m
+"link1.inertia" = { guess = 3.0e-4, lower = 1.0e-6, upper = 1.0e-1 }    # kg m^2
+"link2.inertia" = { guess = 6.0e-4, lower = 1.0e-6, upper = 1.0e-1 }    # kg m^2
+"joint1.damping" = { guess = 1.0e-4, lower = 1.0e-7, upper = 1.0e-1 }   # N m s/rad
+"link2.drag" = { guess = 1.0e-3, lower = 1.0e-7, upper = 1.0 }          # kg/m^2
+"joint1.coulomb" = { guess = 1.0e-5, lower = 1.0e-8, upper = 1.0e-1 }   # N m
+"joint2.coulomb" = { guess = 1.0e-5, lower = 1.0e-8, upper = 1.0e-1 }   # N m
 
 [noise]
 phi1 = "estimate"
@@ -202,20 +309,10 @@ def _single_logs(entries) -> str:
     return "".join(out)
 
 
-#: The double pendulum's identification segments listed in its experiment file: every 5th,
-#: from the largest (chaotic) swing id0 to the smallest id25. All 26 are in logs/; the fit's
-#: Jacobian is dense over every log's 6 nuisances, so its cost grows with the square of the
-#: number of logs (26 logs did not finish the first stage in 10 min on 16 cores; 6 take
-#: about 2 min on 2).
-DOUBLE_FIT_SEGMENTS = ("id0", "id5", "id10", "id15", "id20", "id25")
-
-
 def _double_logs(entries) -> str:
     out = []
     for e in entries:
         seg, f = e["segment"], e["first"]
-        if seg.startswith("id") and seg not in DOUBLE_FIT_SEGMENTS:
-            continue
         # theta2 = phi2 - phi1 (relative joint angle), from the first sample; printed with
         # 6 decimals, the precision of the source's differences
         theta2 = float(f["phi2_rad"]) - float(f["phi1_rad"])
@@ -234,8 +331,14 @@ def _double_logs(entries) -> str:
 def main(source: Path) -> None:
     single = _write(SINGLE, source)
     (HERE / SINGLE["folder"] / "experiment.toml").write_text(SINGLE_HEAD + _single_logs(single))
+    (HERE / SINGLE["folder"] / "experiment_drag_friction.toml").write_text(
+        SINGLE_DRAG_FRICTION_HEAD + _single_logs(single)
+    )
     double = _write(DOUBLE, source)
     (HERE / DOUBLE["folder"] / "experiment.toml").write_text(DOUBLE_HEAD + _double_logs(double))
+    (HERE / DOUBLE["folder"] / "experiment_drag_friction.toml").write_text(
+        DOUBLE_DRAG_FRICTION_HEAD + _double_logs(double)
+    )
 
 
 if __name__ == "__main__":

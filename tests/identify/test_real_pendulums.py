@@ -7,8 +7,11 @@ guesses are 4-10x off). The free swing identifies only ratios of the inertial, g
 damping terms; the experiment files fix the scale (see their comments), so the comparisons
 below are of identifiable combinations.
 
-The single pendulum fit runs in CI (about a minute); the double pendulum fit and the two
-diagnoses are `slow` (several minutes each on two cores).
+Each rig has two experiment files: `experiment.toml`, the authors' viscous model, and
+`experiment_drag_friction.toml`, the dissipation law `identify diagnose` names on it (air
+drag and dry friction). The single pendulum's fits and the double pendulum's viscous fit
+run in CI (about 30 s to a minute each); the double pendulum's drag + friction fit and the
+two diagnoses are `slow`.
 """
 
 import dataclasses
@@ -156,54 +159,163 @@ def test_single_pendulum_validation_error(single_validation):
     assert ours < 1.25 * authors
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 8's requirement fails on the single pendulum: the held-out segments are the "
-    "smallest swings, which decay faster than a viscous law fitted to the larger ones predicts "
-    "(amplitude-dependent dissipation the viscous model lacks); the authors' larger k1 suits them "
-    "better. Measured: ours 12.36 mrad vs the authors' 10.30 mrad (initial state and offset "
-    "re-estimated); from the measured start 24.1 vs 17.9 mrad.",
-)
-def test_single_pendulum_validation_no_worse_than_the_authors(single_validation):
+def test_single_pendulum_viscous_law_validates_worse_than_the_authors(single_validation):
+    """The viscous law fitted accurately to the identification segments predicts the smaller
+    held-out swings worse than the authors' viscous parameters (measured 12.36 vs 10.30 mrad,
+    1.20x; from the measured start 24.1 vs 17.9 mrad). Why: the dissipation depends on the
+    amplitude (the drag + friction law below), so the best viscous coefficient depends on
+    which swings it is fitted to, and the authors' estimate is tuned to a loose integrator's
+    numerical error (the test above): their larger `k1` happens to suit the small swings.
+    Issue 8's "no worse than the authors'" is met by the law `diagnose` names
+    (`test_single_pendulum_drag_friction_beats_the_authors_on_validation`); this pins the
+    viscous law's shortfall so that a change in it shows."""
     ours, authors = single_validation
-    assert ours <= authors
+    assert 1.05 < ours / authors < 1.4
 
 
 # ---------------------------------------------------------------------------
-# double pendulum (slow: about 3 min on two cores)
+# single pendulum with the diagnosed dissipation law (CI: about 30 s)
 # ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def single_drag_friction():
+    exp = load_experiment(EXAMPLES / "real_single_pendulum" / "experiment_drag_friction.toml")
+    return exp, _fit(exp)
+
+
+def test_single_pendulum_drag_friction_file_is_the_viscous_file_with_the_law_changed():
+    base = load_experiment(EXAMPLES / "real_single_pendulum" / "experiment.toml")
+    ext = load_experiment(EXAMPLES / "real_single_pendulum" / "experiment_drag_friction.toml")
+    assert [(s.name, s.role, s.file) for s in ext.logs] == [(s.name, s.role, s.file) for s in base.logs]
+    assert float(ext.chain.joints[0].damping) == 0.0 and base.chain.joints[0].coulomb is None
+    assert [p.name for p in ext.free] == ["link1.inertia", "joint1.coulomb", "link1.drag"]
+
+
+def test_single_pendulum_drag_friction_beats_the_authors_on_validation(single_drag_friction, single_validation):
+    """Issue 8's requirement, on the model the toolkit ends with: the viscous term replaced
+    by dry joint friction plus air drag on the link (`experiment_drag_friction.toml`, the
+    pair `identify diagnose` names), fitted on the same four identification segments,
+    predicts the smaller held-out swings better than the authors' parameters. Large swings
+    lose energy faster than viscous (drag, ~v|v|) and small ones too (dry friction, a
+    constant torque). Measured 2026-11-26: I1 = 1.1809e-4 kg m^2 (J1 unchanged), Coulomb
+    4.9555e-4 N m [4.947e-4, 4.964e-4], drag 7.7193e-3 kg/m^2 [7.712e-3, 7.727e-3]; held-out
+    RMS 6.30 mrad (initial state and offset re-estimated) vs the authors' 10.30 and our
+    viscous fit's 12.36; from the measured start 13.56 mrad vs 17.9 and 24.1.
+    The independent check of the two values is `diagnose`'s own fit (viscous term left
+    free, slow pin below: drag 7.711e-3 [7.629e-3, 7.795e-3], Coulomb 4.953e-4 [4.886e-4,
+    5.021e-4]): this fit must land inside those intervals."""
+    exp, res = single_drag_friction
+    assert res.converged and not res.at_bounds
+    v = res.value
+    assert 4.886e-4 <= v["joint1.coulomb"] <= 5.021e-4
+    assert 7.629e-3 <= v["link1.drag"] <= 7.795e-3
+    # J1 is set by the swing frequency whatever the dissipation law: the authors' within 1 %
+    assert M1 * A1**2 + v["link1.inertia"] == pytest.approx(M1 * A1**2 + AUTHORS_SINGLE["link1.inertia"], rel=0.01)
+    base = load_experiment(EXAMPLES / "real_single_pendulum" / "experiment.toml")
+    ours = _rms_reestimated(exp, v, res.sigma)["theta1"]
+    viscous, authors = single_validation
+    assert ours < 0.75 * authors  # measured 0.61x
+    assert ours < 0.6 * viscous  # measured 0.51x
+    assert _rms_measured_start(exp, v)["theta1"] < 0.85 * _rms_measured_start(base, AUTHORS_SINGLE)["theta1"]
+
+
+# ---------------------------------------------------------------------------
+# double pendulum (CI: about 2 min on two cores; the drag + friction fit is slow)
+# ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def double():
+    exp = load_experiment(EXAMPLES / "real_double_pendulum" / "experiment.toml")
+    return exp, _fit(exp)
+
+
+@pytest.fixture(scope="module")
+def double_validation(double):
+    """Held-out RMS per channel, ours and the authors' viscous parameters in our model, two
+    ways: `reestimated` (initial state and encoder offsets re-estimated per log, parameters
+    fixed: the toolkit's validation) and `measured_start` (the authors' procedure)."""
+    exp, res = double
+    return {
+        who: {
+            "reestimated": _rms_reestimated(exp, v, res.sigma),
+            "measured_start": _rms_measured_start(exp, v),
+        }
+        for who, v in (("ours", res.value), ("authors", AUTHORS_DOUBLE))
+    }
+
+
+def _double_combinations(w):
+    """The identifiable combinations at the authors' `m1`, `m2`, `a2` (see experiment.toml)."""
+    w = {"link1.mass": DM1, "link2.mass": DM2, "link2.com": DA2, **w}
+    return {
+        "J1": w["link1.inertia"] + DM1 * w["link1.com"] ** 2 + DM2 * w["link1.length"] ** 2,
+        "J2": w["link2.inertia"] + DM2 * DA2**2,
+        "c": DM2 * w["link1.length"] * DA2,
+        "G1": DM1 * w["link1.com"] + DM2 * w["link1.length"],
+    }
+
+
+def test_double_pendulum_files_load_as_documented():
+    exp = load_experiment(EXAMPLES / "real_double_pendulum" / "experiment.toml")
+    assert exp.output_channels == ("phi1", "phi2")
+    assert [s.name for s in exp.fit_logs] == [f"id{k}" for k in range(26)]
+    assert [s.name for s in exp.validation_logs] == [f"vad{k}" for k in range(4)]
+    for s in exp.fit_logs + exp.validation_logs:
+        assert s.log.sampling.median_dt == pytest.approx(0.005)
+
+
+def test_double_pendulum_combinations_and_damping_agree(double):
+    """All 26 identification segments, as the authors fitted. The inertial and gravity
+    combinations agree within 1 % (measured +0.11 to +0.27 %: outside our optimistic
+    intervals; the authors' g = 9.80858 vs our 9.81 alone is 0.015 %, and they simulated
+    with ode113 at its default tolerances). The two viscous coefficients agree within our
+    95 % intervals (measured k1 2.4046e-4 [2.346e-4, 2.464e-4] vs 2.3714e-4; k2 1.081e-5
+    [9.61e-6, 1.216e-5] vs 1.0e-5)."""
+    exp, res = double
+    assert res.converged and not res.at_bounds
+    ours, auth = _double_combinations(res.value), _double_combinations(AUTHORS_DOUBLE)
+    for key in ours:
+        assert ours[key] == pytest.approx(auth[key], rel=0.01), key
+    for name in ("joint1.damping", "joint2.damping"):
+        i = res.names.index(name)
+        lo, hi = res.ci_low[i], res.ci_high[i]
+        assert lo <= AUTHORS_DOUBLE[name] <= hi, (name, res.value[name], (lo, hi))
+
+
+def test_double_pendulum_validation_no_worse_than_the_authors(double_validation):
+    """Issue 8's requirement on the viscous model: on the four held-out segments, with each
+    log's initial state and encoder offsets re-estimated, our fit predicts no worse than the
+    authors' parameters (measured 1.561 / 2.405 mrad vs 1.617 / 2.454, phi1 / phi2). From the
+    measured start (first sample, denoised rate, no offsets) both are 4x worse, 6.19 / 8.91 vs
+    5.87 / 8.39 mrad: that error is mostly the start (one angle sample and the authors'
+    denoised rate; the fitted encoder offsets are 0-2 mrad), not the model (see the drag +
+    friction test: a 3x better model changes it by at most 10 %)."""
+    ours, authors = double_validation["ours"], double_validation["authors"]
+    for c in ("phi1", "phi2"):
+        assert ours["reestimated"][c] <= authors["reestimated"][c], (c, ours, authors)
+        assert ours["measured_start"][c] <= 1.1 * authors["measured_start"][c], (c, ours, authors)
+    assert ours["reestimated"]["phi2"] < 0.003
 
 
 @pytest.mark.slow
-def test_double_pendulum_combinations_and_validation():
-    exp = load_experiment(EXAMPLES / "real_double_pendulum" / "experiment.toml")
-    assert exp.output_channels == ("phi1", "phi2")
+def test_double_pendulum_drag_friction_beats_the_authors_on_validation(double, double_validation):
+    """The law `diagnose` names on the double pendulum (`experiment_drag_friction.toml`: air
+    drag on link 2, dry friction in both joints, viscous damping in joint 1 only), fitted on
+    the same 26 segments: held-out RMS about 3x below the authors' parameters."""
+    exp = load_experiment(EXAMPLES / "real_double_pendulum" / "experiment_drag_friction.toml")
     res = _fit(exp)
-    assert res.converged
-    v = {"link1.mass": DM1, "link2.mass": DM2, "link2.com": DA2, **res.value}
-
-    def combos(w):
-        return {
-            "J1": w["link1.inertia"] + DM1 * w["link1.com"] ** 2 + DM2 * w["link1.length"] ** 2,
-            "J2": w["link2.inertia"] + DM2 * DA2**2,
-            "c": DM2 * w["link1.length"] * DA2,
-            "G1": DM1 * w["link1.com"] + DM2 * w["link1.length"],
-        }
-
-    ours, auth = combos(v), combos(AUTHORS_DOUBLE)
-    # the inertial and gravity combinations agree within 1 % (measured: 0.1-0.4 %)
+    assert res.converged and not res.at_bounds
+    ours, auth = _double_combinations(res.value), _double_combinations(AUTHORS_DOUBLE)
     for key in ours:
         assert ours[key] == pytest.approx(auth[key], rel=0.01), key
-    # validation against the authors' parameters in our model. Measured (mrad, phi1/phi2):
-    # measured start, ours 6.25/9.14 vs authors' 5.87/8.39; initial state and offsets
-    # re-estimated, ours 1.584/2.581 vs authors' 1.563/2.531. Ours is 1-9 % WORSE: issue 8's
-    # "no worse" fails here too (the held-out segments are the smallest swings, where the
-    # authors' larger k1, fitted to all 26 segments, does better); it is pinned, not hidden.
-    for how, worst in ((_rms_measured_start, 1.15), (lambda e, w: _rms_reestimated(e, w, res.sigma), 1.05)):
-        a, b = how(exp, res.value), how(exp, AUTHORS_DOUBLE)
-        for c in ("phi1", "phi2"):
-            assert a[c] <= worst * b[c], (c, a, b)
-    assert _rms_reestimated(exp, res.value, res.sigma)["phi2"] < 0.003
+    held = _rms_reestimated(exp, res.value, res.sigma)
+    start = _rms_measured_start(exp, res.value)
+    authors = double_validation["authors"]
+    for c in ("phi1", "phi2"):
+        assert held[c] < 0.5 * authors["reestimated"][c], (c, held, authors)
+        assert start[c] <= 1.1 * authors["measured_start"][c], (c, start, authors)
 
 
 # ---------------------------------------------------------------------------
@@ -284,50 +396,3 @@ def test_double_pendulum_diagnosis_is_pinned():
         assert params[name]["value"] == pytest.approx(value, rel=0.03), (name, params[name])
         lo, hi = params[name]["ci95"]  # measured widths 1.1 % (drag) to 6.3 % (joint 1)
         assert 0 < lo < hi and hi - lo < 0.1 * value, (name, params[name])
-
-
-# ---------------------------------------------------------------------------
-# single pendulum: a dissipation law that generalises (slow: ~4 min on two cores)
-# ---------------------------------------------------------------------------
-
-
-@pytest.mark.slow
-def test_single_pendulum_dry_friction_and_air_drag_beat_the_authors_on_validation():
-    """The viscous law is what fails on the held-out swings (the xfail above). Replacing it
-    by dry joint friction plus air drag on the link (`joint1.coulomb`, `link1.drag`, the
-    catalogue's `coulomb_friction` and `quadratic_damping` together), fitted on the same
-    identification segments, predicts the smaller held-out swings better than the authors'
-    parameters. Neither term alone does (the diagnosis pin above: drag alone 0.867x, Coulomb
-    alone ends at zero; `diagnose` finds the two by its pair search): large swings decay
-    faster than viscous (drag, ~v|v|) and small ones too (dry friction, a constant torque).
-    Measured 2026-11-24: J1 unchanged (I1 = 1.1810e-4 kg m^2); coulomb 4.957e-4 N m
-    [4.949e-4, 4.966e-4]; drag 7.720e-3 kg/m^2 [7.712e-3, 7.727e-3]; held-out RMS (initial state and
-    offset re-estimated) 6.31 mrad vs the authors' 10.30
-    and our viscous fit's 12.36; from the measured start 13.56 mrad vs 17.9 and 24.1. With a
-    free viscous coefficient as well, it goes to its lower bound (1e-7 N m s/rad)."""
-    import equinox as eqx
-
-    from identify.fit import Parameter
-
-    exp = load_experiment(EXAMPLES / "real_single_pendulum" / "experiment.toml")
-    absent = lambda x: x is None  # noqa: E731 - optional part fields are None when absent
-    chain = eqx.tree_at(lambda c: c.joints[0].damping, exp.chain, 0.0)
-    chain = eqx.tree_at(lambda c: c.joints[0].coulomb, chain, 1e-4, is_leaf=absent)
-    chain = eqx.tree_at(lambda c: c.links[0].drag, chain, 1e-3, is_leaf=absent)
-    ext = dataclasses.replace(exp, chain=chain)
-    params = [
-        Parameter("link1.inertia", 1e-3, 1e-6, 1e-1),
-        Parameter("joint1.coulomb", 1e-4, 1e-8, 1e-1),  # N m, start 5x below the fitted value
-        Parameter("link1.drag", 1e-3, 1e-7, 1.0),  # kg/m^2, start 8x below
-    ]
-    data = [log_data(s, chain.n_links) for s in ext.fit_logs]
-    res = fit(make_problem(chain, params, data, {}, rtol=RTOL, atol=1e-2 * RTOL), params, estimate_noise=["theta1"])
-    assert res.converged and not res.at_bounds
-    v = res.value
-    assert 3e-4 < v["joint1.coulomb"] < 8e-4 and 4e-3 < v["link1.drag"] < 1.5e-2
-    # J1 is set by the swing frequency whatever the dissipation law: the authors' within 1 %
-    assert M1 * A1**2 + v["link1.inertia"] == pytest.approx(M1 * A1**2 + AUTHORS_SINGLE["link1.inertia"], rel=0.01)
-    ours = _rms_reestimated(ext, v, res.sigma)["theta1"]
-    authors = _rms_reestimated(exp, AUTHORS_SINGLE, res.sigma)["theta1"]
-    assert ours < 0.75 * authors  # measured 0.61x
-    assert _rms_measured_start(ext, v)["theta1"] < 0.85 * _rms_measured_start(exp, AUTHORS_SINGLE)["theta1"]
