@@ -2,7 +2,9 @@
 
 - `load_experiment(path)`: an experiment file (TOML) and its logs (CSV, .mat); see FORMAT.md.
 - `fit_experiment(experiment)`: Levenberg-Marquardt through the diffrax solve, with
-  standard errors, confidence intervals and identifiability warnings.
+  standard errors, confidence intervals and identifiability warnings;
+  `clustered_uncertainty(result)`: intervals that hold when the residual is model error
+  (cluster-robust, each log a cluster).
 - `make_problem` / `fit`: the same on in-memory logs (`LogData`).
 - `residual_report`: residual whiteness and input cross-correlation (MATLAB `resid`).
 - `diagnose(experiment)` / `diagnose_logs(...)`: what the fitted model gets wrong, which
@@ -51,3 +53,7 @@ from .run import (
     residual_report as residual_report,
 )
 from .synthetic import simulate_log as simulate_log
+from .uncertainty import (
+    ClusteredUncertainty as ClusteredUncertainty,
+    clustered_uncertainty as clustered_uncertainty,
+)

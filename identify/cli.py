@@ -314,6 +314,11 @@ def _nuisance_lines(result, validation_nuisances: dict) -> list[str]:
     return lines
 
 
+#: `identify fit` adds cluster-robust intervals (`identify.clustered_uncertainty`) from this
+#: many fit logs on (fewer clusters give an interval too uncertain to be useful).
+CLUSTER_MIN_LOGS = 5
+
+
 def _compile_estimate(exp) -> float:
     """A rough guess of the first call's compilation time (s) on a laptop: about 30 s for a
     rigid pendulum, growing with the number of coordinates and channels."""
@@ -362,6 +367,7 @@ def _fit_command(args) -> int:
     from . import evidence, report as plots
     from .fit import fitted_outputs
     from .run import fit_experiment, residual_report
+    from .uncertainty import clustered_uncertainty
 
     roles = {spec.name: spec.role for spec in exp.logs}
     n_fit = len(exp.fit_logs)
@@ -399,6 +405,10 @@ def _fit_command(args) -> int:
     resid = residual_report(result)
     fitted_chain = result.chain
     freqs, where = natural_frequencies(fitted_chain)
+    robust = None
+    if n_fit >= CLUSTER_MIN_LOGS:
+        say(f"cluster-robust intervals ({n_fit} fit logs as clusters: one more Jacobian) ...")
+        robust = clustered_uncertainty(result)
     val_outputs, val_report, val_nuisances = {}, {}, {}
     if exp.validation_logs:
         say("checking the fit on the validation log(s) (their initial state and offsets re-estimated) ...")
@@ -415,6 +425,13 @@ def _fit_command(args) -> int:
         print(f"identifiability: no warnings (smallest/largest singular value of the Jacobian {ratio:.2g})")
     if not result.converged:
         print(f"WARNING: the fit did not converge (last stage: {result.stages[-1]['result']}); try more --stages")
+    if robust is not None:
+        print()
+        print(robust.summary())
+        print(
+            "(the intervals above assume white residuals; these assume only that the logs are independent: "
+            "read these when the residual tests below fail, as on real rigs)"
+        )
     nuisance = _nuisance_lines(result, val_nuisances)
     if nuisance:
         print()
@@ -461,6 +478,7 @@ def _fit_command(args) -> int:
     doc["validation"] = {name: {"residuals": val_report[name], **val_nuisances[name]} for name in val_outputs}
     doc["natural_frequencies_hz"] = freqs
     doc["model_checks"] = model_checks
+    doc["clustered_uncertainty"] = None if robust is None else robust.to_dict()
     doc["modal_configuration"] = where
     doc["options"] = {"stages": args.stages}
     doc["command"] = ["identify", "fit", *map(str, _argv_tail(args))]

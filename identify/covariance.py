@@ -21,6 +21,19 @@ stacked `(I - P_l) S_l`, an `L n x P` matrix). With every block of full rank thi
 differ from the dense pseudo-inverse in the unidentifiable directions (whose standard
 errors mean nothing either way; they are reported by the identifiability check).
 
+**Cluster-robust covariance** (`clustered`). `s^2 (J^T J)^+` assumes white residuals. On
+real data the residual of each log is mostly model error, correlated along the log, and
+those intervals are far too narrow. Treating each log as a cluster whose residuals may be
+correlated in any way, but independent of the other logs', the sandwich estimator of Liang
+& Zeger (1986) for the shared parameters, with each log's nuisances profiled out, is
+
+    Cov_SS = c A^+ (sum_l g_l g_l^T) A^+,   A = sum_l S~_l^T S~_l,   g_l = S~_l^T r_l,
+    S~_l = (I - P_l) S_l,   c = L / (L - 1)
+
+(`c`: the usual small-sample factor, CR1). It needs several logs (its variance has about
+`L - 1` degrees of freedom; intervals use Student's t with `L - 1`), and it is not
+scaled by `s^2`: the spread of the per-log scores sets it.
+
 Identifiability: the right singular vectors of the column-normalised `J` with a singular
 value below `threshold` times the largest. `blocked` looks at the shared parameters after
 eliminating the nuisances (the column-normalised `(I - P_l) S_l` stacked): a weak
@@ -162,3 +175,26 @@ def blocked(
         Sn, Vtn = np.zeros(0), np.zeros((0, 0))
     ident = _weak_directions(names, log_scale, Vtn, Sn, threshold, len(names))
     return Covariance(rss, n_res, s2, se, corr, Sn, ident)
+
+
+def clustered(r: np.ndarray, S: np.ndarray, U: np.ndarray, slots: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """The cluster-robust covariance of the `P` shared parameters, clusters = logs (module
+    docstring), natural coordinates; arguments as for `blocked`. Needs at least 2 logs."""
+    L, n, P = S.shape
+    if L < 2:
+        raise ValueError(f"clustered: the cluster-robust covariance needs at least 2 logs, got {L}")
+    mask = used.astype(float)
+    r, S, U = r * mask, S * mask[:, :, None], U * mask[:, :, None]
+    projected = np.empty_like(S)
+    scores = np.empty((L, P))
+    for l in range(L):
+        Ul = U[l][:, slots[l] >= 0]
+        if Ul.shape[1]:
+            W, _, _ = _pinv_parts(Ul)
+            projected[l] = S[l] - W @ (W.T @ S[l])
+        else:
+            projected[l] = S[l]
+        scores[l] = projected[l].T @ r[l]
+    _, ss, Vts = _pinv_parts(projected.reshape(L * n, P))
+    bread = (Vts.T / ss**2) @ Vts
+    return L / (L - 1) * bread @ (scores.T @ scores) @ bread

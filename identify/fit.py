@@ -750,15 +750,25 @@ def _covariance_at(problem: Problem, x, z, sigma, step) -> Covariance:
     """The covariance at the optimum: block by block (`identify.covariance.blocked`, no
     dense Jacobian) when the Levenberg-Marquardt steps were (`BLOCK_SOLVE_MIN_LOGS` logs
     with nuisances), else from the dense Jacobian."""
-    fail = "fit: the simulation at the fitted parameters failed; check bounds and solver settings"
     if not _blocked(problem):
         r, J, ok = _jacobian_natural(problem, x, z["y0"], z["offset"], sigma, step)
         if not bool(ok):
-            raise RuntimeError(fail)
+            raise RuntimeError(_FAILED_AT_OPTIMUM)
         return _dense_covariance(problem, r, J)
+    return covariance.blocked(problem.names, problem.log_scale, *jacobian_blocks_at(problem, x, z, sigma, step))
+
+
+_FAILED_AT_OPTIMUM = "fit: the simulation at the fitted parameters failed; check bounds and solver settings"
+
+
+def jacobian_blocks_at(problem: Problem, x, z, sigma, step):
+    """The weighted residuals and their block-arrow Jacobian at `(x, z)` in natural
+    coordinates, as numpy arrays `(r, S, U, slots, used)` (`identify.covariance.blocked`:
+    `r` `(L, n)`, `S` `(L, n, P)` shared columns, `U` `(L, n, k)` per-log nuisance columns,
+    `slots` their positions among the nuisances, `used` which residuals count)."""
     jac = _jacobian_blocks(problem, x, z["y0"], z["offset"], sigma, step)
     if not bool(jnp.all(jac.ok)):
-        raise RuntimeError(fail)
+        raise RuntimeError(_FAILED_AT_OPTIMUM)
     L, n, _ = jac.shared.shape
     slots = []
     start = 0
@@ -767,9 +777,7 @@ def _covariance_at(problem: Problem, x, z, sigma, step) -> Covariance:
         slots.append(np.where(used, start + pos, -1))
         start += width
     used = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :]).reshape(L, n)
-    return covariance.blocked(
-        problem.names,
-        problem.log_scale,
+    return (
         np.asarray(jac.r),
         np.asarray(jac.shared),
         np.concatenate([np.asarray(jac.y0), np.asarray(jac.offset)], axis=2),

@@ -85,6 +85,7 @@ def test_fit_succeeds_and_writes_results(fitted):
     # small-amplitude frequency of the pendulum about the hanging equilibrium
     assert any(0.9 < f < 1.2 for f in doc["natural_frequencies_hz"])
     assert doc["model_checks"] == []  # a rigid link: no stiffening check (tests/identify/test_evidence.py)
+    assert doc["clustered_uncertainty"] is None  # 2 fit logs: below CLUSTER_MIN_LOGS
     assert doc["versions"]["jax"]
 
 
@@ -103,6 +104,25 @@ def test_rerun_into_own_folder_and_default_folder(fitted, monkeypatch, capsys):
     assert "joint1.damping" in printed and "hub1.inertia" in printed and "white" in printed
     assert "compiling" not in printed and "] horizon" not in printed  # --quiet: no progress lines
     assert (fitted["work"] / "experiment-fit" / "result.json").is_file()
+
+
+def test_cluster_robust_intervals_printed_and_written(fitted, monkeypatch, capsys):
+    # From CLUSTER_MIN_LOGS fit logs on, the cluster-robust intervals are added (lowered to
+    # 2 here: the example has 2 fit logs; the estimator's tests are in test_uncertainty.py)
+    import identify.cli
+
+    monkeypatch.setattr(identify.cli, "CLUSTER_MIN_LOGS", 2)
+    out = fitted["work"] / "robust"
+    assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "cluster-robust uncertainty (2 logs as clusters, t with 1 dof)" in printed
+    doc = json.loads((out / "result.json").read_text())
+    robust = doc["clustered_uncertainty"]
+    assert robust["n_logs"] == 2 and robust["dof"] == 1
+    white = {p["name"]: p for p in doc["parameters"]}
+    for p in robust["parameters"]:
+        assert p["value"] == white[p["name"]]["value"] and p["std_error"] > 0
+        assert p["ci"][0] < p["value"] < p["ci"][1]
 
 
 def test_bad_experiment_is_exit_2_naming_the_file(tmp_path, capsys):

@@ -95,3 +95,77 @@ def test_no_nuisances_and_no_shared_parameters():
     s2 = float(rd @ rd) / (Jd.shape[0] - Jd.shape[1])
     np.testing.assert_allclose(cov.std_errors, np.sqrt(np.diag(s2 * np.linalg.inv(Jd.T @ Jd))), rtol=1e-9)
     assert cov.correlation.shape == (0, 0)
+
+
+# ---------------------------------------------------------------------------
+# cluster-robust covariance (clusters = logs)
+# ---------------------------------------------------------------------------
+
+
+def _clustered_experiment(rng, L, n, rho, reps):
+    """`reps` least-squares fits of a linear model with 2 shared slopes and one offset per
+    log, under AR(1) noise of lag-one correlation `rho` within each log (independent
+    between logs). Returns the estimates `(reps, 2)`, the cluster-robust and the white-noise
+    covariances of each fit."""
+    t = np.linspace(0.0, 1.0, n)
+    S = np.stack([np.stack([np.sin(2 * np.pi * (t + 0.07 * l)), t * (1 + 0.05 * l)], axis=1) for l in range(L)])
+    U = np.ones((L, n, 1))
+    slots = np.arange(L)[:, None]
+    used = np.ones((L, n), bool)
+    beta = np.array([1.0, -0.5])
+    Sc = S - S.mean(axis=1, keepdims=True)  # the offsets eliminated exactly
+    A = np.einsum("lnp,lnq->pq", Sc, Sc)
+    est, robust, white = [], [], []
+    for _ in range(reps):
+        e = np.empty((L, n))
+        e[:, 0] = rng.normal(size=L)
+        for k in range(1, n):
+            e[:, k] = rho * e[:, k - 1] + np.sqrt(1 - rho**2) * rng.normal(size=L)
+        y = S @ beta + rng.normal(size=(L, 1)) + e
+        yc = y - y.mean(axis=1, keepdims=True)
+        b = np.linalg.solve(A, np.einsum("lnp,ln->p", Sc, yc))
+        r = S @ b - y
+        r -= r.mean(axis=1, keepdims=True)  # the fitted offsets
+        est.append(b)
+        robust.append(covariance.clustered(r, S, U, slots, used))
+        white.append(covariance.blocked(("a", "b"), (False, False), r, S, U, slots, used).std_errors[:2] ** 2)
+    return np.array(est), np.array(robust), np.array(white)
+
+
+def test_clustered_covariance_matches_the_sampling_distribution_under_correlated_noise():
+    """Oracle: the sampling distribution itself. 800 repetitions of a 40-log least-squares
+    fit whose noise is strongly correlated along each log (AR(1), rho = 0.95): the mean
+    cluster-robust variance matches the estimates' empirical variance (Monte-Carlo error
+    ~5 %), its t intervals (39 dof) cover the truth ~95 % of the time, and the white-noise
+    variance `s^2 (J^T J)^-1` underestimates it several-fold (why `clustered` exists).
+    Measured: mean robust / empirical variance 0.985 and 1.022, coverage 95.4 % and 94.8 %,
+    white / empirical 0.062 and 0.047."""
+    rng = np.random.default_rng(7)
+    est, robust, white = _clustered_experiment(rng, L=40, n=60, rho=0.95, reps=800)
+    empirical = est.var(axis=0, ddof=1)
+    mean_robust = np.array([robust[:, 0, 0].mean(), robust[:, 1, 1].mean()])
+    np.testing.assert_allclose(mean_robust / empirical, 1.0, atol=0.15)
+    assert np.all(white.mean(axis=0) < empirical / 4)
+    from scipy.stats import t as student_t
+
+    q = student_t.ppf(0.975, 39)
+    se = np.sqrt(np.stack([robust[:, 0, 0], robust[:, 1, 1]], axis=1))
+    covered = np.abs(est - np.array([1.0, -0.5])) <= q * se
+    assert np.all((covered.mean(axis=0) > 0.92) & (covered.mean(axis=0) < 0.98)), covered.mean(axis=0)
+
+
+def test_clustered_covariance_equals_the_white_one_on_white_noise():
+    """With white noise both estimators are consistent: their mean variances agree (and
+    match the sampling variance) to Monte-Carlo error."""
+    rng = np.random.default_rng(3)
+    est, robust, white = _clustered_experiment(rng, L=40, n=60, rho=0.0, reps=400)
+    empirical = est.var(axis=0, ddof=1)
+    mean_robust = np.array([robust[:, 0, 0].mean(), robust[:, 1, 1].mean()])
+    np.testing.assert_allclose(mean_robust / white.mean(axis=0), 1.0, atol=0.1)
+    np.testing.assert_allclose(white.mean(axis=0) / empirical, 1.0, atol=0.2)
+
+
+def test_clustered_covariance_needs_two_logs():
+    r, S, U, slots, used = _blocks(0, L=1)
+    with pytest.raises(ValueError, match="at least 2 logs"):
+        covariance.clustered(r, S, U, slots, used)
