@@ -23,7 +23,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import flexdyn as fd
-from identify import fit, fitted_outputs, load_experiment, make_problem, predict
+from identify import clustered_uncertainty, fit, fitted_outputs, load_experiment, make_problem, predict
 from identify.run import log_data, parameters, problem_from_experiment
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "identify" / "examples"
@@ -266,22 +266,74 @@ def test_double_pendulum_files_load_as_documented():
         assert s.log.sampling.median_dt == pytest.approx(0.005)
 
 
+def _authors_double_ode(w, g):
+    """The authors' model (`DoublePendulumODE_Mounted.m`, as the data README states it),
+    written here independently of flexdyn: absolute angles from upright, kinetic energy
+    `J1 p1'^2/2 + J2 p2'^2/2 + c cos(p1 - p2) p1' p2'`, potential `g (G1 cos p1 + G2 cos p2)`,
+    viscous `k1` on `p1'` and `k2` on `p1' - p2'`."""
+    comb = _double_combinations(w)
+    J1, J2, c, G1 = comb["J1"], comb["J2"], comb["c"], comb["G1"]
+    G2, k1, k2 = DM2 * DA2, w["joint1.damping"], w["joint2.damping"]
+
+    def f(t, y):
+        p1, p2, w1, w2 = y
+        d = p1 - p2
+        M = np.array([[J1, c * np.cos(d)], [c * np.cos(d), J2]])
+        b = np.array(
+            [
+                -c * np.sin(d) * w2**2 + g * G1 * np.sin(p1) - k1 * w1 - k2 * (w1 - w2),
+                c * np.sin(d) * w1**2 + g * G2 * np.sin(p2) - k2 * (w2 - w1),
+            ]
+        )
+        return [w1, w2, *np.linalg.solve(M, b)]
+
+    return f
+
+
+def test_double_pendulum_model_is_the_authors_ode():
+    """Oracle for the two-link chain: the authors' ODE in NumPy (SciPy DOP853) and flexdyn's
+    explicit chain, both with the authors' parameters, from a validation segment's measured
+    start: the same trajectory to 1e-7 rad over its 2.67 s."""
+    exp = load_experiment(EXAMPLES / "real_double_pendulum" / "experiment.toml")
+    s = exp.validation_logs[0]
+    t = s.log.t_relative
+    i = s.initial
+    y0 = [i["theta1"], i["theta1"] + i["theta2"], i["theta1_rate"], i["theta1_rate"] + i["theta2_rate"]]
+    ref = solve_ivp(
+        _authors_double_ode(AUTHORS_DOUBLE, 9.80858), (0, t[-1]), y0, "DOP853", t_eval=t, rtol=1e-12, atol=1e-12
+    )
+    chain = fd.with_parameters(exp.chain, AUTHORS_DOUBLE)
+    y0_ours = jnp.asarray([i["theta1"], i["theta2"], i["theta1_rate"], i["theta2_rate"]])
+    Q = np.asarray(fd.simulate(chain, y0_ours, jnp.asarray(t), rtol=1e-12, atol=1e-12).Q)
+    np.testing.assert_allclose(Q[:, 0], ref.y[0], atol=1e-7)
+    np.testing.assert_allclose(Q[:, 0] + Q[:, 1], ref.y[1], atol=1e-7)
+
+
 def test_double_pendulum_combinations_and_damping_agree(double):
-    """All 26 identification segments, as the authors fitted. The inertial and gravity
-    combinations agree within 1 % (measured +0.11 to +0.27 %: outside our optimistic
-    intervals; the authors' g = 9.80858 vs our 9.81 alone is 0.015 %, and they simulated
-    with ode113 at its default tolerances). The two viscous coefficients agree within our
-    95 % intervals (measured k1 2.4046e-4 [2.346e-4, 2.464e-4] vs 2.3714e-4; k2 1.081e-5
-    [9.61e-6, 1.216e-5] vs 1.0e-5)."""
+    """All 26 identification segments, as the authors fitted. The two viscous coefficients
+    agree within our 95 % intervals, white-noise and cluster-robust (measured k1 2.4046e-4
+    [2.346e-4, 2.464e-4] vs 2.3714e-4; k2 1.081e-5 [9.61e-6, 1.216e-5] vs 1.0e-5). The
+    inertial and gravity combinations agree within 0.3 % (measured +0.16 to +0.28 %). The
+    white-noise intervals are far narrower than that (they assume white residuals; the
+    residual is model error); the cluster-robust ones (`identify.clustered_uncertainty`, 26
+    logs) have half-widths 0.05-0.26 % and hold the authors' G1, not J1 (by 0.002 %), J2 or
+    c: explained in the slow test below (the combinations move by up to 0.18 % with the
+    estimator: run the authors' procedure in our model and J2 becomes theirs)."""
     exp, res = double
     assert res.converged and not res.at_bounds
     ours, auth = _double_combinations(res.value), _double_combinations(AUTHORS_DOUBLE)
     for key in ours:
-        assert ours[key] == pytest.approx(auth[key], rel=0.01), key
+        assert ours[key] == pytest.approx(auth[key], rel=0.003), key
+    robust = clustered_uncertainty(res)
     for name in ("joint1.damping", "joint2.damping"):
         i = res.names.index(name)
-        lo, hi = res.ci_low[i], res.ci_high[i]
-        assert lo <= AUTHORS_DOUBLE[name] <= hi, (name, res.value[name], (lo, hi))
+        assert res.ci_low[i] <= AUTHORS_DOUBLE[name] <= res.ci_high[i], (name, res.value[name])
+        assert robust.ci_low[i] <= AUTHORS_DOUBLE[name] <= robust.ci_high[i], (name, res.value[name])
+    _, lo, hi = robust.interval(lambda w: _double_combinations(w)["G1"])
+    assert lo <= auth["G1"] <= hi
+    # the robust intervals are wider than the white-noise ones by an order of magnitude
+    i = res.names.index("link1.length")
+    assert robust.std_errors[i] > 3 * res.std_errors[i]
 
 
 def test_double_pendulum_validation_no_worse_than_the_authors(double_validation):
@@ -297,6 +349,29 @@ def test_double_pendulum_validation_no_worse_than_the_authors(double_validation)
         assert ours["reestimated"][c] <= authors["reestimated"][c], (c, ours, authors)
         assert ours["measured_start"][c] <= 1.1 * authors["measured_start"][c], (c, ours, authors)
     assert ours["reestimated"]["phi2"] < 0.003
+
+
+@pytest.mark.slow
+def test_double_pendulum_combinations_move_with_the_estimator_toward_the_authors(double):
+    """Why J1, J2 and c differ from the authors' by 0.2-0.3 %, more than our cluster-robust
+    intervals: on a model that is not exact (the viscous law, see the diagnosis) these
+    combinations depend on the estimator at that level. The authors simulated every segment
+    from its measured start (first sample and denoised rate, no encoder offsets); the same
+    procedure in our model (accurate integrator), on the same 26 segments, moves J2 to
+    within 0.05 % of theirs and J1 and c toward theirs (measured: J1 +0.261 -> +0.174 %, J2
+    +0.188 -> +0.007 %, c +0.278 -> +0.116 %; G1 +0.163 -> +0.217 %, and k1 halves). The
+    authors' ODE, written independently in NumPy, reproduces our measured-start simulation
+    (notebook), so this is the estimator, not the model."""
+    exp, res = double
+    data = [dataclasses.replace(log_data(s, exp.chain.n_links), fit_initial=(), offsets=()) for s in exp.fit_logs]
+    problem = make_problem(exp.chain, parameters(exp), data, dict(res.sigma), rtol=RTOL, atol=1e-2 * RTOL)
+    start = fit(problem, parameters(exp), estimate_noise=list(problem.channels), n_starts=1)
+    assert start.converged
+    auth = _double_combinations(AUTHORS_DOUBLE)
+    ours, theirs_way = _double_combinations(res.value), _double_combinations(start.value)
+    assert theirs_way["J2"] == pytest.approx(auth["J2"], rel=5e-4)
+    for key in ("J1", "J2", "c"):
+        assert abs(theirs_way[key] / auth[key] - 1) < abs(ours[key] / auth[key] - 1), key
 
 
 @pytest.mark.slow

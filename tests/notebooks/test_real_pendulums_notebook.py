@@ -33,6 +33,10 @@ def test_real_pendulums_notebook():
         "G1 = m1a1+m2L1 [kg m]",
     ):
         assert double[key]["ours"] == pytest.approx(double[key]["authors"], rel=0.01), key
+    # cluster-robust intervals (26 segments): the dampings and G1 agree within them
+    robust = r["double_combinations_robust"]
+    for key in ("k1 [N m s/rad]", "k2 [N m s/rad]", "G1 = m1a1+m2L1 [kg m]"):
+        assert robust[key]["authors_inside"], key
     # the explanation of the single pendulum's difference: the authors' estimate fits a loose integrator
     check = r["single_integrator_check_rad"]
     assert check["ours"]["accurate (DOP853, rtol 1e-11)"] < 0.3 * check["authors"]["accurate (DOP853, rtol 1e-11)"]
