@@ -10,7 +10,7 @@ below are of identifiable combinations.
 Each rig has two experiment files: `experiment.toml`, the authors' viscous model, and
 `experiment_drag_friction.toml`, the dissipation law `identify diagnose` names on it (air
 drag and dry friction). The single pendulum's fits and the double pendulum's viscous fit
-run in CI (about 30 s to a minute each); the double pendulum's drag + friction fit and the
+run in CI (about 30 s to 2 min each); the double pendulum's drag + friction fit and the
 two diagnoses are `slow`.
 """
 
