@@ -9,9 +9,8 @@ below are of identifiable combinations.
 
 Each rig has two experiment files: `experiment.toml`, the authors' viscous model, and
 `experiment_drag_friction.toml`, the dissipation law `identify diagnose` names on it (air
-drag and dry friction). The single pendulum's fits and the double pendulum's viscous fit
-run in CI (about 30 s to 2 min each); the double pendulum's drag + friction fit and the
-two diagnoses are `slow`.
+drag and dry friction). The single pendulum's two fits run in CI (about 30 s each); the
+double pendulum's fits (1-2 min each, with 26 logs) and the two diagnoses are `slow`.
 """
 
 import dataclasses
@@ -221,7 +220,7 @@ def test_single_pendulum_drag_friction_beats_the_authors_on_validation(single_dr
 
 
 # ---------------------------------------------------------------------------
-# double pendulum (CI: about 2 min on two cores; the drag + friction fit is slow)
+# double pendulum (slow: 1-2 min per fit on two cores; loading and the model oracle in CI)
 # ---------------------------------------------------------------------------
 
 
@@ -309,6 +308,7 @@ def test_double_pendulum_model_is_the_authors_ode():
     np.testing.assert_allclose(Q[:, 0] + Q[:, 1], ref.y[1], atol=1e-7)
 
 
+@pytest.mark.slow
 def test_double_pendulum_combinations_and_damping_agree(double):
     """All 26 identification segments, as the authors fitted. The two viscous coefficients
     agree within our 95 % intervals, white-noise and cluster-robust (measured k1 2.4046e-4
@@ -336,6 +336,7 @@ def test_double_pendulum_combinations_and_damping_agree(double):
     assert robust.std_errors[i] > 3 * res.std_errors[i]
 
 
+@pytest.mark.slow
 def test_double_pendulum_validation_no_worse_than_the_authors(double_validation):
     """Issue 8's requirement on the viscous model: on the four held-out segments, with each
     log's initial state and encoder offsets re-estimated, our fit predicts no worse than the
@@ -448,7 +449,7 @@ def test_double_pendulum_diagnosis_is_pinned():
     the default `max_effects = 3`. Held-out RMS on vad0..vad3 (initial state and offsets
     re-estimated per log) falls from 1.561 / 2.405 mrad (phi1 / phi2, our viscous fit) to
     0.482 / 0.716 mrad: 3.24x / 3.36x, and 3.3x / 3.4x below the authors' viscous
-    parameters in our model (1.606 / 2.468, the CI test above). Fitted: drag 1.7883e-2
+    parameters in our model (1.606 / 2.468, the validation test above). Fitted: drag 1.7883e-2
     kg/m^2 [1.7832e-2, 1.7934e-2], Coulomb 1.9744e-4 N m [1.9636e-4, 1.9853e-4] (joint 2)
     and 2.2490e-4 [2.2171e-4, 2.2813e-4] (joint 1): within 0.2 % of the independent fit of
     `experiment_drag_friction.toml` (viscous damping in joint 2 dropped there). The same law
@@ -466,7 +467,7 @@ def test_double_pendulum_diagnosis_is_pinned():
     for c, before, after in (("phi1", 1.561e-3, 0.482e-3), ("phi2", 2.405e-3, 0.716e-3)):
         assert held["baseline"][c] == pytest.approx(before, rel=0.02), held
         assert held["extended"][c] == pytest.approx(after, rel=0.05), held
-    # the extended model beats the authors' parameters on the held-out swings (CI test:
+    # the extended model beats the authors' parameters on the held-out swings (test above:
     # 1.606 / 2.468 mrad in our model, initial state and offsets re-estimated the same way)
     assert held["extended"]["phi1"] < 1.606e-3 / 2 and held["extended"]["phi2"] < 2.468e-3 / 2
     params = {k: v for c in d.causes for k, v in c.parameters.items()}
