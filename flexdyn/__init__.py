@@ -16,6 +16,7 @@ from . import (
     control as control,
     denoc as denoc,
     design as design,
+    fixed_step as fixed_step,
     modes as modes,
     nonlinear as nonlinear,
     params as params,
@@ -44,6 +45,7 @@ from .chain import (
     total_energy as total_energy,
     velocity_terms as velocity_terms,
 )
+from .fixed_step import rk4_trajectory as rk4_trajectory
 from .inputs import (
     AbstractInput as AbstractInput,
     BangBang as BangBang,
