@@ -98,7 +98,16 @@ CONSERVATIVE_RIGS = {
 }
 
 
-@pytest.mark.parametrize("rig", list(CONSERVATIVE_RIGS))
+# Three rigs whose structure another CI case contains run with the slow tests (CI time):
+# the one-mode pendulum (three modes in CI), the mixed arm without stiffening (with it in
+# CI) and the two-link arm with payload (the flexible-link, elastic-joint arm in CI).
+SLOW_CONSERVATIVE_RIGS = ("flexible_pendulum_1_mode", "mixed_three_link_arm", "two_link_flexible_arm_payload")
+
+
+@pytest.mark.parametrize(
+    "rig",
+    [pytest.param(r, marks=pytest.mark.slow) if r in SLOW_CONSERVATIVE_RIGS else r for r in CONSERVATIVE_RIGS],
+)
 def test_undamped_unforced_motion_conserves_energy(rig):
     make, rtol, atol = CONSERVATIVE_RIGS[rig]
     chain, y0 = make()

@@ -86,6 +86,7 @@ def test_fit_uses_the_block_solve_from_many_logs(multilog_problem):
     assert isinstance(fit_module._levenberg_marquardt(bare, 1e-3, 1e-10), optx.LevenbergMarquardt)
 
 
+@pytest.mark.slow  # 43 s in CI; the block solve stays in CI (the two tests above)
 def test_a_fit_of_many_logs_recovers_the_truth():
     """`identify.fit` of `BLOCK_SOLVE_MIN_LOGS` pendulum releases (each with its own unknown
     release angle and potentiometer offset: the block solve) brackets the true damping and

@@ -370,6 +370,7 @@ def test_paper000_damping_full_fit_vs_log_decrement():
 # ---------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # 70 s in CI; stiffening's dynamics stay in CI (test_chain, the stiffening notebook)
 def test_ei_of_a_spinning_link_is_biased_without_geometric_stiffening():
     """Paper 002's link (two modes) spinning at a constant Omega = 2 sqrt(EI / (rho l^4))
     (17.9 rad/s) on a heavy hub, released with a 1 mm first-mode deflection; 1 s of `tip1`

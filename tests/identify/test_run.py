@@ -15,6 +15,7 @@ import math
 import textwrap
 
 import numpy as np
+import pytest
 from diagnose_cases import LOG_NAMES, PENDULUM_NOISE, pendulum, pendulum_logs
 
 from identify import measurement as meas
@@ -77,6 +78,7 @@ def test_a_sensor_delay_left_free_in_the_experiment_file_is_recovered(tmp_path):
     assert np.sqrt(np.mean(r**2)) < 1.2 * PENDULUM_NOISE
 
 
+@pytest.mark.slow  # 33 s in CI; the delay key and its sensor model stay in CI (the free-delay fit above)
 def test_a_known_sensor_delay_in_the_experiment_file_is_applied(tmp_path):
     logs = pendulum_logs(pendulum(), 22, meas.Measurement({"theta1": meas.Sensor(delay=DELAY)}))
     with_sensor = load_experiment(write_experiment(tmp_path / "a", logs, '[sensors.theta1]\ndelay = "30 ms"', ""))
