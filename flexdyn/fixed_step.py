@@ -2,8 +2,8 @@
 
 `rk4_trajectory(chain, y0, ts, torque, dt=...)` returns the state at every `ts`, like
 `simulate(..., dt=dt)`, and is differentiated in reverse mode by the discrete adjoint of
-RK4 (its own `custom_vjp`, see its docstring), at about 3x the cost of its forward solve
-(diffrax's checkpointed gradient through `simulate`: ~6-7x).
+RK4 (its own `custom_vjp`, see its docstring), at ~3.8x the cost of its forward solve
+(diffrax's checkpointed gradient through `simulate`: ~6.3x `simulate`'s).
 
 `rk4_final(chain, y0, t0, t1, torque, dt=...)` integrates the chain's equations of motion
 with the classical fourth-order Runge-Kutta method and returns the final state only. It
@@ -182,22 +182,48 @@ def _output_table(ts: np.ndarray, jumps: list[float], dt: float):
     return tuple(np.concatenate(x) for x in (starts, steps, lasts)), index
 
 
-def _rk4_step(dynamic, static, y, x):
-    """One classical RK4 step of `y_dot = [Q_dot, Q_ddot(Q, Q_dot, tau(t, y))]` (accelerations
-    by `flexdyn.chain.accelerations`, differentiated by its implicit-function rule)."""
+_RK4_A = (0.0, 0.5, 0.5, 1.0)  # stage i reads y + A[i] h k_{i-1} at t + A[i] h
+_RK4_B = (1 / 6, 1 / 3, 1 / 3, 1 / 6)
+
+
+def _rk4_step(dynamic, static, y, x, record=False):
+    """One classical RK4 step of `y_dot = [Q_dot, Q_ddot(Q, Q_dot, tau(t, y))]`.
+
+    Accelerations by `flexdyn.chain.accelerations` (its implicit-function derivative rule),
+    the stages in a `lax.scan` (one right-hand side in the compiled loop: on the CPU the
+    forward solve is ~1.25x faster than with four inlined copies). With `record`, by the
+    same solve, also returning each stage's `Q_ddot` and the upper Cholesky factor of its
+    `M` (the residuals of the discrete adjoint), the stages inlined (there the inlined
+    form is ~1.1x faster: measured in `benchmarks/bench_gradient_cost.py`)."""
     asm, torque = eqx.combine(dynamic, static)
     t, h, last = x
     n = y.shape[0] // 2
 
-    def f(t_, y_):
-        tau = torque(jnp.minimum(t_, last), y_)
-        return jnp.concatenate([y_[n:], accelerations(asm, y_[:n], y_[n:], tau)])
+    def stage(k, a):
+        Y = y + (a * h) * k
+        tau = torque(jnp.minimum(t + a * h, last), Y)
+        if record:
+            Qdd, (factor, lower) = _solve_forward_dynamics(asm, Y[:n], Y[n:], tau)
+            return jnp.concatenate([Y[n:], Qdd]), (Qdd, factor.T if lower else factor)
+        return jnp.concatenate([Y[n:], accelerations(asm, Y[:n], Y[n:], tau)]), None
 
-    k1 = f(t, y)
-    k2 = f(t + 0.5 * h, y + (0.5 * h) * k1)
-    k3 = f(t + 0.5 * h, y + (0.5 * h) * k2)
-    k4 = f(t + h, y + h * k3)
-    return y + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    zero = jnp.zeros_like(y)
+    if not record:
+
+        def scanned(carry, coefficients):
+            k, total = carry
+            k, _ = stage(k, coefficients[0])
+            return (k, total + coefficients[1] * k), None
+
+        (_, total), _ = jax.lax.scan(scanned, (zero, zero), (jnp.asarray(_RK4_A), jnp.asarray(_RK4_B)))
+        return y + h * total
+    k, total, Qdds, factors = zero, zero, [], []
+    for a, b in zip(_RK4_A, _RK4_B):
+        k, (Qdd, factor) = stage(k, a)
+        total = total + b * k
+        Qdds.append(Qdd)
+        factors.append(factor)
+    return y + h * total, (jnp.stack(Qdds), jnp.stack(factors))
 
 
 def _rk4_states(dynamic, static, y0, table):
@@ -209,28 +235,6 @@ def _rk4_states(dynamic, static, y0, table):
 
     _, ys = jax.lax.scan(body, y0, table)
     return jnp.concatenate([y0[None], ys])
-
-
-_RK4_A = (0.0, 0.5, 0.5, 1.0)  # stage i reads y + A[i] h k_{i-1} at t + A[i] h
-_RK4_B = (1 / 6, 1 / 3, 1 / 3, 1 / 6)
-
-
-def _recorded_step(dynamic, static, y, x):
-    """`_rk4_step`, also returning each stage's accelerations `Q_ddot_i` and the upper
-    Cholesky factor of its mass matrix (the residuals of the discrete adjoint)."""
-    asm, torque = eqx.combine(dynamic, static)
-    t, h, last = x
-    n = y.shape[0] // 2
-    k, total, Qdds, factors = None, jnp.zeros_like(y), [], []
-    for a, b in zip(_RK4_A, _RK4_B):
-        Y = y if k is None else y + (a * h) * k
-        tau = torque(jnp.minimum(t + a * h, last), Y)
-        Qdd, (factor, lower) = _solve_forward_dynamics(asm, Y[:n], Y[n:], tau)
-        k = jnp.concatenate([Y[n:], Qdd])
-        total = total + b * k
-        Qdds.append(Qdd)
-        factors.append(factor.T if lower else factor)  # recorded as the upper factor
-    return y + h * total, jnp.stack(Qdds), jnp.stack(factors)
 
 
 @eqx.filter_custom_vjp
@@ -245,7 +249,7 @@ def _rk4_states_adjoint_fwd(perturbed, vjp_arg, static, table):
     dynamic, y0 = vjp_arg
 
     def body(y, x):
-        y, Qdds, factors = _recorded_step(dynamic, static, y, x)
+        y, (Qdds, factors) = _rk4_step(dynamic, static, y, x, record=True)
         return y, (y, Qdds, factors)
 
     _, (ys, Qdds, factors) = jax.lax.scan(body, y0, table)
@@ -332,7 +336,7 @@ def rk4_trajectory(
 ) -> Trajectory:
     r"""Classical RK4 with steps of at most `dt` (s): the state at every time of `ts` (s),
     as a `Trajectory` (like `simulate(chain, y0, ts, torque, dt=dt)`), with a reverse-mode
-    derivative that costs about three forward solves.
+    derivative that costs under four forward solves.
 
     **Steps.** `[ts[0], ts[-1]]` is cut at every output time and every input jump
     (`torque.jump_times()`); each piece `[a, b]` takes `ceil((b - a) / dt)` equal steps of at
@@ -351,10 +355,11 @@ def rk4_trajectory(
       Cholesky factor of `M`; the backward pass transposes each stage from them without
       forming `M` again: with `w = M^-1 v`, `v^T dQ_ddot = -d(w^T r)` for the Lagrange
       residual `r = M Q_ddot + h - F` at fixed `Q_ddot`, one reverse pass over a scalar.
-      Memory: `N (4 n (n + 1) + 2n) + 2n` floats, 23 MB for 10,000 steps of 8 coordinates.
+      Memory: `N (4 n (n + 1) + 2n) + 2n` floats for `N` steps and `n` coordinates: 24 MB
+      for 10,000 steps of 8 (XLA reports 27 MiB for the whole gradient program).
       Cost (`benchmarks/bench_gradient_cost.py`, paper 004's arm, a 10 s log at 1 kHz, 10
-      parameters, 2-core CPU): `value_and_grad` 2.95x this function's forward solve and
-      3.6x `simulate`'s (diffrax's checkpointed gradient: 6.9x). Gradients flow to the
+      parameters, 2-core CPU): `value_and_grad` 3.8x this function's forward solve and
+      3.6x `simulate`'s (diffrax's checkpointed gradient: 6.3x). Gradients flow to the
       chain's parameters, the input's array fields and `y0`. Forward mode (`jax.jvp`,
       `jax.jacfwd`) is not defined for it: use `adjoint="autodiff"`, or `simulate` with
       `diffrax.ForwardMode()`.
