@@ -280,9 +280,10 @@ def _stage_vjp(dynamic, static, Y, t, Qdd, factor, v):
 
 
 def _step_vjp(dynamic, static, y, x, Qdds, factors, lam):
-    """The transpose of one RK4 step's linearisation at `y`, from the recorded stages:
-    `k_bar_i = b_i h lam`, then for `i = 4, 3, 2`: `Y_bar_i = f_Y(Y_i)^T k_bar_i`,
-    `k_bar_{i-1} += a_i h Y_bar_i`; `y_bar = lam + sum_i Y_bar_i`."""
+    """The transpose of one RK4 step's linearisation at `y`, from the recorded stages
+    (`Y_i = y + a_i h k_{i-1}`): `k_bar_i = b_i h lam`, then for `i = 4, 3, 2, 1`:
+    `Y_bar_i = f_Y(Y_i)^T k_bar_i` and, for `i > 1`, `k_bar_{i-1} += a_i h Y_bar_i`;
+    `y_bar = lam + sum_i Y_bar_i`, and the parameters' cotangent `sum_i f_p(Y_i)^T k_bar_i`."""
     t, h, last = x
     n = y.shape[0] // 2
     Ys, k = [], None
