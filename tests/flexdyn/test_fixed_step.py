@@ -142,9 +142,16 @@ def test_rk4_trajectory_off_grid_outputs_are_fourth_order(reference):
 
 
 # The adjoint's own tests use a one-link flexible pendulum (it compiles 2.5x faster than
-# the two-link arm); the finite-difference test runs on the two-link arm across input jumps.
-PENDULUM = fd.rigs.flexible_pendulum(n_modes=1, damping_ratio=0.02)
-PENDULUM_PARAMS = ("link1.EI", "link1.rho", "joint1.damping", "hub1.inertia")
+# the two-link arm) with every kind of force the Lagrange residual carries: gravity, an
+# elastic joint with rotor, viscous and dry friction, structural damping, and air drag on
+# the link. The finite-difference test runs on the two-link arm across input jumps.
+PENDULUM = fd.Chain(
+    [fd.FlexibleLink(0.3, 0.39, 3.3, n_modes=1, damping_ratio=0.02, drag=0.05)],
+    joints=[fd.ElasticJoint(stiffness=2.0, rotor_inertia=1e-3, damping=1.9e-3, coulomb=5e-3)],
+    hubs=[fd.Hub(inertia=2e-5)],
+    gravity=(0.0, -9.81),
+)
+PENDULUM_PARAMS = ("link1.EI", "link1.drag", "joint1.coulomb", "joint1.stiffness")
 PENDULUM_Y0 = fd.initial_state(PENDULUM, joint_angles=[0.3], modal=[1e-3])
 
 
