@@ -47,7 +47,7 @@ from .chain import (
     mass_and_velocity_terms,
 )
 from .inputs import AbstractInput
-from .simulate import Trajectory, _check_torque_shape, as_input
+from .simulate import Trajectory, _check_torque_shape, as_initial_state, as_input
 from .smallsolve import spd_solve
 
 _SOLVES = {
@@ -133,11 +133,7 @@ def rk4_final(
         raise ValueError(f"rk4_final: unroll expected an integer >= 1, got {unroll!r}")
     asm = assemble(chain)
     torque = as_input(torque, asm.chain.n_links)
-    y0 = jnp.asarray(y0, dtype=float)
-    if y0.shape != (2 * asm.layout.n_dof,):
-        raise ValueError(
-            f"rk4_final: y0 expected shape ({2 * asm.layout.n_dof},) = [Q, Q_dot] of this chain, got {y0.shape}"
-        )
+    y0 = as_initial_state(asm, y0, "rk4_final")
     _check_torque_shape(torque, t0, y0, asm.chain.n_links)
     field = vector_field(asm, torque, solve)
     starts, steps, lasts = _step_table(_breaks(torque, t0, t1), dt)
@@ -400,12 +396,7 @@ def rk4_trajectory(
     asm = assemble(chain)
     torque = as_input(torque, asm.chain.n_links)
     n = asm.layout.n_dof
-    y0 = jnp.asarray(y0, dtype=float)
-    if y0.shape != (2 * n,):
-        raise ValueError(
-            f"rk4_trajectory: y0 expected shape ({2 * n},) = [Q, Q_dot] for coordinates "
-            f"{list(asm.layout.names)}, got {y0.shape}"
-        )
+    y0 = as_initial_state(asm, y0, "rk4_trajectory")
     _check_torque_shape(torque, ts_np[0], y0, asm.chain.n_links)
     jumps = _breaks(torque, float(ts_np[0]), float(ts_np[-1]), "rk4_trajectory")[1:-1]
     table, index = _output_table(ts_np, jumps, dt)

@@ -45,6 +45,19 @@ def as_input(torque, n_joints: int) -> AbstractInput:
     raise ValueError(f"torque: expected None, an AbstractInput or a callable fn(t) -> (n_joints,) N m, got {torque!r}")
 
 
+def as_initial_state(asm, y0, caller: str) -> Float[Array, " 2n"]:
+    """`y0` as a float array, checked to be `[Q, Q_dot]` of the assembled chain (a
+    `ValueError` naming `caller`, the expected shape and the coordinates otherwise)."""
+    n = asm.layout.n_dof
+    y0 = jnp.asarray(y0, dtype=float)
+    if y0.shape != (2 * n,):
+        raise ValueError(
+            f"{caller}: y0 expected shape ({2 * n},) = [Q, Q_dot] for coordinates "
+            f"{list(asm.layout.names)}, got {y0.shape}"
+        )
+    return y0
+
+
 def _check_torque_shape(torque: AbstractInput, t0, y0, n_joints: int) -> None:
     shape = jax.eval_shape(torque, t0, y0).shape
     if shape != (n_joints,):
@@ -163,12 +176,7 @@ def simulate(
     """
     asm = assemble(chain)
     n = asm.layout.n_dof
-    y0 = jnp.asarray(y0, dtype=float)
-    if y0.shape != (2 * n,):
-        raise ValueError(
-            f"simulate: y0 expected shape ({2 * n},) = [Q, Q_dot] for coordinates "
-            f"{list(asm.layout.names)}, got {y0.shape}"
-        )
+    y0 = as_initial_state(asm, y0, "simulate")
     ts = jnp.asarray(ts, dtype=float)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"simulate: ts expected a 1-D array of at least 2 times, got shape {ts.shape}")
