@@ -53,6 +53,8 @@ from _common import environment, format_environment, format_table, median_time, 
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 from flexdyn import fixed_step  # noqa: E402
+from flexdyn.fused import rk4_sweep_final  # noqa: E402
+from flexdyn.simulate import as_input  # noqa: E402
 
 T_END = 5.0
 DT = 1e-3
@@ -81,6 +83,56 @@ def lean(solve: str, unroll: int, t_end: float = T_END):
         return y[:N]
 
     return run
+
+
+_build = jax.jit(jax.vmap(arm))
+
+
+def fused(
+    backend: str,
+    block: int = 64,
+    num_warps: int | None = None,
+    t_end: float = T_END,
+    interpret: bool = False,
+    reload: bool = False,
+):
+    """The batch in one call of `flexdyn.fused.rk4_sweep_final` (whole trajectories per
+    kernel): timed from the parameter grid, chains built and assembled included."""
+
+    def run(params):
+        y = rk4_sweep_final(
+            _build(params),
+            Y0,
+            0.0,
+            t_end,
+            TORQUE,
+            dt=DT,
+            backend=backend,
+            block=block,
+            num_warps=num_warps,
+            interpret=interpret,
+            reload=reload,
+        )
+        return y[:, :N]
+
+    return run
+
+
+def fused_rhs_operations() -> int:
+    """Scalar operations of one right-hand side in the fused kernel's program (the folded
+    scalar program of `flexdyn.scalarize`, for the payload x hub-inertia sweep: what varies
+    is read per trajectory, the rest folded)."""
+    from flexdyn import fused as fz
+
+    chains = _build(jnp.asarray(grid(16)))
+    flat, asm = fz._assembled_scalars(chains)
+    columns = fz._columns(flat)
+    torque = as_input(TORQUE, BASE.n_links)
+    plan = fz._plan(asm, torque, 0.0, T_END, DT, Y0, columns)
+    rows = [jnp.zeros(4) for _ in range(plan.n_rows)]
+    y = [jnp.zeros(4) for _ in range(plan.n_state)]
+    jaxpr = jax.make_jaxpr(lambda r, t, y: plan.rhs(r, t, y))(rows, jnp.asarray(0.1), y)
+    return len(jaxpr.jaxpr.eqns)
 
 
 def reference(p):
@@ -227,6 +279,20 @@ def main(argv=None):
     parser.add_argument("--device", default="gpu", choices=("gpu", "cpu"))
     parser.add_argument("--main-size", type=int, default=4096, help="batch of the variant comparison (target: 4096)")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--runs",
+        default="fused,fused-xla,lean,diffrax-rk4,tsit5",
+        help="groups to run: fused (one Pallas kernel), fused-xla (its scalar program as XLA ops, on the device "
+        "and on the host CPU), lean (rk4_final vmapped), "
+        "diffrax-rk4, tsit5 (fd.simulate vmapped)",
+    )
+    parser.add_argument(
+        "--fused-configs",
+        default="32x1,32x1r,64x1,64x2",
+        help="fused kernel: BLOCKxWARPS[r] (r: reload the swept scalars), comma-separated",
+    )
+    parser.add_argument("--tsit5-sizes", default=None, help="sizes of the adaptive runs (default: --sizes)")
+    parser.add_argument("--interpret", action="store_true", help="fused kernel in Pallas's interpreter (smoke test)")
     parser.add_argument("--unroll", default="1,4", help="loop unroll factors tried for the lean RK4")
     parser.add_argument("--solves", default="unrolled,cho", help="mass-matrix solves tried for the lean RK4")
     parser.add_argument("--lean-sizes", default=None, help="further sizes for the best lean variant (default: --sizes)")
@@ -253,6 +319,9 @@ def main(argv=None):
 
     flops = {s: rhs_flops(s) for s in ("cho", "unrolled")}
     print(f"FLOPs per right-hand side (one state, XLA cost analysis): {flops}", flush=True)
+    fused_ops = fused_rhs_operations()
+    print(f"scalar operations per right-hand side in the fused kernel: {fused_ops}", flush=True)
+    runs = set(args.runs.split(","))
 
     # Accuracy at the grid's two corners, once (CPU reference).
     sub = jnp.asarray(grid(64)[[0, 63]])  # the grid's corners, the same at every size
@@ -263,12 +332,12 @@ def main(argv=None):
     def over_budget():
         return time.perf_counter() - start > args.budget_s
 
-    def bench(name, fn, size, device, steps, solve=None, extra=None):
+    def bench(name, fn, size, device, steps, solve=None, extra=None, batched=False):
         if over_budget():
             print(f"  (budget) skipped {name} {size}", flush=True)
             return None
         params = jax.device_put(jnp.asarray(grid(size)), device)
-        f = jax.jit(jax.vmap(fn))
+        f = fn if batched else jax.jit(jax.vmap(fn))
         try:
             out, cold = timed(lambda: jax.block_until_ready(f(params)))
             warm = median_time(lambda: jax.block_until_ready(f(params)), args.repeats)
@@ -294,7 +363,8 @@ def main(argv=None):
         )
         if solve is not None and steps:
             stages = 6 if "Tsit5" in name else 4  # right-hand sides per step
-            floor = size * steps * stages * flops[solve]["jaxpr"] / FP64_PEAK
+            per_rhs = fused_ops if solve == "fused" else flops[solve]["jaxpr"]
+            floor = size * steps * stages * per_rhs / FP64_PEAK
             row["flop_floor_s"] = floor
             row["flop_fraction"] = floor / warm
         if extra:
@@ -305,8 +375,43 @@ def main(argv=None):
 
     n_fixed = int(round(T_END / DT))
     M = args.main_size
+    # 0. Whole trajectories in one Pallas kernel: programs of `block` trajectories x warps.
+    if "fused" in runs:
+        fused_rows = []
+        for cfg in args.fused_configs.split(","):
+            reload = cfg.endswith("r")
+            block, warps = (int(x) for x in cfg.rstrip("r").split("x"))
+            name = f"fused RK4 1 ms, pallas, block {block} x {warps} warps" + (", reload" if reload else "")
+            fn = fused("pallas", block, warps, interpret=args.interpret, reload=reload)
+            row = bench(name, fn, M, dev, n_fixed, "fused", batched=True)
+            if row is not None:
+                fused_rows.append((row, block, warps, reload))
+        if fused_rows:
+            row, block, warps, reload = min(fused_rows, key=lambda r: r[0]["warm_s"])
+            short = bench(
+                f"{row['run']}, 1 s horizon",
+                fused("pallas", block, warps, 1.0, interpret=args.interpret, reload=reload),
+                M,
+                dev,
+                1000,
+                "fused",
+                batched=True,
+            )
+            if short is not None:
+                row["marginal_us_per_step"] = (row["warm_s"] - short["warm_s"]) / (n_fixed - 1000) * 1e6
+            for size in sizes:
+                if size != M:
+                    fn = fused("pallas", block, warps, interpret=args.interpret, reload=reload)
+                    bench(row["run"], fn, size, dev, n_fixed, "fused", batched=True)
+    if "fused-xla" in runs:
+        bench("fused RK4 1 ms, xla (scalar program, fori_loop)", fused("xla"), M, dev, n_fixed, "fused", batched=True)
+        if args.cpu_size:  # the same scalar program on this machine's CPU (all cores)
+            cpu = jax.devices("cpu")[0]
+            with jax.default_device(cpu):
+                name = "fused RK4 1 ms, xla (scalar program, fori_loop)"
+                bench(name, fused("xla"), args.cpu_size, cpu, n_fixed, "fused", batched=True)
     # 1. The lean fixed-step integrator: solve variants x unroll, at 4096.
-    for solve in args.solves.split(","):
+    for solve in args.solves.split(",") if "lean" in runs else ():
         for u in unrolls:
             bench(f"lean RK4 1 ms, {solve} solve, unroll {u}", lean(solve, u), M, dev, n_fixed, solve)
     lean_rows = [r for r in rows if r["run"].startswith("lean") and r["size"] == M]
@@ -347,9 +452,10 @@ def main(argv=None):
             if size != M:
                 bench(best["run"], lean(solve, u), size, dev, n_fixed, solve)
     # 2. diffrax through the library's simulate.
-    for size in sizes:
+    for size in sizes if "diffrax-rk4" in runs else ():
         bench("diffrax RK4 1 ms (fd.simulate)", diffrax_rk4, size, dev, n_fixed, "cho")
-    for size in sizes:
+    tsit5_sizes = sizes if args.tsit5_sizes is None else [int(x) for x in args.tsit5_sizes.split(",") if x]
+    for size in tsit5_sizes if "tsit5" in runs else ():
         if over_budget():
             break
         bench(f"diffrax Tsit5 rtol {RTOL:g} (fd.simulate, lockstep)", diffrax_tsit5, size, dev, None, "cho")
