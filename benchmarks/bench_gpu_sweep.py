@@ -46,6 +46,7 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import diffrax  # noqa: E402
+import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -94,7 +95,6 @@ def fused(
     num_warps: int | None = None,
     t_end: float = T_END,
     interpret: bool = False,
-    reload: bool = False,
 ):
     """The batch in one call of `flexdyn.fused.rk4_sweep_final` (whole trajectories per
     kernel): timed from the parameter grid, chains built and assembled included."""
@@ -111,9 +111,23 @@ def fused(
             block=block,
             num_warps=num_warps,
             interpret=interpret,
-            reload=reload,
         )
         return y[:, :N]
+
+    return run
+
+
+def rigid_fused(interpret: bool = False):
+    """A payload sweep of the rigid pendulum (`fd.rigs.rigid_pendulum`, 2 states) through
+    the same fused kernel, bang-bang 0.02 N m / 0.5 s from 0.3 rad: final angle."""
+    rigid = fd.rigs.rigid_pendulum()
+    y0 = fd.initial_state(rigid, joint_angles=[0.3])
+    torque = fd.BangBang([0.02], 0.5)
+    build = jax.jit(jax.vmap(lambda p: eqx.tree_at(lambda c: c.payload.mass, rigid, p[0])))
+
+    def run(params):
+        y = rk4_sweep_final(build(params), y0, 0.0, T_END, torque, dt=DT, block=32, num_warps=1, interpret=interpret)
+        return y[:, :1]
 
     return run
 
@@ -281,15 +295,16 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument(
         "--runs",
-        default="fused,fused-xla,lean,diffrax-rk4,tsit5",
-        help="groups to run: fused (one Pallas kernel), fused-xla (its scalar program as XLA ops, on the device "
+        default="fused,fused-rigid,fused-xla,lean,diffrax-rk4,tsit5",
+        help="groups to run: fused (one Pallas kernel), fused-rigid (the same kernel on the rigid pendulum), "
+        "fused-xla (its scalar program as XLA ops, on the device "
         "and on the host CPU), lean (rk4_final vmapped), "
         "diffrax-rk4, tsit5 (fd.simulate vmapped)",
     )
     parser.add_argument(
         "--fused-configs",
         default="32x1,32x1r,64x1,64x2",
-        help="fused kernel: BLOCKxWARPS[r] (r: reload the swept scalars), comma-separated",
+        help="fused kernel: BLOCKxWARPS, comma-separated",
     )
     parser.add_argument("--tsit5-sizes", default=None, help="sizes of the adaptive runs (default: --sizes)")
     parser.add_argument("--interpret", action="store_true", help="fused kernel in Pallas's interpreter (smoke test)")
@@ -349,7 +364,7 @@ def main(argv=None):
             out, per_entry = out
             steps = int(np.max(np.asarray(per_entry)))
         got = np.asarray(out)
-        err = float(np.max(np.abs(got[idx] - ref_Q))) if "horizon" not in name else None
+        err = float(np.max(np.abs(got[idx] - ref_Q))) if ("horizon" not in name and "RIGID" not in name) else None
         row = dict(
             run=name,
             device=device.platform,
@@ -379,18 +394,17 @@ def main(argv=None):
     if "fused" in runs:
         fused_rows = []
         for cfg in args.fused_configs.split(","):
-            reload = cfg.endswith("r")
-            block, warps = (int(x) for x in cfg.rstrip("r").split("x"))
-            name = f"fused RK4 1 ms, pallas, block {block} x {warps} warps" + (", reload" if reload else "")
-            fn = fused("pallas", block, warps, interpret=args.interpret, reload=reload)
+            block, warps = (int(x) for x in cfg.split("x"))
+            name = f"fused RK4 1 ms, pallas, block {block} x {warps} warps"
+            fn = fused("pallas", block, warps, interpret=args.interpret)
             row = bench(name, fn, M, dev, n_fixed, "fused", batched=True)
             if row is not None:
-                fused_rows.append((row, block, warps, reload))
+                fused_rows.append((row, block, warps))
         if fused_rows:
-            row, block, warps, reload = min(fused_rows, key=lambda r: r[0]["warm_s"])
+            row, block, warps = min(fused_rows, key=lambda r: r[0]["warm_s"])
             short = bench(
                 f"{row['run']}, 1 s horizon",
-                fused("pallas", block, warps, 1.0, interpret=args.interpret, reload=reload),
+                fused("pallas", block, warps, 1.0, interpret=args.interpret),
                 M,
                 dev,
                 1000,
@@ -401,8 +415,18 @@ def main(argv=None):
                 row["marginal_us_per_step"] = (row["warm_s"] - short["warm_s"]) / (n_fixed - 1000) * 1e6
             for size in sizes:
                 if size != M:
-                    fn = fused("pallas", block, warps, interpret=args.interpret, reload=reload)
+                    fn = fused("pallas", block, warps, interpret=args.interpret)
                     bench(row["run"], fn, size, dev, n_fixed, "fused", batched=True)
+    if "fused-rigid" in runs:  # the same kernel on a small chain: what it reaches without register pressure
+        bench(
+            "fused RK4 1 ms, pallas, block 32 x 1 warps: RIGID PENDULUM (174 operations per RHS)",
+            rigid_fused(args.interpret),
+            M,
+            dev,
+            n_fixed,
+            None,
+            batched=True,
+        )
     if "fused-xla" in runs:
         bench("fused RK4 1 ms, xla (scalar program, fori_loop)", fused("xla"), M, dev, n_fixed, "fused", batched=True)
         if args.cpu_size:  # the same scalar program on this machine's CPU (all cores)

@@ -17,11 +17,13 @@ from . import (
     denoc as denoc,
     design as design,
     fixed_step as fixed_step,
+    fused as fused,
     modes as modes,
     nonlinear as nonlinear,
     params as params,
     response as response,
     rigs as rigs,
+    scalarize as scalarize,
     shaping as shaping,
     stiffening as stiffening,
 )

@@ -2,39 +2,58 @@
 
 `rk4_sweep_final(chains, y0, t0, t1, torque, dt=...)` returns the final state of every
 chain of a batch (a payload or hub-inertia sweep, say), integrated with classical RK4 on
-the steps of `flexdyn.fixed_step.rk4_final` (cut at the input's jumps, `h <= dt`). It is
-`vmap(rk4_final)` computed differently:
+the steps of `flexdyn.fixed_step.rk4_final` (cut at the input's jumps, `h <= dt`). It
+computes `vmap(rk4_final)` differently:
 
-- **One kernel for all steps** (`backend="pallas"`, the default on a GPU). A `vmap`ped
-  `lax.scan` runs on a GPU as a host-driven loop of ~100 kernel launches per step (XLA
-  cannot fuse the right-hand side of a generic chain into one); measured on an H200,
-  4,096 trajectories x 5,000 steps took 24 s, ~5 ms per step, 1/2000 of the float64
-  FLOP bound (`benchmarks/bench_gpu_sweep.py`). Here a single Pallas (Triton) kernel
-  integrates all steps: each GPU thread holds one trajectory's state in registers for
-  the whole run, as DiffEqGPU's `EnsembleGPUKernel` does (`../shared/PERFORMANCE.md`).
+- **One kernel for all steps** (`backend="pallas"`, the default on a GPU). On a GPU, a
+  `vmap`ped `lax.scan` is a loop driven by the host, with ~100 kernel launches per step
+  (`benchmarks/bench_gpu_sweep.py`). Here one Pallas (Triton) kernel runs all the steps.
+  Each GPU thread holds one trajectory's state for the whole run, as DiffEqGPU's
+  `EnsembleGPUKernel` does (`../shared/PERFORMANCE.md`).
 - **The right-hand side written out on scalars** (`flexdyn.scalarize`). A thread has no
-  8 x 8 matrices, so the right-hand side of one trajectory (mass matrix, velocity terms,
-  forces, the unrolled Cholesky solve of `flexdyn.smallsolve`) is traced once and
-  evaluated element by element, its array operations becoming scalar multiply-adds over
-  the batch. The chain's assembled constants (`AssembledChain`: modal integrals, masses,
-  stiffnesses) that are the same in every entry of the batch are folded in as numbers,
-  with every `0 * x` and `1 * x`; those that differ (the swept ones, and what depends on
-  them, e.g. the clamped-mass mode shapes of a payload sweep) are read per trajectory.
-  For paper 004's arm this leaves ~1,800 scalar operations per right-hand side, against
-  ~5,400 counted in the generic program.
+  8 x 8 matrices. So the right-hand side of one trajectory is traced once and evaluated
+  element by element: the mass matrix, velocity terms and forces, and the unrolled
+  Cholesky solve of `flexdyn.smallsolve`. Its array operations become scalar
+  multiply-adds over the batch.
+  - The assembled scalars of the chain that are the same in every entry are folded in
+    as numbers, with every `0 * x` and `1 * x`. These are the `AssembledChain`'s modal
+    integrals, masses and stiffnesses.
+  - The scalars that differ are read per trajectory: the swept parameters, and what
+    depends on them (e.g. the clamped-mass mode shapes of a payload sweep).
+  - For paper 004's arm, this leaves ~1,780 scalar operations per right-hand side,
+    against ~4,400 counted in the generic program. The rigid pendulum has 174.
 
-`backend="xla"` runs the same scalar program as ordinary JAX operations on `(B,)`
-arrays (one `lax.fori_loop` per piece between jumps); `backend="pallas", interpret=True`
-runs the kernel through Pallas's interpreter on any device (slow: for tests).
+`backend="xla"` runs the same scalar program as ordinary JAX operations on `(B,)` arrays,
+with one `lax.fori_loop` per piece between jumps. This is the default off a GPU: on
+CPU, paper 004's arm x 256 payloads x 5 s took 6.2 s, against 9.3 s for
+`vmap(rk4_final)`. `backend="pallas", interpret=True` runs the kernel through Pallas's
+interpreter on any device; it is slow, and meant for tests.
 
-What this path does not do: saved time series, adaptive steps or gradients (use
-`rk4_trajectory`, `simulate` or `flexdyn.batch.sweep` of them). The batch is traced in
-one piece: with several GPUs, split it with `flexdyn.batch`. The compiled kernel is cached
-on the structure and the folded constants, so a second sweep over other values of the
-*same* swept parameters reuses it, while changing a folded parameter compiles anew.
+**Measured on an H200** (2026-11-26, 4,096 trajectories x 5 s at 1 ms, float64,
+`benchmarks/results/gpu_sweep_fused_h200_2026-11-26.json`):
+- The rigid pendulum: 36 ms warm. This is within the issue's 150 ms.
+- Paper 004's arm: 20.6 s. This is no better than the vmapped scan (24 s) or the XLA
+  form of the scalar program (22 s).
+  - Per scalar operation, that is 56x slower than the pendulum's kernel.
+  - Holding the swept scalars in memory instead of registers did not change it
+    (23.5 s).
+  - Not profiled. The likely cause is register spills: ~1,780 operations with
+    ~150 live doubles per thread, above the 255 registers of a thread. At 4,096
+    trajectories that is one warp per SM, with nothing to hide the latency of local
+    memory.
+So for now this path pays off on a GPU only for small chains. For a flexible arm it
+pays off on a CPU.
 
-Raises if any final state is non-finite (a step above the stability limit of the
-stiffest mode, or an invalid parameter), as `rk4_final` does.
+What this path does not do: saved time series, adaptive steps or gradients. For those
+use `rk4_trajectory`, `simulate` or `flexdyn.batch.sweep` of them. The batch is traced
+in one piece: with several GPUs, split it with `flexdyn.batch`.
+
+The compiled program is cached on the structure and the folded constants. So a second
+sweep over other values of the *same* swept parameters reuses it, while changing a
+folded parameter compiles anew.
+
+Raises if any final state is non-finite, as `rk4_final` does. This happens when a step
+is above the stability limit of the stiffest mode, or when a parameter is invalid.
 """
 
 from __future__ import annotations
@@ -105,12 +124,16 @@ class _Plan:
         return list(out)
 
     def integrate(self, rows, y, like):
-        """Classical RK4 over every piece; `rows`, `y`: lists of arrays of the batch shape
-        (or numbers); `like`: an array of the batch shape, to give every carried value it."""
-        from .scalarize import _add, _mul
+        """Classical RK4 over every piece. `rows`, `y`: lists of arrays of the batch shape
+        (or numbers); `like`: an array of the batch shape, given to every carried value.
 
-        def lin(y, k, c):
-            return [_add(a, _mul(c, b)) for a, b in zip(y, k)]
+        Each step is a loop over the four stages, one right-hand side in its body: a
+        program a quarter the size of the stages written out, which compiled 8x faster
+        in Triton and ran 1.2x faster on an H200 (equal on a CPU). Stage `s` evaluates
+        `k_s = f(t + c_s h, y + c_s h k_{s-1})` (`c = 0, 1/2, 1/2, 1`) and accumulates
+        `b_s h k_s` (`b = 1/6, 1/3, 1/3, 1/6`): classical RK4, whose Butcher tableau
+        has one nonzero `a_{s,s-1} = c_s` per row."""
+        dtype = np.dtype(like.dtype).type  # strongly typed constants: see `_select` in scalarize
 
         def full(v):
             return jnp.zeros_like(like) + v if is_constant(v) else v
@@ -120,15 +143,17 @@ class _Plan:
 
             def step(i, y, a=a, h=h, last=last):
                 t = a + h * i.astype(like.dtype)
-                k1 = self.rhs(rows, jnp.minimum(t, last), y)
-                k2 = self.rhs(rows, jnp.minimum(t + 0.5 * h, last), lin(y, k1, 0.5 * h))
-                k3 = self.rhs(rows, jnp.minimum(t + 0.5 * h, last), lin(y, k2, 0.5 * h))
-                k4 = self.rhs(rows, jnp.minimum(t + h, last), lin(y, k3, h))
-                out = []
-                for yi, a1, a2, a3, a4 in zip(y, k1, k2, k3, k4):
-                    incr = _add(_add(a1, _mul(2.0, a2)), _add(_mul(2.0, a3), a4))
-                    out.append(full(_add(yi, _mul(h / 6.0, incr))))
-                return out
+
+                def stage(s, carry):
+                    acc, k = carry
+                    c = jnp.where(s == 0, dtype(0.0), jnp.where(s == 3, dtype(1.0), dtype(0.5)))
+                    b = jnp.where((s == 0) | (s == 3), dtype(1.0 / 6.0), dtype(1.0 / 3.0))
+                    ys = [yi + (c * h) * ki for yi, ki in zip(y, k)]
+                    k = [full(v) for v in self.rhs(rows, jnp.minimum(t + c * h, last), ys)]
+                    return [ai + (b * h) * ki for ai, ki in zip(acc, k)], k
+
+                acc, _ = jax.lax.fori_loop(0, 4, stage, (list(y), [jnp.zeros_like(like) for _ in y]))
+                return acc
 
             y = jax.lax.fori_loop(0, n, step, y)
         return y
@@ -209,25 +234,14 @@ def _xla_runner(plan: _Plan):
     return run
 
 
-class _RowsFromRef:
-    """The swept scalars of one program's trajectories, loaded from the kernel's input where
-    each right-hand side uses them (not held in registers across the loop)."""
-
-    def __init__(self, ref):
-        self.ref = ref
-
-    def __getitem__(self, k):
-        return self.ref[k, :]
-
-
-def _pallas_runner(plan: _Plan, block: int, num_warps: int | None, interpret: bool, reload: bool):
+def _pallas_runner(plan: _Plan, block: int, num_warps: int | None, interpret: bool):
     from jax.experimental import pallas as pl
 
     n_rows_padded = _next_pow2(max(plan.n_rows, 1))
     n_state_padded = _next_pow2(plan.n_state)
 
     def kernel(p_ref, y_ref, o_ref):
-        rows = _RowsFromRef(p_ref) if reload else [p_ref[k, :] for k in range(plan.n_rows)]
+        rows = [p_ref[k, :] for k in range(plan.n_rows)]
         y = [y_ref[i, :] for i in range(plan.n_state)]
         out = plan.integrate(rows, y, y[0])
         for i in range(plan.n_state):
@@ -261,13 +275,16 @@ def _pallas_runner(plan: _Plan, block: int, num_warps: int | None, interpret: bo
     return run
 
 
-def _runner(key, make_plan: Callable[[], _Plan], backend, block, num_warps, interpret, reload) -> Callable:
-    key = None if key is None else (key, backend, block, num_warps, interpret, reload)
+def _runner(key, make_plan: Callable[[], _Plan], backend, block, num_warps, interpret) -> Callable:
+    key = None if key is None else (key, backend, block, num_warps, interpret)
     if key is not None and key in _cache:
         _cache.move_to_end(key)
         return _cache[key]
     plan = make_plan()
-    run = _xla_runner(plan) if backend == "xla" else _pallas_runner(plan, block, num_warps, interpret, reload)
+    if backend == "xla":
+        run = _xla_runner(plan)
+    else:
+        run = _pallas_runner(plan, block, num_warps, interpret)
     if key is not None:
         _cache[key] = run
         while len(_cache) > _CACHE_SIZE:
@@ -287,7 +304,6 @@ def rk4_sweep_final(
     block: int = 64,
     num_warps: int | None = None,
     interpret: bool = False,
-    reload: bool = False,
 ) -> Float[Array, "B 2n"]:
     """Final states `[Q, Q_dot]` (B, 2n) at `t1` (s) of a batch of chains from `y0` at
     `t0`, by classical RK4 with steps of at most `dt` (s) between the input's jumps (module
@@ -302,8 +318,7 @@ def rk4_sweep_final(
     - `backend`: `"pallas"` (one kernel, GPU; `interpret=True` anywhere), `"xla"`, or
       `"auto"` (pallas on a GPU, else xla).
     - `block`: trajectories per GPU program (a power of 2); `num_warps`: Triton warps per
-      program (default: Triton's); `reload`: read the swept scalars from memory at each
-      right-hand side instead of holding them in registers for the whole run.
+      program (default: Triton's).
     """
     t0, t1, dt = float(t0), float(t1), float(dt)
     if not (dt > 0 and math.isfinite(dt)):
@@ -342,7 +357,12 @@ def rk4_sweep_final(
     columns = _columns(flat)
     key = _structure_key(asm, torque, t0, t1, dt, n_state, columns)
     run = _runner(
-        key, lambda: _plan(asm, torque, t0, t1, dt, y0[0], columns), backend, block, num_warps, interpret, reload
+        key,
+        lambda: _plan(asm, torque, t0, t1, dt, y0[0], columns),
+        backend,
+        block,
+        num_warps,
+        interpret,
     )
     varying = np.array([j for j, (kind, _) in enumerate(columns) if kind == "row"], dtype=int)
     P = flat[:, varying].T if varying.size else jnp.zeros((1, n_batch), y0.dtype)
