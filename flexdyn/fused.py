@@ -44,6 +44,11 @@ interpreter on any device; it is slow, and meant for tests.
 So for now this path pays off on a GPU only for small chains. For a flexible arm it
 pays off on a CPU.
 
+Inputs: any whose evaluation is arithmetic on the time and the state, e.g. `BangBang`,
+`PDTracking` (state feedback), `ZeroTorque`, or a `FunctionInput` of such formulas. A
+`SampledTorque` is not supported: its interpolation searches the sample times, and the
+error names the operation.
+
 What this path does not do: saved time series, adaptive steps or gradients. For those
 use `rk4_trajectory`, `simulate` or `flexdyn.batch.sweep` of them. The batch is traced
 in one piece: with several GPUs, split it with `flexdyn.batch`.
@@ -301,8 +306,8 @@ def rk4_sweep_final(
     *,
     dt: float,
     backend: str = "auto",
-    block: int = 64,
-    num_warps: int | None = None,
+    block: int = 32,
+    num_warps: int | None = 1,
     interpret: bool = False,
 ) -> Float[Array, "B 2n"]:
     """Final states `[Q, Q_dot]` (B, 2n) at `t1` (s) of a batch of chains from `y0` at
@@ -318,7 +323,12 @@ def rk4_sweep_final(
     - `backend`: `"pallas"` (one kernel, GPU; `interpret=True` anywhere), `"xla"`, or
       `"auto"` (pallas on a GPU, else xla).
     - `block`: trajectories per GPU program (a power of 2); `num_warps`: Triton warps per
-      program (default: Triton's).
+      program (`None`: Triton's default). The defaults, one warp of 32 threads with one
+      trajectory each, are the configuration measured (module docstring).
+
+    Raises `NotImplementedError` naming the operation when the chain's or the input's
+    right-hand side uses one that `flexdyn.scalarize` does not write out (e.g. the
+    interpolation of a `SampledTorque`); use `jax.vmap` of `fixed_step.rk4_final` there.
     """
     t0, t1, dt = float(t0), float(t1), float(dt)
     if not (dt > 0 and math.isfinite(dt)):
@@ -371,7 +381,12 @@ def rk4_sweep_final(
     if n_padded != n_batch:  # repeat the last entry: a valid input, dropped afterwards
         P = jnp.concatenate([P, jnp.repeat(P[:, -1:], n_padded - n_batch, axis=1)], axis=1)
         Y = jnp.concatenate([Y, jnp.repeat(Y[:, -1:], n_padded - n_batch, axis=1)], axis=1)
-    out = run(P, Y)[:, :n_batch].T
+    try:
+        out = run(P, Y)[:, :n_batch].T
+    except NotImplementedError as e:
+        raise NotImplementedError(
+            f"rk4_sweep_final: {e}. Use jax.vmap of flexdyn.fixed_step.rk4_final for this chain and input"
+        ) from e
     return eqx.error_if(
         out,
         ~jnp.all(jnp.isfinite(out)),

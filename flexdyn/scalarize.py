@@ -300,6 +300,24 @@ def _dot_general(a, b, dimension_numbers):
     return out.reshape(shape)
 
 
+def _gather(x, indices, eqn):
+    """`gather` with known indices (e.g. `y[jnp.array([0, 2])]`): which element of `x` each
+    output takes is found by applying the same gather to the element numbers of `x`."""
+    if not all(is_constant(v) for v in indices.reshape(-1)):
+        raise NotImplementedError("eval_elementwise: gather with traced indices")
+    index_dtype = eqn.invars[1].aval.dtype
+    known = np.array([v for v in indices.reshape(-1)], dtype=index_dtype).reshape(indices.shape)
+    params = dict(eqn.params)
+    params["fill_value"] = -1.0
+    with jax.ensure_compile_time_eval():
+        numbers = jnp.arange(x.size, dtype=jnp.float64).reshape(x.shape)
+        source = np.asarray(jax.lax.gather_p.bind(numbers, jnp.asarray(known), **params))
+    fill = eqn.params.get("fill_value")
+    fill = float("nan") if fill is None else fill
+    flat = x.reshape(-1)
+    return object_array((flat[int(j)] if j >= 0 else fill for j in source.reshape(-1)), source.shape)
+
+
 def _reduce(fn, x, axes):
     axes = tuple(int(a) for a in axes)
     keep = [i for i in range(x.ndim) if i not in axes]
@@ -398,6 +416,8 @@ def _apply(eqn, invals):
             for s, n, k in zip(starts, x.shape, p["slice_sizes"])
         )
         return [x[index]]
+    if name == "gather":
+        return [_gather(x, invals[1], eqn)]
     if name == "concatenate":
         return [np.concatenate(invals, axis=int(p["dimension"]))]
     if name == "stack":

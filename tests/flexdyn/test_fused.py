@@ -79,6 +79,17 @@ def test_folded_constants_not_reused_across_sweeps():
     assert np.max(np.abs(first - second)) > 1e-3
 
 
+def test_state_feedback_input():
+    # A PD controller tracking a quintic: the torque reads the state (through a gather).
+    reference = fd.QuinticReference(jnp.array([0.0, 0.0]), jnp.array([0.5, 0.3]), 0.2)
+    pd = fd.PDTracking(reference, jnp.array([5.0, 3.0]), jnp.array([0.5, 0.3]), ARM.layout.actuated, ARM.layout.n_dof)
+    chains = arms(PAYLOADS[:3])
+    got = np.asarray(fused.rk4_sweep_final(chains, Y0, 0.0, T1, pd, dt=DT, backend="xla"))
+    y0 = jnp.broadcast_to(Y0, (3, Y0.size))
+    want = np.asarray(jax.vmap(lambda c, y: fixed_step.rk4_final(c, y, 0.0, T1, pd, dt=DT))(chains, y0))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.max(np.abs(want)))
+
+
 def test_traced_batch_inside_jit():
     # Under jit nothing is known: every assembled scalar is read per trajectory. Same answer.
     got = jax.jit(lambda m: fused.rk4_sweep_final(arms(m), Y0, 0.0, T1, TORQUE, dt=DT, backend="xla"))(PAYLOADS)
@@ -100,6 +111,10 @@ def test_errors():
         fused.rk4_sweep_final(chains, Y0, 0.0, 0.1, TORQUE, dt=1e-3, backend="cuda")
     with pytest.raises(ValueError, match=r"y0 expected shape \(8,\) or \(2, 8\)"):
         fused.rk4_sweep_final(chains, Y0[:4], 0.0, 0.1, TORQUE, dt=1e-3)
+    # An input whose evaluation has no scalar form (a SampledTorque's interpolation searches).
+    sampled = fd.SampledTorque(jnp.linspace(0.0, 0.1, 5), jnp.ones((5, 2)))
+    with pytest.raises(NotImplementedError, match="'scan'.*rk4_final"):
+        fused.rk4_sweep_final(chains, Y0, 0.0, 0.1, sampled, dt=1e-2)
     # A step far above the stability limit of the link's mode: a clear error, not NaN.
     with pytest.raises(Exception, match="non-finite"):
         jax.block_until_ready(fused.rk4_sweep_final(chains, Y0, 0.0, 2.0, TORQUE, dt=0.2, backend="xla"))

@@ -102,6 +102,10 @@ CASES = {
         ),
         (np.ones(4), np.ones(4)),
     ),
+    "gather with known indices": (
+        lambda x: x[jnp.array([2, 0, 2])] + x.reshape(2, 2)[:, jnp.array([1, 0, 1])].sum(0),
+        (np.ones(4),),
+    ),
     "jit and custom_jvp inlined, dynamic_slice with constant index": (
         lambda x: jax.jit(lambda z: jax.nn.relu(z - 1.0))(x) + lax.dynamic_slice(x, (1,), (3,)).sum(),
         (np.ones(4),),
