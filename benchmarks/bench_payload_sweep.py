@@ -10,6 +10,8 @@ Runs, for each size:
 - flexdyn adaptive Tsit5 at rtol 1e-6 (atol 1e-8), the same way: under `vmap` the batch
   runs in lockstep (every entry steps until the slowest is done), so the batch pays for
   its slowest member: the `steps` column gives the most steps any entry took;
+- flexdyn fixed-step RK4 at 1 ms through `fd.fused.rk4_sweep_final`: the whole batch as
+  one program whose right-hand side is written out on scalars (one device only);
 - peer: a Python loop of `scipy.integrate.solve_ivp(DOP853, rtol 1e-6)` over the NumPy
   equations (`numpy_arm.py`), run on `--peer-subset` entries (default 8) drawn at random
   (seeded) from the grid and EXTRAPOLATED linearly to the full size (each entry is an
@@ -67,6 +69,9 @@ def grid(size: int) -> np.ndarray:
 
 def arm(p):
     return eqx.tree_at(lambda c: (c.payload.mass, c.hubs[0].inertia), BASE, (p[0], p[1]))
+
+
+_build = jax.jit(jax.vmap(lambda p: arm(p)))
 
 
 def fixed_step(p):
@@ -175,11 +180,17 @@ def main(argv=None):
         for name, fn in (
             (f"flexdyn RK4 dt = {DT * 1e3:g} ms, vmapped", fixed_step),
             (f"flexdyn Tsit5 rtol {RTOL:g}, vmapped (lockstep)", adaptive),
+            (f"flexdyn RK4 dt = {DT * 1e3:g} ms, fused (fd.fused.rk4_sweep_final, one device)", None),
         ):
 
             def call(fn=fn):
+                if fn is None:  # the whole batch in one program; the final state, 5,000 steps
+                    y = fd.fused.rk4_sweep_final(_build(batch), Y0, 0.0, T_END, TORQUE, dt=DT)
+                    return jax.block_until_ready((y[:, : BASE.n_dof], jnp.full(size, int(round(T_END / DT)))))
                 return jax.block_until_ready(fb.sweep(fn, batch, devices=devices))
 
+            if fn is None and len(devices) > 1:
+                continue
             (Q, steps), cold = timed(call)
             warm = median_time(call, args.repeats)
             rows.append(
@@ -202,7 +213,7 @@ def main(argv=None):
     print(format_table(rows, COLUMNS))
     print()
     for r in rows:
-        if r["run"].startswith("flexdyn RK4"):
+        if r["run"].startswith("flexdyn RK4") and "vmapped" in r["run"]:
             bound = per_state[r["size"]] * r["size"] * r["steps"] * 4
             r["rhs_lower_bound_s"] = bound
             print(
