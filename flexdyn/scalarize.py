@@ -27,7 +27,6 @@ inside the traced function; `jit`, `custom_jvp` and `custom_vjp` calls are inlin
 from __future__ import annotations
 
 import itertools
-import math
 import operator
 from collections.abc import Callable
 
@@ -106,13 +105,27 @@ def _mul(a, b):
     return a * b
 
 
+def _numpy(fn):
+    """`fn` on known numbers in float64 with IEEE results (inf, nan), as JAX computes them,
+    rather than Python's exceptions (`1.0 / 0.0`, `math.sqrt(-1.0)`) or complex powers."""
+
+    def f(*args):
+        with np.errstate(all="ignore"):
+            return fn(*(np.float64(a) for a in args)).item()
+
+    return f
+
+
+_np_divide = _numpy(np.divide)
+
+
 def _div(a, b):
     if is_constant(b):
         if is_constant(a):
-            return a / b
+            return _np_divide(a, b)
         if b == 1:
             return a
-        return a * (1.0 / b)
+        return a * _np_divide(1.0, b)
     if is_constant(a) and a == 0:
         return 0.0
     return a / b
@@ -124,7 +137,7 @@ def _neg(a):
 
 def _integer_pow(a, y: int):
     if is_constant(a):
-        return a**y
+        return _numpy(lambda b: b**y)(a)
     if y == 0:
         return 1.0
     if y < 0:
@@ -196,22 +209,22 @@ _ELEMENTWISE: dict[str, Callable] = {
     "mul": _mul,
     "div": _div,
     "neg": _neg,
-    "max": _binary(max, jnp.maximum),
-    "min": _binary(min, jnp.minimum),
-    "pow": _binary(operator.pow, jnp.power),
-    "atan2": _binary(math.atan2, jnp.arctan2),
-    "sin": _unary(math.sin, jnp.sin),
-    "cos": _unary(math.cos, jnp.cos),
-    "tan": _unary(math.tan, jnp.tan),
-    "tanh": _unary(math.tanh, jnp.tanh),
-    "exp": _unary(math.exp, jnp.exp),
-    "log": _unary(math.log, jnp.log),
-    "sqrt": _unary(math.sqrt, jnp.sqrt),
-    "rsqrt": _unary(lambda a: 1.0 / math.sqrt(a), lambda a: 1.0 / jnp.sqrt(a)),
+    "max": _binary(_numpy(np.maximum), jnp.maximum),
+    "min": _binary(_numpy(np.minimum), jnp.minimum),
+    "pow": _binary(_numpy(np.power), jnp.power),
+    "atan2": _binary(_numpy(np.arctan2), jnp.arctan2),
+    "sin": _unary(_numpy(np.sin), jnp.sin),
+    "cos": _unary(_numpy(np.cos), jnp.cos),
+    "tan": _unary(_numpy(np.tan), jnp.tan),
+    "tanh": _unary(_numpy(np.tanh), jnp.tanh),
+    "exp": _unary(_numpy(np.exp), jnp.exp),
+    "log": _unary(_numpy(np.log), jnp.log),
+    "sqrt": _unary(_numpy(np.sqrt), jnp.sqrt),
+    "rsqrt": _unary(_numpy(lambda a: 1.0 / np.sqrt(a)), lambda a: 1.0 / jnp.sqrt(a)),
     "abs": _unary(abs, jnp.abs),
-    "sign": _unary(lambda a: float(np.sign(a)), _sign),
+    "sign": _unary(_numpy(np.sign), _sign),
     "square": lambda a: _mul(a, a),
-    "logistic": _unary(lambda a: 1.0 / (1.0 + math.exp(-a)), jax.nn.sigmoid),
+    "logistic": _unary(_numpy(lambda a: 1.0 / (1.0 + np.exp(-a))), jax.nn.sigmoid),
     "eq": _binary(operator.eq, operator.eq),
     "ne": _binary(operator.ne, operator.ne),
     "lt": _binary(operator.lt, operator.lt),

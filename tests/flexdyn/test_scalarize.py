@@ -156,6 +156,19 @@ def test_constants_folded():
     # Without folding, the generic program would do n^2 multiplications and n (n - 1) additions.
 
 
+def test_known_numbers_follow_ieee():
+    # Folded arithmetic on known numbers gives inf / nan as JAX would, not Python's exceptions.
+    def fn(k, x):
+        return jnp.stack([x / k[0], jnp.sqrt(k[1]) + x, jnp.log(k[0]) * x, k[1] ** 0.5 + x, 1.0 / k[0] + x])
+
+    jaxpr = jax.make_jaxpr(fn)(jnp.ones(2), 1.0)
+    (out,) = eval_elementwise(jaxpr, object_array([0.0, -1.0], (2,)), object_array([jnp.ones(B)], ()))
+    got = np.stack([np.broadcast_to(np.asarray(v, dtype=float), (B,)) for v in out])
+    with np.errstate(all="ignore"):
+        want = np.asarray(fn(np.array([0.0, -1.0]), np.ones(B)))
+    np.testing.assert_array_equal(got, want)
+
+
 def test_unsupported_primitive_named():
     jaxpr = jax.make_jaxpr(lambda x: jnp.cumsum(x))(jnp.ones(3))
     with pytest.raises(NotImplementedError, match="cumsum"):
