@@ -90,16 +90,27 @@ def _breaks(torque: AbstractInput, t0: float, t1: float, caller: str = "rk4_fina
     return [t0, *inner, t1]
 
 
+def _pieces(breaks: list[float], dt: float, jumps=None) -> list[tuple[float, float, int, float]]:
+    """`(a, h, n, last)` for each piece `[a, b]` between consecutive `breaks`: `n =
+    ceil((b - a) / dt)` equal steps `h`, and the last admissible input time, `b^-` (the
+    last float before `b`) where the input jumps at `b` (every break when `jumps` is None),
+    else `b`."""
+    out = []
+    for a, b in zip(breaks[:-1], breaks[1:]):
+        n = max(1, math.ceil((b - a) / dt - 1e-9))
+        last = float(np.nextafter(b, a)) if jumps is None or b in jumps else b
+        out.append((a, (b - a) / n, n, last))
+    return out
+
+
 def _step_table(breaks: list[float], dt: float):
     """Per-step start time, step and last admissible input time (numpy arrays): each piece
     `[a, b]` in `n = ceil((b - a) / dt)` equal steps, the input read at `min(t, b^-)`."""
     starts, steps, lasts = [], [], []
-    for a, b in zip(breaks[:-1], breaks[1:]):
-        n = max(1, math.ceil((b - a) / dt - 1e-9))
-        h = (b - a) / n
+    for a, h, n, last in _pieces(breaks, dt):
         starts.append(a + h * np.arange(n))
         steps.append(np.full(n, h))
-        lasts.append(np.full(n, np.nextafter(b, a)))
+        lasts.append(np.full(n, last))
     return tuple(jnp.asarray(np.concatenate(x)) for x in (starts, steps, lasts))
 
 
@@ -166,12 +177,10 @@ def _output_table(ts: np.ndarray, jumps: list[float], dt: float):
     jumps = {j for j in jumps if ts[0] < j < ts[-1]}
     breaks = sorted(set(ts.tolist()) | jumps)
     starts, steps, lasts, boundary = [], [], [], [0]
-    for a, b in zip(breaks[:-1], breaks[1:]):
-        n = max(1, math.ceil((b - a) / dt - 1e-9))
-        h = (b - a) / n
+    for a, h, n, last in _pieces(breaks, dt, jumps):
         starts.append(a + h * np.arange(n))
         steps.append(np.full(n, h))
-        lasts.append(np.full(n, np.nextafter(b, a) if b in jumps else b))
+        lasts.append(np.full(n, last))
         boundary.append(boundary[-1] + n)
     where = dict(zip(breaks, boundary))
     index = np.asarray([where[t] for t in ts.tolist()])

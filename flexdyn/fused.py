@@ -75,7 +75,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .chain import AssembledChain, Chain, assemble
-from .fixed_step import _breaks, vector_field
+from .fixed_step import _breaks, _pieces, vector_field
 from .scalarize import eval_elementwise, is_constant, object_array
 from .simulate import _check_torque_shape, as_input
 
@@ -87,13 +87,9 @@ _cache: collections.OrderedDict = collections.OrderedDict()
 
 
 def _segments(torque, t0: float, t1: float, dt: float):
-    """(start, step, number of steps, last input time) of each piece between jumps."""
-    breaks = _breaks(torque, t0, t1, caller="rk4_sweep_final")
-    out = []
-    for a, b in zip(breaks[:-1], breaks[1:]):
-        n = max(1, math.ceil((b - a) / dt - 1e-9))
-        out.append((a, (b - a) / n, n, float(np.nextafter(b, a))))
-    return tuple(out)
+    """(start, step, number of steps, last input time) of each piece between jumps: the
+    steps of `rk4_final`."""
+    return tuple(_pieces(_breaks(torque, t0, t1, caller="rk4_sweep_final"), dt))
 
 
 def _next_pow2(n: int) -> int:

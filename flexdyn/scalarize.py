@@ -175,20 +175,21 @@ def _select(pred, *cases, dtype=None):
     return jnp.where(pred, c1, c0)
 
 
-def _and(a, b):
-    if is_constant(a):
-        return b if a else False
-    if is_constant(b):
-        return a if b else False
-    return jnp.logical_and(a, b)
+def _logical(absorbing: bool, traced):
+    """`and` (absorbing False) or `or` (absorbing True), folded when an operand is known:
+    a known absorbing value decides the result, a known other value leaves the other operand."""
+
+    def f(a, b):
+        for known, other in ((a, b), (b, a)):
+            if is_constant(known):
+                return absorbing if bool(known) == absorbing else other
+        return traced(a, b)
+
+    return f
 
 
-def _or(a, b):
-    if is_constant(a):
-        return True if a else b
-    if is_constant(b):
-        return True if b else a
-    return jnp.logical_or(a, b)
+_and = _logical(False, jnp.logical_and)
+_or = _logical(True, jnp.logical_or)
 
 
 def _convert(a, dtype):
@@ -241,10 +242,7 @@ _ELEMENTWISE: dict[str, Callable] = {
 
 
 def _sum(values):
-    total = 0.0
-    for v in values:
-        total = _add(total, v)
-    return total
+    return _folded(_add)([0.0, *values])
 
 
 def _map(fn, *arrays):
@@ -340,25 +338,16 @@ def _reduce(fn, x, axes):
     return object_array((fn(list(row)) for row in flat), shape)
 
 
-def _reduce_max(values):
-    out = values[0]
-    for v in values[1:]:
-        out = _ELEMENTWISE["max"](out, v)
-    return out
+def _folded(op):
+    """A reduction of a list of scalars by the folded binary `op`."""
 
+    def f(values):
+        out = values[0]
+        for v in values[1:]:
+            out = op(out, v)
+        return out
 
-def _reduce_min(values):
-    out = values[0]
-    for v in values[1:]:
-        out = _ELEMENTWISE["min"](out, v)
-    return out
-
-
-def _reduce_prod(values):
-    out = 1.0
-    for v in values:
-        out = _mul(out, v)
-    return out
+    return f
 
 
 def _call_jaxpr(params):
@@ -451,11 +440,11 @@ def _apply(eqn, invals):
     if name == "reduce_sum":
         return [_reduce(_sum, x, p["axes"])]
     if name == "reduce_max":
-        return [_reduce(_reduce_max, x, p["axes"])]
+        return [_reduce(_folded(_ELEMENTWISE["max"]), x, p["axes"])]
     if name == "reduce_min":
-        return [_reduce(_reduce_min, x, p["axes"])]
+        return [_reduce(_folded(_ELEMENTWISE["min"]), x, p["axes"])]
     if name == "reduce_prod":
-        return [_reduce(_reduce_prod, x, p["axes"])]
+        return [_reduce(_folded(_mul), x, p["axes"])]
     raise NotImplementedError(
         f"eval_elementwise: the primitive {name!r} is not written out element by element "
         "(flexdyn.scalarize supports the operations of the chains' right-hand sides)"
