@@ -25,7 +25,12 @@ of `--repeats`, default 1: each call is long). Trajectories/s = size / warm time
 CPU. The script also prints a lower bound for the fixed-step sweep: the batched right-hand
 side alone (vmapped `fd.ChainVectorField`, per state) times the number of evaluations.
 
-Usage: `python benchmarks/bench_payload_sweep.py [--sizes 1024,65536] [--device cpu|gpu] [--json out.json]`
+`--runs` picks the flexdyn runs (`rk4,tsit5,fused`, default all). `--repeats 0` makes one
+call per run and reports it (compilation included) in the warm columns, flagged in the run's
+name: for sizes where one call takes many minutes (65,536 on a laptop CPU).
+
+Usage: `python benchmarks/bench_payload_sweep.py [--sizes 1024,65536] [--runs rk4,tsit5,fused]
+[--device cpu|gpu] [--repeats N] [--json out.json]`
 """
 
 from __future__ import annotations
@@ -143,7 +148,10 @@ def main(argv=None):
     parser.add_argument("--sizes", default="1024", help="comma-separated batch sizes (default 1024)")
     parser.add_argument("--device", default="cpu", choices=("cpu", "gpu"), help="where the flexdyn sweeps run")
     parser.add_argument("--peer-subset", type=int, default=8, help="entries the SciPy loop runs (extrapolated)")
-    parser.add_argument("--repeats", type=int, default=1, help="warm runs per case (median)")
+    parser.add_argument(
+        "--repeats", type=int, default=1, help="warm runs per case (median); 0: one call, compilation included"
+    )
+    parser.add_argument("--runs", default="rk4,tsit5,fused", help="comma-separated subset of: rk4, tsit5, fused")
     parser.add_argument("--json", default=None, help="also write the results as JSON to this path")
     args = parser.parse_args(argv)
 
@@ -151,6 +159,12 @@ def main(argv=None):
         devices = jax.devices(args.device)
     except RuntimeError as e:
         parser.exit(2, f"bench_payload_sweep: no {args.device} backend here ({e})\n")
+    runs = [r.strip() for r in args.runs.split(",") if r.strip()]
+    unknown = sorted(set(runs) - {"rk4", "tsit5", "fused"})
+    if unknown or not runs:
+        parser.error(f"--runs: expected a comma-separated subset of rk4, tsit5, fused; got {args.runs!r}")
+    if args.repeats < 0:
+        parser.error(f"--repeats: expected >= 0, got {args.repeats}")
     env = environment()
     sizes = [int(s) for s in args.sizes.split(",")]
     print(f"bench_payload_sweep: paper 004 arm, 0 -> {T_END} s, sizes {sizes}, {len(devices)} {args.device} device(s)")
@@ -177,11 +191,13 @@ def main(argv=None):
             )
         )
         batch = jnp.asarray(params)
-        for name, fn in (
-            (f"flexdyn RK4 dt = {DT * 1e3:g} ms, vmapped", fixed_step),
-            (f"flexdyn Tsit5 rtol {RTOL:g}, vmapped (lockstep)", adaptive),
-            (f"flexdyn RK4 dt = {DT * 1e3:g} ms, fused (fd.fused.rk4_sweep_final, one device)", None),
+        for key, name, fn in (
+            ("rk4", f"flexdyn RK4 dt = {DT * 1e3:g} ms, vmapped", fixed_step),
+            ("tsit5", f"flexdyn Tsit5 rtol {RTOL:g}, vmapped (lockstep)", adaptive),
+            ("fused", f"flexdyn RK4 dt = {DT * 1e3:g} ms, fused (fd.fused.rk4_sweep_final, one device)", None),
         ):
+            if key not in runs:
+                continue
 
             def call(fn=fn):
                 if fn is None:  # the whole batch in one program; the final state, 5,000 steps
@@ -192,7 +208,10 @@ def main(argv=None):
             if fn is None and len(devices) > 1:
                 continue
             (Q, steps), cold = timed(call)
-            warm = median_time(call, args.repeats)
+            if args.repeats:
+                warm = median_time(call, args.repeats)
+            else:  # one call only: its time, compilation included, stands for the run
+                warm, cold, name = cold, None, name + " [one call, compilation included]"
             rows.append(
                 dict(
                     run=name,
@@ -206,7 +225,7 @@ def main(argv=None):
                     error_Q=float(np.max(np.abs(np.asarray(Q)[subset_idx] - ref_Q))),
                 )
             )
-            print(f"  {name}, {size}: cold {cold:.1f} s, warm {warm:.2f} s", flush=True)
+            print(f"  {name}, {size}: cold {cold or warm:.1f} s, warm {warm:.2f} s", flush=True)
 
     per_state = {size: rhs_lower_bound(devices, size) for size in sizes}
     print()
