@@ -19,8 +19,11 @@ parameters 5 % off. Loss: mean squared difference of all coordinates over the lo
 
 each with fixed-step RK4 at 1 ms (papers 002/004) and with adaptive Tsit5 (rtol 1e-6). With
 RK4, also `fd.fixed_step.rk4_trajectory` (the same steps in a `lax.scan`, differentiated by
-its discrete-adjoint rule): its forward solve and its `value_and_grad`. Warm times are
-medians of `--repeats`; ratios are to `fd.simulate`'s forward solve with the same solver,
+its discrete-adjoint rule): its forward solve and its `value_and_grad`. With Tsit5, also
+`fd.tsit5_trajectory` (the same diffrax solve, differentiated by the discrete adjoint of the
+steps it took): its forward solve and its `value_and_grad`. Warm times are
+medians of `--repeats` rounds, each round calling every program once (round robin, so that
+the machine's slow spells fall on all programs alike); ratios are to `fd.simulate`'s forward solve with the same solver,
 and (last column) to the same integrator's own forward solve.
 Memory: XLA's `memory_analysis()` of each compiled program (temporaries + outputs +
 arguments; the reverse pass's checkpoints are in the temporaries).
@@ -32,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -40,7 +44,7 @@ import diffrax  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, median_time, timed, write_json  # noqa: E402
+from _common import environment, format_environment, format_table, timed, write_json  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 
@@ -141,27 +145,51 @@ def main(argv=None):
                 jax.jit(jax.value_and_grad(loss_adjoint)),
                 nominal10,
             )
-        forward_warm = own_forward = None
+        else:
+
+            def loss_tsit5(values, kw=kw):
+                c = fd.with_parameters(chain, dict(zip(PARAMS_10, values)))
+                Q = fd.tsit5_trajectory(c, y0, ts, torque, **kw).Q
+                return jnp.mean((Q - measured) ** 2)
+
+            programs["tsit5_trajectory: forward solve (loss)"] = (jax.jit(loss_tsit5), nominal10)
+            programs["tsit5_trajectory: value_and_grad, 10 params (discrete adjoint)"] = (
+                jax.jit(jax.value_and_grad(loss_tsit5)),
+                nominal10,
+            )
+        compiled_programs = {}
         for name, (fn, x) in programs.items():
             compiled, lower_s = timed(lambda fn=fn, x=x: fn.lower(x).compile())
+            jax.block_until_ready(compiled(x))  # the first call, untimed
+            compiled_programs[name] = (compiled, x, lower_s)
+            print(f"  {solver_name}: {name}: compile {lower_s:.1f} s", flush=True)
+        # Round robin: every program once per round, so that a slow spell of the machine
+        # (this VM has 2x episodes lasting minutes) falls on all of them alike.
+        samples = {name: [] for name in compiled_programs}
+        for _ in range(args.repeats):
+            for name, (compiled, x, _) in compiled_programs.items():
+                samples[name].append(timed(lambda compiled=compiled, x=x: jax.block_until_ready(compiled(x)))[1])
+        forward_warm = own_forward = None
+        for name, (compiled, x, lower_s) in compiled_programs.items():
             mem = memory_mb(compiled)
-            warm = median_time(lambda compiled=compiled, x=x: jax.block_until_ready(compiled(x)), args.repeats)
+            warm = statistics.median(samples[name])
             if forward_warm is None:
                 forward_warm = own_forward = warm
-            if name.startswith("fixed_step.rk4_trajectory: forward"):
+            if name.endswith("trajectory: forward solve (loss)"):
                 own_forward = warm
             rows.append(
                 dict(
                     run=f"{solver_name}: {name}",
                     compile_s=lower_s,
                     warm_s=warm,
+                    min_s=min(samples[name]),
                     ratio=warm / forward_warm,
                     own_ratio=warm / own_forward,
                     memory_mb=mem,
                     steps=n_steps,
                 )
             )
-            print(f"  {rows[-1]['run']}: compile {lower_s:.1f} s, warm {warm:.3f} s, {mem} MiB", flush=True)
+            print(f"  {rows[-1]['run']}: warm {warm:.3f} s (min {min(samples[name]):.3f} s), {mem} MiB", flush=True)
 
     print()
     print(f"bench_gradient_cost: paper 004 arm, {args.duration:g} s log at 1 kHz ({ts.shape[0]} samples)")

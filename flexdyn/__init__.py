@@ -26,6 +26,7 @@ from . import (
     scalarize as scalarize,
     shaping as shaping,
     stiffening as stiffening,
+    tsit5 as tsit5,
 )
 from .chain import (
     AssembledChain as AssembledChain,
@@ -89,6 +90,7 @@ from .simulate import (
 )
 from .solvers import RK4 as RK4
 from .stiffening import FirstModeStiffening as FirstModeStiffening, first_mode_stiffening as first_mode_stiffening
+from .tsit5 import tsit5_trajectory as tsit5_trajectory
 
 __version__ = "0.1.0"
 from .params import (

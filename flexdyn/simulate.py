@@ -67,6 +67,29 @@ def _check_torque_shape(torque: AbstractInput, t0, y0, n_joints: int) -> None:
         )
 
 
+def prepare(chain, y0, ts, torque, caller: str):
+    """The assembled chain, `y0`, `ts` and the input of a solve, checked (a `ValueError`
+    naming `caller` and what was expected otherwise)."""
+    asm = assemble(chain)
+    y0 = as_initial_state(asm, y0, caller)
+    ts = jnp.asarray(ts, dtype=float)
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(f"{caller}: ts expected a 1-D array of at least 2 times, got shape {ts.shape}")
+    torque = as_input(torque, asm.chain.n_links)
+    _check_torque_shape(torque, ts[0], y0, asm.chain.n_links)
+    return asm, y0, ts, torque
+
+
+def adaptive_controller(torque: AbstractInput, rtol: float, atol: float):
+    """diffrax's PID step-size controller, with the steps clipped onto the input's jumps
+    (`torque.jump_times()`) so that no stage reads the far side of a discontinuity."""
+    controller = diffrax.PIDController(rtol=rtol, atol=atol)
+    jumps = torque.jump_times()
+    if jumps is not None:
+        controller = diffrax.ClipStepSizeController(controller, jump_ts=jumps)
+    return controller
+
+
 class ChainVectorField(eqx.Module):
     """The first-order vector field `y_dot = [Q_dot, Q_ddot(Q, Q_dot, torque(t, y))]`."""
 
@@ -174,21 +197,12 @@ def simulate(
     tracing, `flexdyn.rk4_trajectory` takes the same steps and its discrete adjoint costs
     ~3.8x its forward solve (3.6x this function's).
     """
-    asm = assemble(chain)
+    asm, y0, ts, torque = prepare(chain, y0, ts, torque, "simulate")
     n = asm.layout.n_dof
-    y0 = as_initial_state(asm, y0, "simulate")
-    ts = jnp.asarray(ts, dtype=float)
-    if ts.ndim != 1 or ts.shape[0] < 2:
-        raise ValueError(f"simulate: ts expected a 1-D array of at least 2 times, got shape {ts.shape}")
-    torque = as_input(torque, asm.chain.n_links)
-    _check_torque_shape(torque, ts[0], y0, asm.chain.n_links)
     field = ChainVectorField(asm, torque)
     if dt is None:
         solver = diffrax.Tsit5() if solver is None else solver
-        controller = diffrax.PIDController(rtol=rtol, atol=atol)
-        jumps = torque.jump_times()
-        if jumps is not None:
-            controller = diffrax.ClipStepSizeController(controller, jump_ts=jumps)
+        controller = adaptive_controller(torque, rtol, atol)
         dt0 = None
     else:
         solver = RK4() if solver is None else solver
