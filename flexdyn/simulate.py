@@ -195,7 +195,8 @@ def simulate(
     ~5.6x. `jax.jacfwd` with `diffrax.ForwardMode()` and 4 parameters is ~4.5x (Tsit5 at
     rtol 1e-6: ~2.7x). For reverse mode with fixed-step RK4 on output times known when
     tracing, `flexdyn.rk4_trajectory` takes the same steps and its discrete adjoint costs
-    ~3.8x its forward solve (3.6x this function's).
+    ~3.8x its forward solve (3.6x this function's); for the adaptive solve,
+    `flexdyn.tsit5_trajectory` is this function's solve with a discrete adjoint (~3.9x).
     """
     asm, y0, ts, torque = prepare(chain, y0, ts, torque, "simulate")
     n = asm.layout.n_dof
