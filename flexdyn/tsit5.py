@@ -131,11 +131,12 @@ def _step_ends(t_steps, jumps):
     next one at the float after `J`."""
     if jumps is None:
         return t_steps
-    jumps = jnp.atleast_1d(jnp.asarray(jumps, dtype=t_steps.dtype))
-    after = jnp.nextafter(jumps, jnp.inf)
-    before = jnp.nextafter(jumps, -jnp.inf)
-    hit = t_steps[:, None] == after[None, :]
-    return jnp.where(jnp.any(hit, axis=1), jnp.sum(jnp.where(hit, before[None, :], 0.0), axis=1), t_steps)
+    jumps = jnp.sort(jnp.atleast_1d(jnp.asarray(jumps, dtype=t_steps.dtype)))
+    if jumps.shape[0] == 0:
+        return t_steps
+    candidate = jnp.nextafter(t_steps, -jnp.inf)  # the jump, if this step was bumped past one
+    nearest = jumps[jnp.clip(jnp.searchsorted(jumps, candidate), 0, jumps.shape[0] - 1)]
+    return jnp.where(nearest == candidate, jnp.nextafter(candidate, -jnp.inf), t_steps)
 
 
 @_tsit5_adjoint.def_bwd
