@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from adjoint_cases import PENDULUM, PENDULUM_PARAMS, PENDULUM_Y0, pd_tracking  # tests/ is on sys.path
 
 import flexdyn as fd
 from flexdyn import fixed_step
@@ -141,18 +142,9 @@ def test_rk4_trajectory_off_grid_outputs_are_fourth_order(reference):
     assert 12.0 < errs[0] / errs[1] < 20.0, errs
 
 
-# The adjoint's own tests use a one-link flexible pendulum (it compiles 2.5x faster than
-# the two-link arm) with every kind of force the Lagrange residual carries: gravity, an
-# elastic joint with rotor, viscous and dry friction, structural damping, and air drag on
-# the link. The finite-difference test runs on the two-link arm across input jumps.
-PENDULUM = fd.Chain(
-    [fd.FlexibleLink(0.3, 0.39, 3.3, n_modes=1, damping_ratio=0.02, drag=0.05)],
-    joints=[fd.ElasticJoint(stiffness=2.0, rotor_inertia=1e-3, damping=1.9e-3, coulomb=5e-3)],
-    hubs=[fd.Hub(inertia=2e-5)],
-    gravity=(0.0, -9.81),
-)
-PENDULUM_PARAMS = ("link1.EI", "link1.drag", "joint1.coulomb", "joint1.stiffness")
-PENDULUM_Y0 = fd.initial_state(PENDULUM, joint_angles=[0.3], modal=[1e-3])
+# The adjoint's own tests use a one-link flexible pendulum with every kind of force the
+# Lagrange residual carries (`tests/adjoint_cases.py`). The finite-difference test runs on
+# the two-link arm across input jumps.
 
 
 def _pendulum_loss(values, y0, torque, adjoint):
@@ -207,13 +199,7 @@ def test_discrete_adjoint_under_vmap_with_state_feedback():
     # A PD controller tracking a quintic move: the torque depends on the state, so each
     # stage's transpose carries the controller's own derivative into the state's cotangent.
     # The vmapped rule against JAX's reverse mode through the scan, entry by entry.
-    torque = fd.PDTracking(
-        reference=fd.QuinticReference([0.3], [0.8], 0.2),
-        kp=jnp.array([0.5]),
-        kd=jnp.array([0.02]),
-        actuated=PENDULUM.layout.actuated,
-        n_dof=PENDULUM.n_dof,
-    )
+    torque = pd_tracking()
     x = jnp.asarray([float(fd.get_parameter(PENDULUM, n)) for n in PENDULUM_PARAMS])
     xs = jnp.stack([x, x * jnp.asarray([1.3, 0.8, 2.0, 1.0])])
     batched = jax.jit(jax.vmap(lambda v: jax.grad(_pendulum_loss)(v, PENDULUM_Y0, torque, "discrete")))(xs)

@@ -12,20 +12,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from adjoint_cases import PENDULUM, PENDULUM_PARAMS, PENDULUM_Y0, pd_tracking  # tests/ is on sys.path
 
 import flexdyn as fd
 
-# A one-link flexible pendulum with every kind of force the Lagrange residual carries
-# (gravity, an elastic joint with rotor, viscous and dry friction, structural damping, air
-# drag); bang-bang jumps at 0.1 s and 0.2 s, which are output times of the 1 kHz log.
-PENDULUM = fd.Chain(
-    [fd.FlexibleLink(0.3, 0.39, 3.3, n_modes=1, damping_ratio=0.02, drag=0.05)],
-    joints=[fd.ElasticJoint(stiffness=2.0, rotor_inertia=1e-3, damping=1.9e-3, coulomb=5e-3)],
-    hubs=[fd.Hub(inertia=2e-5)],
-    gravity=(0.0, -9.81),
-)
-PARAMS = ("link1.EI", "link1.drag", "joint1.coulomb", "joint1.stiffness")
-Y0 = fd.initial_state(PENDULUM, joint_angles=[0.3], modal=[1e-3])
+# The shared flexible pendulum (`tests/adjoint_cases.py`); bang-bang jumps at 0.1 s and
+# 0.2 s, which are output times of the 1 kHz log.
+PARAMS = PENDULUM_PARAMS
+Y0 = PENDULUM_Y0
 TS = jnp.linspace(0.0, 0.3, 301)
 BANG = fd.BangBang([0.02], 0.1)
 TOL = dict(rtol=1e-7, atol=1e-9)
@@ -82,13 +76,7 @@ def test_gradient_under_vmap_with_state_feedback():
     # A PD controller tracking a quintic move: the torque depends on the state, so each
     # stage's transpose carries the controller's derivative into the state's cotangent. The
     # batch takes different numbers of steps per entry (the while loop's trip counts differ).
-    torque = fd.PDTracking(
-        reference=fd.QuinticReference([0.3], [0.8], 0.2),
-        kp=jnp.array([0.5]),
-        kd=jnp.array([0.02]),
-        actuated=PENDULUM.layout.actuated,
-        n_dof=PENDULUM.n_dof,
-    )
+    torque = pd_tracking()
     xs = jnp.stack([X, X * jnp.asarray([1.3, 0.8, 2.0, 3.0])])
     batched = jax.jit(jax.vmap(lambda v: jax.grad(_loss)(v, Y0, torque, "ours")))(xs)
     peer = jax.jit(jax.grad(_loss), static_argnums=3)
