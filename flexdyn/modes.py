@@ -126,34 +126,88 @@ def _scan_grid(n_modes: int) -> np.ndarray:
     return np.concatenate([np.geomspace(1e-3, 0.5, 200, endpoint=False), np.arange(0.5, top, 0.004)])
 
 
-def _host_roots(n_modes: int, mu, sigma, iota) -> np.ndarray:
-    """First `n_modes` roots by a sign scan on a fixed grid and bisection, in NumPy on the
-    host (called through `jax.pure_callback`; cheap to compile, vectorised over any batch
-    of tip loads). A missing root is returned as NaN."""
-    mu, sigma, iota = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (mu, sigma, iota)))
-    batch = mu.shape
-    mu, sigma, iota = (v.reshape(-1, 1) for v in (mu, sigma, iota))
+_SCAN_BLOCK = 128  # grid cells evaluated together in the bracketing scan
+_BISECTIONS = 60  # halvings of a 0.004-wide bracket: far below one ulp, then Newton polishes
+
+
+def _grid_terms(lam: np.ndarray) -> np.ndarray:
+    """`(len(lam), 9)` columns `D` with `F(lam) * shear_scale * moment_scale = D @ [1, sigma,
+    iota, mu, mu sigma, mu iota, sigma, sigma^2, sigma iota]`: the unscaled frequency
+    equation is bilinear in `(1, mu, sigma)` (shear row) and `(1, sigma, iota)` (moment
+    row), and its transcendental parts depend on `lam` only (`_tip_rows`), so on a fixed
+    grid they are computed once, in NumPy."""
+    c, s, e = np.cos(lam), np.sin(lam), np.exp(-lam)
+    g1 = (-c + s + e, s + c - e, c - s + e, -s - c - e)
+    g2 = (1.0 - e * (c + s), 1.0 + e * (s - c), 1.0 + e * (c + s), 1.0 + e * (c - s))
+
+    def shear(g):  # coefficients of 1, mu, sigma
+        return (g[3], lam * g[0], lam**2 * g[1])
+
+    def moment(g):  # coefficients of 1, sigma, iota
+        return (g[2], -(lam**2) * g[0], -(lam**3) * g[1])
+
+    s1, s2, m1, m2 = shear(g1), shear(g2), moment(g1), moment(g2)
+    return np.stack([s1[a] * m2[b] - s2[a] * m1[b] for a in range(3) for b in range(3)], axis=-1)
+
+
+def _scan_blocks(n_modes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scan grid as `(C, K + 1)` blocks of consecutive points (each block's last point
+    is the next block's first), their `_grid_terms` `(C, K + 1, 9)`, and the `(C, K)` mask
+    of real cells (the last block is padded by repeating the grid's last point)."""
     grid = _scan_grid(n_modes)
-    out = np.full((mu.shape[0], n_modes), np.nan)
-    for k in range(0, mu.shape[0], 128):
-        sl = slice(k, k + 128)
-        m, s, j = mu[sl], sigma[sl], iota[sl]
-        f = frequency_function(grid[None, :], m, s, j, xp=np)
-        change = np.sign(f[:, :-1]) * np.sign(f[:, 1:]) <= 0
-        for row in range(f.shape[0]):
-            idx = np.flatnonzero(change[row])[:n_modes]
-            if idx.size < n_modes or not np.all(np.isfinite(f[row])):
-                continue
-            lo, hi = grid[idx], grid[idx + 1]
-            flo = f[row, idx]
-            args = (m[row, 0], s[row, 0], j[row, 0])
-            for _ in range(60):
-                mid = 0.5 * (lo + hi)
-                fmid = frequency_function(mid, *args, xp=np)
-                left = np.sign(fmid) * np.sign(flo) <= 0
-                lo, hi, flo = np.where(left, lo, mid), np.where(left, mid, hi), np.where(left, flo, fmid)
-            out[k + row] = 0.5 * (lo + hi)
-    return out.reshape(batch + (n_modes,))
+    cells = grid.size - 1
+    blocks = -(-cells // _SCAN_BLOCK)
+    padded = np.concatenate([grid, np.full(blocks * _SCAN_BLOCK + 1 - grid.size, grid[-1])])
+    index = np.arange(blocks)[:, None] * _SCAN_BLOCK + np.arange(_SCAN_BLOCK + 1)[None, :]
+    valid = (np.arange(blocks * _SCAN_BLOCK) < cells).reshape(blocks, _SCAN_BLOCK)
+    return padded[index], _grid_terms(padded)[index], valid
+
+
+def _bracket_and_bisect(n_modes: int, mu, sigma, iota):
+    """First `n_modes` roots of `frequency_function` for scalar tip-load ratios: the first
+    `n_modes` sign changes on `_scan_grid`, each bisected `_BISECTIONS` times. NaN where
+    fewer than `n_modes` changes are found or `F` is not finite on the grid.
+
+    On the grid the sign of `F` is that of `_grid_terms @ monomials` times the sign of the
+    (positive for physical loads) row scales: a matrix-vector product, no transcendental
+    function per point. The grid is scanned in blocks of `_SCAN_BLOCK` cells (a
+    `lax.scan`), so that under `vmap` the memory is `batch x _SCAN_BLOCK`, not `batch x
+    grid`. The bisection evaluates `frequency_function` itself."""
+    points, terms, valid = _scan_blocks(n_modes)
+    slots = jnp.arange(1, n_modes + 1)  # change number k (from 1) brackets root k
+    monomials = jnp.stack([1.0, sigma, iota, mu, mu * sigma, mu * iota, sigma, sigma**2, sigma * iota])
+
+    def block(carry, x):
+        count, lo, hi, finite = carry
+        pts, D, ok = x
+        scales = (1.0 + pts * mu + pts**2 * jnp.abs(sigma)) * (1.0 + pts**2 * jnp.abs(sigma) + pts**3 * iota)
+        f = (D @ monomials) * jnp.sign(scales)
+        finite = finite & jnp.all(jnp.isfinite(f))
+        change = (jnp.sign(f[:-1]) * jnp.sign(f[1:]) <= 0) & ok
+        rank = count + jnp.cumsum(change)  # changes up to each cell, along the whole grid
+        # The cell of change number k, if it is in this block; while change k is not
+        # found, its bracket is overwritten by every block (it ends as the right one).
+        first = jnp.minimum(jnp.sum(rank[None, :] < slots[:, None], axis=1), change.shape[0] - 1)
+        open_ = count < slots
+        lo = jnp.where(open_, pts[first], lo)
+        hi = jnp.where(open_, pts[first + 1], hi)
+        return (count + jnp.sum(change), lo, hi, finite), None
+
+    zero = jnp.zeros(n_modes, dtype=mu.dtype)
+    init = (jnp.zeros((), dtype=int), zero, zero, jnp.all(jnp.isfinite(monomials)))
+    xs = (jnp.asarray(points), jnp.asarray(terms), jnp.asarray(valid))
+    (count, lo, hi, finite), _ = jax.lax.scan(block, init, xs)
+
+    def bisect(_, carry):
+        lo, hi, flo = carry
+        mid = 0.5 * (lo + hi)
+        fmid = frequency_function(mid, mu, sigma, iota)
+        left = jnp.sign(fmid) * jnp.sign(flo) <= 0
+        return jnp.where(left, lo, mid), jnp.where(left, mid, hi), jnp.where(left, flo, fmid)
+
+    flo = frequency_function(lo, mu, sigma, iota)
+    lo, hi, _ = jax.lax.fori_loop(0, _BISECTIONS, bisect, (lo, hi, flo))
+    return jnp.where((count >= n_modes) & finite, 0.5 * (lo + hi), jnp.nan)
 
 
 def clamped_mass_roots(n_modes: int, mu, sigma=0.0, iota=0.0) -> Float[Array, " n_modes"]:
@@ -164,8 +218,8 @@ def clamped_mass_roots(n_modes: int, mu, sigma=0.0, iota=0.0) -> Float[Array, " 
     - `sigma`: tip first moment / (link mass * l), `S / (rho l^2)`.
     - `iota`: tip rotary inertia about the tip point / (link mass * l^2), `J / (rho l^3)`.
 
-    The roots are bracketed and bisected on the host (`jax.pure_callback`, so this
-    works under `jit` and `vmap`), then polished by Newton steps in JAX. The last
+    The roots are bracketed by a sign scan on a fixed grid and bisected, in JAX (under
+    `jit` and `vmap`, on any device), then polished by Newton steps. The last
     Newton step carries the derivative `d lam / d p = -F_p / F_lam` (implicit-function
     theorem), so the roots are differentiable in `mu, sigma, iota`.
     """
@@ -173,13 +227,7 @@ def clamped_mass_roots(n_modes: int, mu, sigma=0.0, iota=0.0) -> Float[Array, " 
         raise ValueError(f"n_modes must be between 1 and {MAX_MODES}, got {n_modes}")
     mu, sigma, iota = (jnp.asarray(v, dtype=float) for v in (mu, sigma, iota))
     frozen = [jax.lax.stop_gradient(v) for v in (mu, sigma, iota)]
-    shape = jax.ShapeDtypeStruct(jnp.broadcast_shapes(mu.shape, sigma.shape, iota.shape) + (n_modes,), mu.dtype)
-    lam0 = jax.pure_callback(
-        lambda m, s, j: _host_roots(n_modes, m, s, j).astype(shape.dtype),
-        shape,
-        *frozen,
-        vmap_method="expand_dims",
-    )
+    lam0 = jnp.vectorize(lambda m, s, j: _bracket_and_bisect(n_modes, m, s, j), signature="(),(),()->(n)")(*frozen)
     lam0 = eqx.error_if(
         lam0,
         ~jnp.all(jnp.isfinite(lam0)),

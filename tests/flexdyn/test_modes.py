@@ -104,6 +104,27 @@ def test_clamped_mass_roots_against_paper_002_eq23(mu, iota):
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=0)
 
 
+def test_clamped_mass_roots_batched_over_extreme_loads():
+    """Oracle: oracles.clamped_mass_roots (paper 002 eq. 23, brentq), load by load, for a
+    `vmap`ped batch that spans light to very heavy tip bodies: the heavy ones push the first
+    two roots towards 0 and close together (`mu = 1e3, iota = 10`: 0.233 and 0.800), where
+    the grid scan must still bracket each one. First 6 roots, 1e-9 rel."""
+    loads = [(0.0, 0.0), (1e-3, 0.0), (0.05, 1e-4), (1.0, 0.0), (30.0, 0.0), (1e3, 0.0), (0.0, 10.0), (1e3, 10.0)]
+    mu, iota = (jnp.asarray(v) for v in zip(*loads))
+    got = np.asarray(jax.jit(jax.vmap(lambda m, j: clamped_mass_roots(6, m, 0.0, j)))(mu, iota))
+    for row, (m, j) in zip(got, loads):
+        np.testing.assert_allclose(
+            row, oracles.clamped_mass_roots(6, m, j), rtol=1e-9, atol=0, err_msg=f"mu={m}, iota={j}"
+        )
+
+
+def test_clamped_mass_roots_rejects_non_finite_loads():
+    """A NaN tip-load ratio leaves the frequency equation without roots: an error naming
+    it, not NaN roots."""
+    with pytest.raises(Exception, match="fewer roots than modes"):
+        jax.block_until_ready(_roots(N, jnp.nan, 0.0, 0.0))
+
+
 def test_offset_determinant_reduces_to_paper_eq23():
     """Self-check of the test's own offset-mass determinant: with sigma = 0 its roots equal
     oracles.clamped_mass_roots (1e-11 rel), so its derivation shares the paper's conventions."""
