@@ -18,6 +18,14 @@ a first, compiling one):
   Cholesky of `flexdyn.smallsolve` (elementwise over the batch, fusable), and with the loop
   body unrolled `--unroll` times.
 
+The fused runs (`flexdyn.fused.rk4_sweep_final`, one Pallas kernel) are timed from the
+parameter grid, as a user calls them: the chains are built and assembled (clamped-mass
+mode shapes of both links) before the kernel runs. Two more rows split that time: the
+build and assembly alone, and the best kernel configuration on chains assembled
+beforehand. (Until 2026-11-26 the mode shapes' roots were found on the host, in a Python
+loop over the links of the batch: 22.7 s for 4,096 arms on the 2-core development CPU.
+The H200 timings of that day include it; now they are found in JAX, 0.4 s on that CPU.)
+
 Also printed:
 
 - accuracy: max abs error of Q(5 s) at the grid's two corners against Dopri8 at rtol 1e-12;
@@ -110,6 +118,41 @@ def fused(
             backend=backend,
             block=block,
             num_warps=num_warps,
+            interpret=interpret,
+        )
+        return y[:, :N]
+
+    return run
+
+
+_assemble_batch = jax.jit(jax.vmap(lambda p: fd.assemble(arm(p))))
+
+
+def assembly(params):
+    """The batch's chains built from the grid and assembled, as each fused run does first
+    (mode shapes and shape integrals of both links)."""
+    return jax.tree.leaves(eqx.filter(_assemble_batch(params), eqx.is_array))
+
+
+def fused_assembled(block: int, warps: int | None, interpret: bool = False):
+    """`fused(...)` on chains assembled beforehand (once per batch size, in the first,
+    cold call): the kernel's own time, with the flattening of the assembled scalars."""
+    done = {}
+
+    def run(params):
+        size = int(params.shape[0])
+        if size not in done:
+            done[size] = jax.block_until_ready(_assemble_batch(params))
+        y = rk4_sweep_final(
+            done[size],
+            Y0,
+            0.0,
+            T_END,
+            TORQUE,
+            dt=DT,
+            backend="pallas",
+            block=block,
+            num_warps=warps,
             interpret=interpret,
         )
         return y[:, :N]
@@ -347,7 +390,7 @@ def main(argv=None):
     def over_budget():
         return time.perf_counter() - start > args.budget_s
 
-    def bench(name, fn, size, device, steps, solve=None, extra=None, batched=False):
+    def bench(name, fn, size, device, steps, solve=None, extra=None, batched=False, check=True):
         if over_budget():
             print(f"  (budget) skipped {name} {size}", flush=True)
             return None
@@ -363,8 +406,9 @@ def main(argv=None):
         if isinstance(out, tuple):  # (Q, steps per entry): lockstep pays the max
             out, per_entry = out
             steps = int(np.max(np.asarray(per_entry)))
-        got = np.asarray(out)
-        err = float(np.max(np.abs(got[idx] - ref_Q))) if ("horizon" not in name and "RIGID" not in name) else None
+        err = None
+        if check and "horizon" not in name and "RIGID" not in name:
+            err = float(np.max(np.abs(np.asarray(out)[idx] - ref_Q)))
         row = dict(
             run=name,
             device=device.platform,
@@ -413,6 +457,26 @@ def main(argv=None):
             )
             if short is not None:
                 row["marginal_us_per_step"] = (row["warm_s"] - short["warm_s"]) / (n_fixed - 1000) * 1e6
+            # The timed call builds and assembles the chains (mode shapes) before the kernel
+            # runs: time that part alone, and the kernel on a batch assembled beforehand.
+            bench(
+                "build + assemble the batch (mode shapes), part of each fused run",
+                assembly,
+                M,
+                dev,
+                0,
+                batched=True,
+                check=False,
+            )
+            bench(
+                f"{row['run']}, chains assembled beforehand (kernel + flattening)",
+                fused_assembled(block, warps, interpret=args.interpret),
+                M,
+                dev,
+                n_fixed,
+                "fused",
+                batched=True,
+            )
             for size in sizes:
                 if size != M:
                     fn = fused("pallas", block, warps, interpret=args.interpret)

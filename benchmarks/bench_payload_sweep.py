@@ -77,6 +77,13 @@ def arm(p):
 
 
 _build = jax.jit(jax.vmap(lambda p: arm(p)))
+_assemble_batch = jax.jit(jax.vmap(lambda p: fd.assemble(arm(p))))
+
+
+def assembly(batch):
+    """The chains built from the grid and assembled (clamped-mass mode shapes and shape
+    integrals of both links): the part of every flexdyn run below that does not integrate."""
+    return jax.block_until_ready(jax.tree.leaves(eqx.filter(_assemble_batch(batch), eqx.is_array)))
 
 
 def fixed_step(p):
@@ -191,6 +198,18 @@ def main(argv=None):
             )
         )
         batch = jnp.asarray(params)
+        _, cold = timed(lambda: assembly(batch))
+        warm = median_time(lambda: assembly(batch), max(args.repeats, 3))
+        rows.append(
+            dict(
+                run="flexdyn: build and assemble the batch (mode shapes; included in every flexdyn run below)",
+                size=size,
+                cold_s=cold,
+                warm_s=warm,
+                traj_per_s=size / warm,
+            )
+        )
+        print(f"  assembly of {size}: cold {cold:.2f} s, warm {warm:.3f} s", flush=True)
         for key, name, fn in (
             ("rk4", f"flexdyn RK4 dt = {DT * 1e3:g} ms, vmapped", fixed_step),
             ("tsit5", f"flexdyn Tsit5 rtol {RTOL:g}, vmapped (lockstep)", adaptive),

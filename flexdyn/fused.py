@@ -30,19 +30,18 @@ CPU, paper 004's arm x 256 payloads x 5 s took 6.2 s, against 9.3 s for
 interpreter on any device; it is slow, and meant for tests.
 
 **Measured on an H200** (2026-11-26, 4,096 trajectories x 5 s at 1 ms, float64,
-`benchmarks/results/gpu_sweep_fused_h200_2026-11-26.json`):
+`benchmarks/results/gpu_sweep_fused_h200_2026-11-26.json`), timed from the parameter grid:
 - The rigid pendulum: 36 ms warm. This is within the issue's 150 ms.
-- Paper 004's arm: 20.6 s. This is no better than the vmapped scan (24 s) or the XLA
-  form of the scalar program (22 s).
-  - Per scalar operation, that is 56x slower than the pendulum's kernel.
-  - Holding the swept scalars in memory instead of registers did not change it
-    (23.5 s).
-  - Not profiled. The likely cause is register spills: ~1,780 operations with
-    ~150 live doubles per thread, above the 255 registers of a thread. At 4,096
-    trajectories that is one warp per SM, with nothing to hide the latency of local
-    memory.
-So for now this path pays off on a GPU only for small chains. For a flexible arm it
-pays off on a CPU.
+- Paper 004's arm: 20.6 s, no better than the vmapped scan (24 s) or the XLA form of the
+  scalar program (22 s). **That time includes the assembly of the batch**, whose
+  clamped-mass roots were then found on the host, in a Python loop over the links: 22.7 s
+  for the 4,096 arms on the 2-core development CPU (now in JAX: 0.4 s there). How much of
+  the 20.6 s the kernel itself took was not measured; `benchmarks/bench_gpu_sweep.py` now
+  times the two apart.
+- Offline (`benchmarks/ptxas_fused.py`, no GPU needed): compiled for `sm_90a`, the arm's
+  kernel uses all 255 registers of a thread and spills (a 344-byte stack frame); the
+  pendulum's uses 54 and does not. At 4,096 trajectories the kernel has one warp per SM,
+  with little to hide the latency of those spills.
 
 Inputs: any whose evaluation is arithmetic on the time and the state, e.g. `BangBang`,
 `PDTracking` (state feedback), `ZeroTorque`, or a `FunctionInput` of such formulas. A
