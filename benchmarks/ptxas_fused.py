@@ -39,6 +39,7 @@ import os
 import re
 import subprocess
 import sys
+import tempfile
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -185,9 +186,11 @@ def main(argv=None):
     parser.add_argument("--block", type=int, default=32, help="trajectories per program (rk4_sweep_final's default)")
     parser.add_argument("--warps", type=int, default=1, help="warps per program (rk4_sweep_final's default)")
     parser.add_argument("--ptx-version", type=int, default=88, help="PTX ISA for Triton's bundled ptxas (88: 8.8)")
-    parser.add_argument("--out", default="ptxas_fused_out", help="folder for the .ttir, .ptx and .cubin files")
+    parser.add_argument("--out", default=None, help="folder for the .ttir, .ptx and .cubin files (default: a new temp)")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
+    args.out = args.out or tempfile.mkdtemp(prefix="ptxas_fused_")
+    print(f"ptxas_fused: .ttir, .ptx and .cubin files in {args.out}", flush=True)
     rows = []
     for case in args.cases.split(","):
         row = profile(case.strip(), args)
