@@ -366,9 +366,10 @@ def rk4_trajectory(
       Cost (`benchmarks/bench_gradient_cost.py`, paper 004's arm, a 10 s log at 1 kHz, 10
       parameters, 2-core CPU): `value_and_grad` 3.8x this function's forward solve and
       3.6x `simulate`'s (diffrax's checkpointed gradient: 6.3x). Gradients flow to the
-      chain's parameters, the input's array fields and `y0`; the input's switching times
-      (`BangBang.width`, `.start`) get 0: the steps are laid out on them and held fixed
-      (`simulate`'s reverse mode differentiates its step times). Forward mode (`jax.jvp`,
+      chain's parameters, the input's array fields and `y0`. The input's switching times
+      (`BangBang.width`, `.start`) lay out the steps when the function is traced, so they
+      must be concrete: differentiating them raises (use `tsit5_trajectory`, which gives
+      their derivative). Forward mode (`jax.jvp`,
       `jax.jacfwd`) is not defined for it: use `adjoint="autodiff"`, or `simulate` with
       `diffrax.ForwardMode()`.
     - `"autodiff"`: no rule; JAX differentiates the `lax.scan` itself. Forward mode works;
