@@ -64,6 +64,7 @@ from .linear import (
     damped_modes as damped_modes,
     linearize as linearize,
     modal_analysis as modal_analysis,
+    stable_step as stable_step,
     stiffness_matrix as stiffness_matrix,
 )
 from .parts import (

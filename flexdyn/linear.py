@@ -147,3 +147,78 @@ def damped_modes(model: LinearModel) -> tuple[np.ndarray, np.ndarray]:
     safe = np.where(mag > 0, mag, 1.0)
     zeta = np.where(mag > 0, -np.real(ev) / safe, 0.0)
     return np.abs(np.imag(ev)) / (2 * np.pi), zeta
+
+
+def _stability_function(solver: str):
+    """`R(z) = 1 + z b^T (I - z A)^{-1} 1` of an explicit Runge-Kutta method (Hairer &
+    Wanner, "Solving ODEs II", sec. IV.2), vectorised over `z`, from diffrax's tableau:
+    the factor by which one step multiplies a mode `y' = lam y` with `z = h lam`."""
+    import diffrax
+
+    from .solvers import RK4
+
+    tableaus = {"tsit5": diffrax.Tsit5.tableau, "rk4": RK4.tableau}
+    if solver not in tableaus:
+        raise ValueError(f"stable_step: solver expected one of {sorted(tableaus)}, got {solver!r}")
+    tab = tableaus[solver]
+    s = len(tab.a_lower) + 1
+    a = np.zeros((s, s))
+    for i, row in enumerate(tab.a_lower):
+        a[i + 1, : len(row)] = np.asarray(row, dtype=float)
+    b = np.asarray(tab.b_sol, dtype=float)
+
+    def R(z):
+        z = np.asarray(z, dtype=complex)
+        g = []  # (I - z A)^{-1} 1 by forward substitution (A is strictly lower triangular)
+        for i in range(s):
+            g.append(1.0 + z * sum(a[i, j] * g[j] for j in range(i)))
+        return 1.0 + z * sum(b[i] * g[i] for i in range(s))
+
+    return R
+
+
+def stable_step(
+    chain: Chain | AssembledChain, y0=None, torque0=None, *, solver: str = "tsit5", safety: float = 0.9
+) -> float:
+    r"""The largest step, s, with which `solver` (`"tsit5"`, `"rk4"`) integrates the
+    chain's linearisation about `y0` (`linearize`) stably, times `safety`.
+
+    For every eigenvalue `lam` of `A`, the largest `h` such that `|R(h' lam)| <= max(1,
+    |exp(h' lam)|)` for all `h' <= h` (`R` the method's stability function: no mode grows
+    faster than it does physically); the smallest over the eigenvalues. Found on a fine
+    grid of `h |lam|` and refined by bisection. Host-side NumPy (not jittable).
+
+    Use it as `simulate(..., dtmax=stable_step(chain, y0))` (or `tsit5_trajectory`'s) for
+    derivatives of a trajectory that starts at rest (see `simulate`'s `dtmax`). It is a
+    property of the linearisation at `y0`: the stiffness moves with the configuration, so
+    `safety` leaves room.
+    """
+    if not 0 < safety <= 1:
+        raise ValueError(f"stable_step: safety expected a factor in (0, 1], got {safety!r}")
+    R = _stability_function(solver)
+    lam = np.linalg.eigvals(np.asarray(linearize(chain, y0, torque0).A))
+    scale = np.abs(lam)
+    lam, scale = (
+        lam[scale > 1e-12 * max(float(np.max(scale, initial=0.0)), 1e-300)],
+        scale[scale > 1e-12 * max(float(np.max(scale, initial=0.0)), 1e-300)],
+    )
+    if lam.size == 0:
+        return float("inf")
+    direction = lam / scale
+
+    def unstable(x):  # x = h |lam|, per eigenvalue (broadcast)
+        z = x * direction[..., None] if np.ndim(x) > 1 else x * direction
+        return np.abs(R(z)) > np.maximum(1.0, np.abs(np.exp(z))) * (1 + 1e-12)
+
+    grid = np.geomspace(1e-4, 50.0, 4000)
+    bad = unstable(np.broadcast_to(grid, (lam.size, grid.size)))
+    first = np.argmax(bad, axis=1)
+    never = ~bad.any(axis=1)
+    lo = np.where(first > 0, grid[np.maximum(first - 1, 0)], 0.0)
+    hi = grid[first]
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        worse = unstable(mid)
+        lo, hi = np.where(worse, lo, mid), np.where(worse, mid, hi)
+    h = np.where(never, np.inf, lo / scale)
+    return float(safety * np.min(h))

@@ -12,6 +12,8 @@ is an error that says what to change.
 
 from __future__ import annotations
 
+import math
+
 import diffrax
 import equinox as eqx
 import jax
@@ -80,10 +82,11 @@ def prepare(chain, y0, ts, torque, caller: str):
     return asm, y0, ts, torque
 
 
-def adaptive_controller(torque: AbstractInput, rtol: float, atol: float):
-    """diffrax's PID step-size controller, with the steps clipped onto the input's jumps
-    (`torque.jump_times()`) so that no stage reads the far side of a discontinuity."""
-    controller = diffrax.PIDController(rtol=rtol, atol=atol)
+def adaptive_controller(torque: AbstractInput, rtol: float, atol: float, dtmax: float | None = None):
+    """diffrax's PID step-size controller (steps of at most `dtmax` s, if given), with the
+    steps clipped onto the input's jumps (`torque.jump_times()`) so that no stage reads the
+    far side of a discontinuity."""
+    controller = diffrax.PIDController(rtol=rtol, atol=atol, dtmax=dtmax)
     jumps = torque.jump_times()
     if jumps is not None:
         controller = diffrax.ClipStepSizeController(controller, jump_ts=jumps)
@@ -169,6 +172,7 @@ def simulate(
     atol: float = 1e-10,
     max_steps: int = 200_000,
     adjoint: diffrax.AbstractAdjoint | None = None,
+    dtmax: float | None = None,
 ) -> Trajectory:
     """Integrate the chain from `y0` at `ts[0]` and return the state at every `ts`.
 
@@ -183,6 +187,19 @@ def simulate(
       aligned to the input's discontinuities (`torque.jump_times()`), so fixed-step RK4
       stays fourth-order accurate across a bang-bang switch.
     - `rtol`, `atol`: adaptive tolerances.
+    - `dtmax`: the largest adaptive step, s (default: none). **Derivatives from rest need
+      it.** While nothing moves (at rest, no input yet) the error estimate is 0 and the
+      steps grow tenfold each, far beyond the stability limit of the stiffest mode. The
+      states stay right (nothing moves), but their derivatives (`jax.grad`, `jax.jacfwd`)
+      pass through those steps' linearisation and blow up: on paper 004's arm at rest, a
+      bang-bang starting at 0.05 s gave a NaN gradient (a zero input, 1e27). A `dtmax` at
+      the stability limit of the stiffest mode (`fd.stable_step(chain, y0)`) keeps them
+      bounded; a quarter of it made them accurate (1e-7 relative, tested to 1e-6, on a
+      flexible pendulum at rest: `tests/flexdyn/test_linear.py`; at the limit itself, 0.7 % off: nothing
+      controls the error of the derivatives while nothing moves). Once the chain moves,
+      the step control keeps them right by itself (paper 004's arm from rest under a
+      bang-bang from t = 0: 4e-7 at rtol 1e-6). The cost: every step at most `dtmax`.
+      Alternatives: start the log where the input starts, or use a fixed `dt`.
     - `max_steps`: step budget; exceeding it is an error.
     - `adjoint`: diffrax adjoint for reverse-mode gradients (default: recursive
       checkpointing; forward mode `jax.jacfwd` needs `diffrax.ForwardMode()`).
@@ -201,11 +218,15 @@ def simulate(
     asm, y0, ts, torque = prepare(chain, y0, ts, torque, "simulate")
     n = asm.layout.n_dof
     field = ChainVectorField(asm, torque)
+    if dtmax is not None and not (float(dtmax) > 0 and math.isfinite(float(dtmax))):
+        raise ValueError(f"simulate: dtmax expected a step > 0 s, got {dtmax!r}")
     if dt is None:
         solver = diffrax.Tsit5() if solver is None else solver
-        controller = adaptive_controller(torque, rtol, atol)
+        controller = adaptive_controller(torque, rtol, atol, dtmax)
         dt0 = None
     else:
+        if dtmax is not None:
+            raise ValueError("simulate: dtmax bounds the adaptive steps; with a fixed dt, leave it None")
         solver = RK4() if solver is None else solver
         dt0 = dt
         jumps = torque.jump_times()

@@ -81,11 +81,11 @@ def _dense_weights(theta):
     return unit.evaluate(theta)
 
 
-def _solve(dynamic, static, y0, ts, rtol, atol, max_steps):
+def _solve(dynamic, static, y0, ts, rtol, atol, max_steps, dtmax):
     """diffrax's Tsit5, as `simulate`: the states at `ts`, and at the end of every accepted
     step (`t_steps`, `y_steps`, padded with inf to `max_steps`)."""
     asm, torque = eqx.combine(dynamic, static)
-    controller = adaptive_controller(torque, rtol, atol)
+    controller = adaptive_controller(torque, rtol, atol, dtmax)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(ChainVectorField(asm, torque)),
         diffrax.Tsit5(),
@@ -111,17 +111,17 @@ def _solve(dynamic, static, y0, ts, rtol, atol, max_steps):
 
 
 @eqx.filter_custom_vjp
-def _tsit5_adjoint(vjp_arg, static, ts, rtol, atol, max_steps):
+def _tsit5_adjoint(vjp_arg, static, ts, rtol, atol, max_steps, dtmax):
     dynamic, y0 = vjp_arg
-    ys, _, _, _, info = _solve(dynamic, static, y0, ts, rtol, atol, max_steps)
+    ys, _, _, _, info = _solve(dynamic, static, y0, ts, rtol, atol, max_steps, dtmax)
     return ys, info
 
 
 @_tsit5_adjoint.def_fwd
-def _tsit5_adjoint_fwd(perturbed, vjp_arg, static, ts, rtol, atol, max_steps):
+def _tsit5_adjoint_fwd(perturbed, vjp_arg, static, ts, rtol, atol, max_steps, dtmax):
     del perturbed
     dynamic, y0 = vjp_arg
-    ys, t_steps, y_steps, num_steps, info = _solve(dynamic, static, y0, ts, rtol, atol, max_steps)
+    ys, t_steps, y_steps, num_steps, info = _solve(dynamic, static, y0, ts, rtol, atol, max_steps, dtmax)
     return (ys, info), (t_steps, y_steps, num_steps)
 
 
@@ -176,7 +176,7 @@ def _jump_cotangent(jumps, t_end, t_steps, contribution):
 
 
 @_tsit5_adjoint.def_bwd
-def _tsit5_adjoint_bwd(residuals, grads, perturbed, vjp_arg, static, ts, rtol, atol, max_steps):
+def _tsit5_adjoint_bwd(residuals, grads, perturbed, vjp_arg, static, ts, rtol, atol, max_steps, dtmax):
     r"""Backwards over the accepted steps `k = N-1, ..., 0` (see the module docstring):
     the cotangents of the stage derivatives `f_bar_i = h sum_j b_i(theta_j) g_j` from the
     outputs `j` in the step, then for `i = 7, ..., 1`: `Y_bar_i = f_Y(Y_i)^T f_bar_i` (plus
@@ -256,6 +256,7 @@ def tsit5_trajectory(
     rtol: float = 1e-8,
     atol: float = 1e-10,
     max_steps: int = 100_000,
+    dtmax: float | None = None,
 ) -> Trajectory:
     r"""Adaptive Tsit5 (`rtol`, `atol`): the state at every time of `ts` (s), as a
     `Trajectory`, exactly as `simulate(chain, y0, ts, torque, rtol=rtol, atol=atol,
@@ -267,18 +268,21 @@ def tsit5_trajectory(
     the length of the per-step record the derivative keeps (`max_steps x 2n` floats: 12.8
     MB for the default and 8 coordinates). Gradients flow to the chain's parameters, the
     input's array fields (its switching times included: module docstring) and `y0`; not
-    to `ts`. Forward mode is not defined: use `simulate(...,
-    adjoint=diffrax.ForwardMode())`.
+    to `ts`. `dtmax`: the largest step, s, as `simulate`'s: derivatives of a trajectory
+    that starts at rest need it (`fd.stable_step(chain, y0)`; see `simulate`). Forward
+    mode is not defined: use `simulate(..., adjoint=diffrax.ForwardMode())`.
 
     Raises (inside `jit` too) on reaching `max_steps`, on a solver failure and on a
     non-finite state, as `simulate` does.
     """
     if not (isinstance(max_steps, int) and max_steps > 0):
         raise ValueError(f"tsit5_trajectory: max_steps expected a positive int, got {max_steps!r}")
+    if dtmax is not None and not (float(dtmax) > 0 and np.isfinite(float(dtmax))):
+        raise ValueError(f"tsit5_trajectory: dtmax expected a step > 0 s, got {dtmax!r}")
     asm, y0, ts, torque = prepare(chain, y0, ts, torque, "tsit5_trajectory")
     n = asm.layout.n_dof
     dynamic, static = eqx.partition((asm, torque), eqx.is_inexact_array)
-    ys, info = _tsit5_adjoint((dynamic, y0), static, ts, rtol, atol, max_steps)
+    ys, info = _tsit5_adjoint((dynamic, y0), static, ts, rtol, atol, max_steps, dtmax)
     info = jax.lax.stop_gradient(info)
     num_steps, max_reached, failed = info[0].astype(int), info[1] > 0.5, info[2] > 0.5
     ys = eqx.error_if(

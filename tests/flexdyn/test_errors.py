@@ -123,6 +123,13 @@ def test_bad_simulation_arguments_are_rejected():
         fd.simulate(chain, jnp.zeros(2), jnp.array([0.0]))
     with pytest.raises(ValueError, match=r"initial_state: joint_angles.*\(1,\)"):
         fd.initial_state(chain, [0.0, 1.0])
+    ts = jnp.linspace(0.0, 1.0, 3)
+    with pytest.raises(ValueError, match=r"simulate: dtmax expected a step > 0 s, got -0.001"):
+        fd.simulate(chain, jnp.zeros(2), ts, dtmax=-1e-3)
+    with pytest.raises(ValueError, match=r"simulate: dtmax bounds the adaptive steps"):
+        fd.simulate(chain, jnp.zeros(2), ts, dt=1e-3, dtmax=1e-3)
+    with pytest.raises(ValueError, match=r"tsit5_trajectory: dtmax expected a step > 0 s, got nan"):
+        fd.tsit5_trajectory(chain, jnp.zeros(2), ts, dtmax=float("nan"))
 
 
 def test_torque_of_the_wrong_size_is_rejected():

@@ -1,0 +1,87 @@
+"""Tests of `flexdyn.linear.stable_step` and of its use: derivatives of a trajectory that
+starts at rest.
+
+Oracles: diffrax's own Tsit5 and our RK4 with constant steps on the linearised system
+`x' = A x` (a perturbation along the limiting eigenvector decays below the step, grows above
+it); central differences of a Dopri8 solution at rtol 1e-12 for the derivatives.
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import flexdyn as fd
+
+# A flexible link on an elastic joint, no gravity: at rest it stays at rest, and the
+# adaptive steps then grow without bound (the error estimate is 0).
+ARM = fd.Chain(
+    [fd.FlexibleLink(0.3, 0.39, 3.3, n_modes=1, damping_ratio=0.02)],
+    joints=[fd.ElasticJoint(stiffness=2.0, rotor_inertia=1e-3, damping=1.9e-3)],
+    hubs=[fd.Hub(inertia=2e-5)],
+    gravity=(0.0, 0.0),
+)
+Y0 = fd.initial_state(ARM, joint_angles=[0.2])
+
+
+@pytest.mark.parametrize("solver", ["tsit5", "rk4"])
+def test_stable_step_is_the_solver_s_stability_limit(solver):
+    h = fd.stable_step(ARM, Y0, solver=solver, safety=1.0)
+    A = np.asarray(fd.linearize(ARM, Y0).A)
+    lam, vec = np.linalg.eig(A)
+    worst = np.argmax(np.abs(lam))  # the stiffest mode limits the step here
+    x0 = jnp.asarray(np.real(vec[:, worst]))
+    method = diffrax.Tsit5() if solver == "tsit5" else fd.solvers.RK4()
+
+    def growth(step):
+        steps = 400
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(lambda t, x, args: jnp.asarray(A) @ x),
+            method,
+            t0=0.0,
+            t1=steps * step,
+            dt0=step,
+            y0=x0,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            saveat=diffrax.SaveAt(t1=True),
+            max_steps=steps + 1,
+        )
+        return float(jnp.linalg.norm(sol.ys[-1]) / jnp.linalg.norm(x0))
+
+    assert growth(0.97 * h) < 10.0  # within the limit: the mode stays bounded
+    assert growth(1.03 * h) > 1e3  # beyond it: it grows by orders of magnitude
+    assert fd.stable_step(ARM, Y0, solver=solver) == pytest.approx(0.9 * h)  # the default safety
+
+
+def test_stable_step_errors():
+    with pytest.raises(ValueError, match="solver expected one of"):
+        fd.stable_step(ARM, Y0, solver="dopri5")
+    with pytest.raises(ValueError, match="safety expected"):
+        fd.stable_step(ARM, Y0, safety=1.5)
+
+
+def test_derivatives_from_rest_need_dtmax():
+    # The gradient of a loss over 0.5 s at rest w.r.t. y0, through tsit5_trajectory (the
+    # discrete adjoint of the steps taken) and simulate (diffrax's reverse pass), against
+    # central differences of a Dopri8 solution.
+    ts = jnp.linspace(0.0, 0.5, 6)
+    n = ARM.n_dof
+
+    def loss(y, fn, dtmax):
+        if fn is None:
+            Q = fd.simulate(ARM, y, ts, None, solver=diffrax.Dopri8(), rtol=1e-12, atol=1e-14).Q
+        else:
+            Q = fn(ARM, y, ts, None, rtol=1e-6, atol=1e-8, dtmax=dtmax).Q
+        return jnp.sum(Q**2)
+
+    tight = jax.jit(lambda y: loss(y, None, None))
+    e = 1e-6
+    want = np.array([(float(tight(Y0.at[i].add(e))) - float(tight(Y0.at[i].add(-e)))) / (2 * e) for i in range(2 * n)])
+    h = fd.stable_step(ARM, Y0)
+    for fn in (fd.tsit5_trajectory, fd.simulate):
+        grad = jax.jit(jax.grad(loss), static_argnums=(1, 2))
+        # Without dtmax the steps at rest reach ~0.1 s, far beyond the stability limit
+        # (~4 ms): the states are right, their derivatives blow up (documented in simulate).
+        assert float(jnp.max(jnp.abs(grad(Y0, fn, None)))) > 1e10
+        np.testing.assert_allclose(grad(Y0, fn, h / 4), want, rtol=1e-6, err_msg=fn.__name__)
