@@ -35,7 +35,7 @@ interpreter on any device; it is slow, and meant for tests.
 - Paper 004's arm: 20.6 s, no better than the vmapped scan (24 s) or the XLA form of the
   scalar program (22 s). **That time includes the assembly of the batch**, whose
   clamped-mass roots were then found on the host, in a Python loop over the links: 22.7 s
-  for the 4,096 arms on the 2-core development CPU (now in JAX: 0.4 s there). How much of
+  for the 4,096 arms on the 2-core development CPU (now 0.54 s there; in JAX on a GPU). How much of
   the 20.6 s the kernel itself took was not measured; `benchmarks/bench_gpu_sweep.py` now
   times the two apart.
 - Offline (`benchmarks/ptxas_fused.py`, no GPU needed): compiled for `sm_90a`, the arm's

@@ -21,7 +21,7 @@ import pytest
 from scipy.optimize import brentq
 
 import flexdyn as fd
-from flexdyn.modes import clamped_mass_roots, evaluate_shapes, mode_shapes
+from flexdyn.modes import _bracket_and_bisect, _host_roots, clamped_mass_roots, evaluate_shapes, mode_shapes
 
 # One compiled root finder per n (n is static); avoids eager op-by-op dispatch.
 N = 5  # roots / shapes used throughout (one compilation each)
@@ -104,18 +104,33 @@ def test_clamped_mass_roots_against_paper_002_eq23(mu, iota):
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=0)
 
 
-def test_clamped_mass_roots_batched_over_extreme_loads():
+@pytest.mark.parametrize("path", ["default", "device"])
+def test_clamped_mass_roots_batched_over_extreme_loads(path):
     """Oracle: oracles.clamped_mass_roots (paper 002 eq. 23, brentq), load by load, for a
     `vmap`ped batch that spans light to very heavy tip bodies: the heavy ones push the first
     two roots towards 0 and close together (`mu = 1e3, iota = 10`: 0.233 and 0.800), where
-    the grid scan must still bracket each one. First 6 roots, 1e-9 rel."""
+    the grid scan must still bracket each one. First 6 roots, 1e-9 rel. Both root finders:
+    `default` is this backend's (the host's NumPy on a CPU), `device` the JAX scan that an
+    accelerator uses."""
     loads = [(0.0, 0.0), (1e-3, 0.0), (0.05, 1e-4), (1.0, 0.0), (30.0, 0.0), (1e3, 0.0), (0.0, 10.0), (1e3, 10.0)]
     mu, iota = (jnp.asarray(v) for v in zip(*loads))
-    got = np.asarray(jax.jit(jax.vmap(lambda m, j: clamped_mass_roots(6, m, 0.0, j)))(mu, iota))
+    if path == "default":
+        find = jax.vmap(lambda m, j: clamped_mass_roots(6, m, 0.0, j))
+    else:
+        find = jax.vmap(lambda m, j: _bracket_and_bisect(6, m, jnp.zeros_like(m), j))
+    got = np.asarray(jax.jit(find)(mu, iota))
     for row, (m, j) in zip(got, loads):
-        np.testing.assert_allclose(
-            row, oracles.clamped_mass_roots(6, m, j), rtol=1e-9, atol=0, err_msg=f"mu={m}, iota={j}"
-        )
+        want = oracles.clamped_mass_roots(6, m, j)
+        np.testing.assert_allclose(row, want, rtol=1e-9, atol=0, err_msg=f"mu={m}, iota={j}")
+
+
+def test_host_and_device_root_finders_agree_with_a_body_offset():
+    """The two root finders on tip bodies with a first moment (sigma != 0, one inboard):
+    the same brackets, the same bisection, so the same roots to round-off."""
+    mu, sigma, iota = (jnp.asarray(v) for v in zip(*OFFSET_CASES))
+    device = jax.jit(jax.vmap(lambda m, s, j: _bracket_and_bisect(N, m, s, j)))(mu, sigma, iota)
+    host = _host_roots(N, np.asarray(mu), np.asarray(sigma), np.asarray(iota))
+    np.testing.assert_allclose(np.asarray(device), host, rtol=1e-12, atol=0)
 
 
 def test_clamped_mass_roots_rejects_non_finite_loads():
