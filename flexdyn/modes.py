@@ -91,6 +91,12 @@ def _clamped_combinations(lam):
     return jnp.array([[-1.0, 1.0, 1.0, 0.0], [-e, -e, 0.0, 1.0]])
 
 
+def _row_scales(lam, mu, sigma, iota, xp):
+    """The positive (for physical tip loads) factors `_tip_rows` divides its shear and
+    moment rows by."""
+    return 1.0 + lam * mu + lam**2 * xp.abs(sigma), 1.0 + lam**2 * xp.abs(sigma) + lam**3 * iota
+
+
 def _tip_rows(lam, mu, sigma, iota, xp):
     """Entries `(shear_c, shear_d, moment_c, moment_d)` of the 2x2 tip-boundary matrix
     G(lam) acting on (c, d), elementwise (works with NumPy or jax.numpy as `xp`).
@@ -103,8 +109,7 @@ def _tip_rows(lam, mu, sigma, iota, xp):
     c, s, e = xp.cos(lam), xp.sin(lam), xp.exp(-lam)
     g1 = (-c + s + e, s + c - e, c - s + e, -s - c - e)
     g2 = (1.0 - e * (c + s), 1.0 + e * (s - c), 1.0 + e * (c + s), 1.0 + e * (c - s))
-    shear_scale = 1.0 + lam * mu + lam**2 * xp.abs(sigma)
-    moment_scale = 1.0 + lam**2 * xp.abs(sigma) + lam**3 * iota
+    shear_scale, moment_scale = _row_scales(lam, mu, sigma, iota, xp)
 
     def shear(g):
         return (g[3] + lam * mu * g[0] + lam**2 * sigma * g[1]) / shear_scale
@@ -152,23 +157,25 @@ def _grid_terms(lam: np.ndarray) -> np.ndarray:
     return np.stack([s1[a] * m2[b] - s2[a] * m1[b] for a in range(3) for b in range(3)], axis=-1)
 
 
-def _scan_blocks(n_modes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The scan grid as `(C, K + 1)` blocks of consecutive points (each block's last point
-    is the next block's first), their `_grid_terms` `(C, K + 1, 9)`, and the `(C, K)` mask
-    of real cells (the last block is padded by repeating the grid's last point)."""
-    grid = _scan_grid(n_modes)
-    cells = grid.size - 1
-    blocks = -(-cells // _SCAN_BLOCK)
-    padded = np.concatenate([grid, np.full(blocks * _SCAN_BLOCK + 1 - grid.size, grid[-1])])
-    index = np.arange(blocks)[:, None] * _SCAN_BLOCK + np.arange(_SCAN_BLOCK + 1)[None, :]
-    valid = (np.arange(blocks * _SCAN_BLOCK) < cells).reshape(blocks, _SCAN_BLOCK)
-    return padded[index], _grid_terms(padded)[index], valid
-
-
 @functools.cache
 def _grid_and_terms(n_modes: int) -> tuple[np.ndarray, np.ndarray]:
     grid = _scan_grid(n_modes)
     return grid, _grid_terms(grid)
+
+
+def _scan_blocks(n_modes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scan grid as `(C, K + 1)` blocks of consecutive points (each block's last point
+    is the next block's first), their `_grid_terms` `(C, K + 1, 9)`, and the `(C, K)` mask
+    of real cells (the last block is padded by repeating the grid's last point)."""
+    grid, terms = _grid_and_terms(n_modes)
+    cells = grid.size - 1
+    blocks = -(-cells // _SCAN_BLOCK)
+    pad = blocks * _SCAN_BLOCK + 1 - grid.size
+    padded = np.concatenate([grid, np.full(pad, grid[-1])])
+    padded_terms = np.concatenate([terms, np.repeat(terms[-1:], pad, axis=0)])
+    index = np.arange(blocks)[:, None] * _SCAN_BLOCK + np.arange(_SCAN_BLOCK + 1)[None, :]
+    valid = (np.arange(blocks * _SCAN_BLOCK) < cells).reshape(blocks, _SCAN_BLOCK)
+    return padded[index], padded_terms[index], valid
 
 
 def _host_roots(n_modes: int, mu, sigma, iota) -> np.ndarray:
@@ -185,10 +192,8 @@ def _host_roots(n_modes: int, mu, sigma, iota) -> np.ndarray:
         monomials = np.stack([np.ones_like(m), s, j, m, m * s, m * j, s, s**2, s * j], axis=1)
         with np.errstate(invalid="ignore", over="ignore"):
             f = monomials @ terms.T
-            scales = (1.0 + grid * m[:, None] + grid**2 * np.abs(s[:, None])) * (
-                1.0 + grid**2 * np.abs(s[:, None]) + grid**3 * j[:, None]
-            )
-            f = f * np.sign(scales)
+            shear_scale, moment_scale = _row_scales(grid, m[:, None], s[:, None], j[:, None], np)
+            f = f * np.sign(shear_scale * moment_scale)
         finite = np.all(np.isfinite(f), axis=1)
         change = np.sign(f[:, :-1]) * np.sign(f[:, 1:]) <= 0
         rank = np.cumsum(change, axis=1)
@@ -224,8 +229,8 @@ def _bracket_and_bisect(n_modes: int, mu, sigma, iota):
     def block(carry, x):
         count, lo, hi, finite = carry
         pts, D, ok = x
-        scales = (1.0 + pts * mu + pts**2 * jnp.abs(sigma)) * (1.0 + pts**2 * jnp.abs(sigma) + pts**3 * iota)
-        f = (D @ monomials) * jnp.sign(scales)
+        shear_scale, moment_scale = _row_scales(pts, mu, sigma, iota, jnp)
+        f = (D @ monomials) * jnp.sign(shear_scale * moment_scale)
         finite = finite & jnp.all(jnp.isfinite(f))
         change = (jnp.sign(f[:-1]) * jnp.sign(f[1:]) <= 0) & ok
         rank = count + jnp.cumsum(change)  # changes up to each cell, along the whole grid
