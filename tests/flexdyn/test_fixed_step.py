@@ -153,6 +153,7 @@ def _pendulum_loss(values, y0, torque, adjoint):
     return jnp.sum(traj.Q**2) + jnp.sum(traj.Qd[-1] ** 2)
 
 
+@pytest.mark.slow  # 58 s in a 2-worker run; the adjoint against central differences of the loss stays in CI (below)
 def test_discrete_adjoint_equals_reverse_and_forward_mode_through_the_steps():
     # The rule's gradient (parameters, y0 and the input's array fields) against JAX's own
     # reverse mode through the same lax.scan (adjoint="autodiff"), and against JAX's forward

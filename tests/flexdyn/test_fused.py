@@ -79,6 +79,7 @@ def test_folded_constants_not_reused_across_sweeps():
     assert np.max(np.abs(first - second)) > 1e-3
 
 
+@pytest.mark.slow  # 33 s in a 2-worker run; the gather it needs stays in CI (test_scalarize)
 def test_state_feedback_input():
     # A PD controller tracking a quintic: the torque reads the state (through a gather).
     reference = fd.QuinticReference(jnp.array([0.0, 0.0]), jnp.array([0.5, 0.3]), 0.2)

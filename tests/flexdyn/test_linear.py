@@ -61,6 +61,7 @@ def test_stable_step_errors():
         fd.stable_step(ARM, Y0, safety=1.5)
 
 
+@pytest.mark.slow  # 95 s in a 2-worker run; stable_step itself stays in CI (the two tests above)
 def test_derivatives_from_rest_need_dtmax():
     # The gradient of a loss over 0.5 s at rest w.r.t. y0, through tsit5_trajectory (the
     # discrete adjoint of the steps taken) and simulate (diffrax's reverse pass), against

@@ -81,6 +81,7 @@ def test_switching_time_derivative_is_the_solution_s():
     assert abs(fd_[1]) > 1.0  # both switching times matter to the loss
 
 
+@pytest.mark.slow  # 65 s in a 2-worker run; jumps stay in CI (the two jumps of the diffrax and switching tests)
 def test_gradient_with_a_zero_order_hold_log():
     # A sampled torque held between samples (`hold="zoh"`): a jump at every sample time, 30
     # of them inside the log, each a step boundary. The samples' gradient against diffrax's.
@@ -94,6 +95,7 @@ def test_gradient_with_a_zero_order_hold_log():
     assert scale > 0
 
 
+@pytest.mark.slow  # 56 s in a 2-worker run; the vmapped adjoint with PDTracking stays in CI (test_fixed_step)
 def test_gradient_under_vmap_with_state_feedback():
     # A PD controller tracking a quintic move: the torque depends on the state, so each
     # stage's transpose carries the controller's derivative into the state's cotangent. The

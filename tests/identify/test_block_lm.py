@@ -52,6 +52,7 @@ def test_damped_step_is_the_dense_least_squares_solution(P, k, lam):
     assert not np.any(np.asarray(du)[~used])
 
 
+@pytest.mark.slow  # 132 s in a 2-worker run (10 programs compiled); the block step stays in CI (the 9 cases above)
 def test_block_levenberg_marquardt_takes_optimistix_steps(multilog_problem):
     """The whole solve, on three logs with different nuisance layouts, against optimistix's
     `LevenbergMarquardt` (its loop and trust region; only the linear solve differs): the
@@ -86,7 +87,7 @@ def test_fit_uses_the_block_solve_from_many_logs(multilog_problem):
     assert isinstance(fit_module._levenberg_marquardt(bare, 1e-3, 1e-10), optx.LevenbergMarquardt)
 
 
-@pytest.mark.slow  # 43 s in CI; the block solve stays in CI (the two tests above)
+@pytest.mark.slow  # 43 s in CI; the block step stays in CI (the damped-step cases and the choice test above)
 def test_a_fit_of_many_logs_recovers_the_truth():
     """`identify.fit` of `BLOCK_SOLVE_MIN_LOGS` pendulum releases (each with its own unknown
     release angle and potentiometer offset: the block solve) brackets the true damping and

@@ -198,6 +198,8 @@ def test_one_start_growing_horizon_needs_the_scaled_first_damping(arm):
 # ---------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # 102 s in a 2-worker run; fits of several logs sharing parameters stay in CI (test_cli's two logs,
+# test_real_pendulums: the real single pendulum's identification segments)
 def test_multi_log_shared_parameters():
     """Paper 000's flexible pendulum (one mode, modal damping ratio 0.02), three drop logs
     released from 0, -45 and -97 deg: EI and joint damping shared, the release angle of each
@@ -500,6 +502,7 @@ def test_far_off_guess_convergence(arm):
     assert rate >= 0.95, f"only {100 * rate:.0f}% of far-off guesses converged"
 
 
+@pytest.mark.slow  # 64 s in a 2-worker run: a check of compile reuse, not of a result
 def test_problems_differing_only_in_their_log_names_share_compiled_programs():
     """The logs' names are labels (`_LogLabels`): two problems that differ only in them
     trace a jitted function once; a different number of logs traces again. A fit of the

@@ -35,7 +35,7 @@ def _jacfwd(p, x, y0, off, horizon):
     return fn(v), np.concatenate([J["x"], J["y0"], J["off"]], axis=1)
 
 
-@pytest.mark.parametrize("horizon", [None, 0.3])
+@pytest.mark.parametrize("horizon", [None, pytest.param(0.3, marks=pytest.mark.slow)])  # CI time
 def test_log_jacobian_is_the_forward_mode_jacobian(multilog_problem, horizon):
     p, x, y0, off = multilog_problem
     h = None if horizon is None else jnp.asarray(horizon)

@@ -61,6 +61,8 @@ def write_experiment(folder, logs, sensors: str, parameters: str):
     return path
 
 
+@pytest.mark.slow  # 125 s in a 2-worker run; the delay key (test_experiment) and its model and derivatives
+# (test_measurement) stay in CI
 def test_a_sensor_delay_left_free_in_the_experiment_file_is_recovered(tmp_path):
     logs = pendulum_logs(pendulum(), 21, meas.Measurement({"theta1": meas.Sensor(delay=DELAY)}))
     assert [log.name for log in logs] == list(LOG_NAMES)
@@ -78,7 +80,7 @@ def test_a_sensor_delay_left_free_in_the_experiment_file_is_recovered(tmp_path):
     assert np.sqrt(np.mean(r**2)) < 1.2 * PENDULUM_NOISE
 
 
-@pytest.mark.slow  # 33 s in CI; the delay key and its sensor model stay in CI (the free-delay fit above)
+@pytest.mark.slow  # 33 s in CI; the delay key and its sensor model stay in CI (test_experiment, test_measurement)
 def test_a_known_sensor_delay_in_the_experiment_file_is_applied(tmp_path):
     logs = pendulum_logs(pendulum(), 22, meas.Measurement({"theta1": meas.Sensor(delay=DELAY)}))
     with_sensor = load_experiment(write_experiment(tmp_path / "a", logs, '[sensors.theta1]\ndelay = "30 ms"', ""))

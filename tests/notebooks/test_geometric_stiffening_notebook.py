@@ -69,6 +69,7 @@ def check(results):
     assert 0 <= results["greenhill_gamma"] / greenhill - 1 < 3e-5
 
 
+@pytest.mark.slow  # 80 s in a 2-worker run; stiffening's oracles stay in CI (test_chain, test_stiffening)
 def test_notebook_results_match_the_oracles():
     check(execute(full=False))
 

@@ -24,6 +24,7 @@ def results():
     return run_notebook(NOTEBOOK, timeout=600)
 
 
+@pytest.mark.slow  # the notebook's run: 80-90 s in a 2-worker run; the controller's oracles stay in CI (test_control)
 def test_time_scales(results):
     # k_c is the smallest stiffness: the joint springs (Table 1, 100 N m/rad), epsilon = 1/sqrt(k_c)
     assert results["k_c"] == pytest.approx(100.0, rel=1e-12)
@@ -31,6 +32,7 @@ def test_time_scales(results):
     assert results["fast_closed_loop_max_real"] < 0.0
 
 
+@pytest.mark.slow  # the notebook's run: 80-90 s in a 2-worker run; the controller's oracles stay in CI (test_control)
 def test_closed_loop_tracking(results):
     """Computed torque with the paper's slow gains on the flexible arm: the link angles stay within
     10 deg of the quintic reference and settle on the final position (pi/2, pi/6)."""
@@ -45,6 +47,7 @@ def test_closed_loop_tracking(results):
         assert comp < 1.5 * slow
 
 
+@pytest.mark.slow  # the notebook's run: 80-90 s in a 2-worker run; the controller's oracles stay in CI (test_control)
 def test_composite_suppresses_vibration(results):
     """The fast LQR removes most of the vibration (link modes and joint deflections minus their
     quasi-steady values) that the slow control alone leaves: composite / slow-only ratios."""
