@@ -87,6 +87,24 @@ def median_time(fn, repeats: int) -> float:
     return statistics.median(timed(fn)[1] for _ in range(repeats))
 
 
+def round_robin(calls: dict, rounds: int) -> dict:
+    """Seconds of `rounds` calls of each function of `calls` (name -> fn), interleaved: each
+    round calls every function once, in order. Runs compared by their ratio are then timed
+    through the same spells of the machine (this VM runs some programs 2x slow for minutes
+    at a time), instead of one run taking a slow spell alone. Each `fn` must block until its
+    result is ready. Returns name -> list of seconds (summarise with `warm_summary`)."""
+    samples = {name: [] for name in calls}
+    for _ in range(max(int(rounds), 1)):
+        for name, fn in calls.items():
+            samples[name].append(timed(fn)[1])
+    return samples
+
+
+def warm_summary(seconds: list) -> dict:
+    """`warm_s` (the median), `min_s` and `rounds` of a run's round-robin samples."""
+    return dict(warm_s=statistics.median(seconds), min_s=min(seconds), rounds=len(seconds))
+
+
 def format_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:
     """A Markdown table; `columns` is (key, header, format spec) and missing values print as '-'."""
 

@@ -20,10 +20,12 @@ The 4-parameter flexible-arm problem of `bench_fit_convergence.py` / `tests/iden
 Both final costs (sum of squared noise-weighted residuals) are evaluated by the same
 function (the peer's residual at rtol 1e-10), so they compare like for like; each method's
 own reported cost is also shown. Ours is timed cold (first fit in the process: the fit
-pipeline's compilation included) and warm (a second identical fit); compile = cold - warm.
-The peer has nothing to compile; its time is one run.
+pipeline's compilation included); then every run, the peer's too, is repeated `--repeats`
+times round robin (one fit of each per round, `_common.round_robin`), so that a slow spell
+of the machine falls on all of them alike: warm is the median, and the fastest is shown.
+compile = cold - warm. The peer has nothing to compile.
 
-Usage: `python benchmarks/bench_fit_vs_scipy.py [--guess-factor 1.3] [--json out.json]`
+Usage: `python benchmarks/bench_fit_vs_scipy.py [--guess-factor 1.3] [--repeats 3] [--json out.json]`
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, timed, write_json  # noqa: E402
+from _common import environment, format_environment, format_table, round_robin, timed, warm_summary, write_json  # noqa: E402
 from bench_fit_convergence import TRUTH, scenario  # noqa: E402
 from numpy_arm import NumpyChain  # noqa: E402
 
@@ -96,6 +98,7 @@ COLUMNS = [
     ("run", "run", ""),
     ("cold_s", "cold [s]", ".2f"),
     ("warm_s", "warm [s]", ".2f"),
+    ("min_s", "min [s]", ".2f"),
     ("compile_s", "compile [s]", ".1f"),
     ("speedup", "speed-up vs SciPy (warm)", ".1f"),
     ("iterations", "iterations", "d"),
@@ -109,7 +112,7 @@ COLUMNS = [
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--guess-factor", type=float, default=1.3, help="guess = truth x f or / f (alternating)")
-    parser.add_argument("--repeats", type=int, default=None, help="ignored (one warm fit; accepted for run_all)")
+    parser.add_argument("--repeats", type=int, default=3, help="round-robin rounds (warm fits of each run)")
     parser.add_argument("--skip-default", action="store_true", help="skip the default (multi-start) fit")
     parser.add_argument("--json", default=None, help="also write the results as JSON to this path")
     args = parser.parse_args(argv)
@@ -139,14 +142,12 @@ def main(argv=None):
             return identify.fit(problem, params, estimate_noise=False, **options)
 
         result, cold = timed(call)
-        result, warm = timed(call)
         values = [result.value[n] for n in NAMES]
         rows.append(
             dict(
                 run=name,
+                _call=call,
                 cold_s=cold,
-                warm_s=warm,
-                compile_s=max(cold - warm, 0.0),
                 iterations=int(sum(s["iterations"] for s in result.stages)),
                 cost_own=float(result.cost),
                 cost_common=peer.cost(values),
@@ -155,21 +156,24 @@ def main(argv=None):
                 values=dict(zip(NAMES, values)),
             )
         )
-        print(f"  {name}: cold {cold:.1f} s, warm {warm:.2f} s, cost {rows[-1]['cost_common']:.6g}", flush=True)
+        print(f"  {name}: cold {cold:.1f} s, cost {rows[-1]['cost_common']:.6g}", flush=True)
 
     from scipy.optimize import least_squares
 
+    def peer_call():
+        return least_squares(peer.residuals, np.log(guess), jac="2-point", diff_step=1e-6, method="trf")
+
     peer.nfev = 0
-    sol, peer_s = timed(
-        lambda: least_squares(peer.residuals, np.log(guess), jac="2-point", diff_step=1e-6, method="trf")
-    )
+    sol, peer_cold = timed(peer_call)
+    evaluations = int(peer.nfev)
     peer_values = np.exp(sol.x)
     rows.append(
         dict(
             run="peer: scipy least_squares (TRF, 2-point FD Jacobian) over solve_ivp DOP853 on NumPy equations",
-            warm_s=peer_s,
+            _call=peer_call,
+            cold_s=peer_cold,
             iterations=int(sol.njev),
-            evaluations=int(peer.nfev),
+            evaluations=evaluations,
             cost_own=float(2.0 * sol.cost),  # scipy's cost is half the sum of squares
             cost_common=peer.cost(peer_values),
             max_rel_error=rel_error(peer_values),
@@ -177,6 +181,12 @@ def main(argv=None):
             values=dict(zip(NAMES, (float(v) for v in peer_values))),
         )
     )
+    samples = round_robin({r["run"]: r.pop("_call") for r in rows}, args.repeats)
+    for r in rows:
+        r.update(warm_summary(samples[r["run"]]))
+        if r["run"].startswith("ours"):
+            r["compile_s"] = max(r["cold_s"] - r["warm_s"], 0.0)
+    peer_s = rows[-1]["warm_s"]
     for r in rows:
         r["speedup"] = peer_s / r["warm_s"]
 

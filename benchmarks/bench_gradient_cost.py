@@ -44,7 +44,7 @@ import diffrax  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, timed, write_json  # noqa: E402
+from _common import environment, format_environment, format_table, round_robin, timed, write_json  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 
@@ -163,12 +163,13 @@ def main(argv=None):
             jax.block_until_ready(compiled(x))  # the first call, untimed
             compiled_programs[name] = (compiled, x, lower_s)
             print(f"  {solver_name}: {name}: compile {lower_s:.1f} s", flush=True)
-        # Round robin: every program once per round, so that a slow spell of the machine
-        # (this VM has 2x episodes lasting minutes) falls on all of them alike.
-        samples = {name: [] for name in compiled_programs}
-        for _ in range(args.repeats):
-            for name, (compiled, x, _) in compiled_programs.items():
-                samples[name].append(timed(lambda compiled=compiled, x=x: jax.block_until_ready(compiled(x)))[1])
+        samples = round_robin(
+            {
+                name: (lambda compiled=compiled, x=x: jax.block_until_ready(compiled(x)))
+                for name, (compiled, x, _) in compiled_programs.items()
+            },
+            args.repeats,
+        )
         forward_warm = own_forward = None
         for name, (compiled, x, lower_s) in compiled_programs.items():
             mem = memory_mb(compiled)

@@ -18,8 +18,10 @@ at t = 5 s only. Runs:
   Like flexdyn's adaptive runs (which step onto the input's jumps), the peers integrate
   piecewise between the bang-bang switching times.
 
-Each run is timed cold (first call in the process, compilation included) and warm (median of
-`--repeats` calls, `block_until_ready`). The error is the largest absolute difference of the
+Each run is timed cold (first call in the process, compilation included) and warm: the
+median of `--repeats` calls (`block_until_ready`) made round robin, one call of every run per
+round (`_common.round_robin`), so that a slow spell of the machine falls on all runs alike; the
+fastest call is reported too. The error is the largest absolute difference of the
 coordinates `Q` (rad and m) at t = 5 s from a reference (diffrax Dopri8, rtol 1e-12,
 atol 1e-14). Ratios are warm times relative to flexdyn's adaptive Tsit5 run at rtol 1e-8;
 `compile [s]` is cold minus warm. *At matched accuracy*: for each flexdyn run, the NumPy
@@ -41,7 +43,16 @@ import diffrax  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, median_time, timed, write_json  # noqa: E402
+from _common import (  # noqa: E402
+    environment,
+    format_environment,
+    format_table,
+    median_time,
+    round_robin,
+    timed,
+    warm_summary,
+    write_json,
+)
 from numpy_arm import NumpyChain  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
@@ -61,8 +72,9 @@ def problem():
     return chain, torque, y0, ts
 
 
-def flexdyn_runs(chain, torque, y0, ts, repeats):
-    """The two flexdyn runs and the reference; returns (rows, reference state at T_END)."""
+def flexdyn_runs(chain, torque, y0, ts):
+    """The flexdyn runs, each called once (cold), and the reference; returns (rows, reference
+    state at T_END). Each run's row holds its call under `"_call"` for the warm timing."""
 
     def run(**kwargs):
         def call():
@@ -81,13 +93,11 @@ def flexdyn_runs(chain, torque, y0, ts, repeats):
     ):
         call = run(**kwargs)
         traj, cold = timed(call)
-        warm = median_time(call, repeats)
         rows.append(
             dict(
                 run=name,
+                _call=call,
                 cold_s=cold,
-                warm_s=warm,
-                compile_s=max(cold - warm, 0.0),
                 steps=int(traj.num_steps),
                 rhs_evals=int(traj.num_steps) * (4 if "RK4" in name else 6),
                 error_Q=float(np.max(np.abs(np.asarray(traj.Q[-1]) - ref_Q))),
@@ -122,7 +132,7 @@ def check_numpy_equations(chain, n_states=20, seed=0):
     return worst
 
 
-def numpy_peer(chain, torque, y0, repeats, ref_Q, rtol):
+def numpy_peer(chain, torque, y0, ref_Q, rtol):
     """solve_ivp(DOP853) on the NumPy equations (`numpy_arm`), piecewise between the jumps."""
     from scipy.integrate import solve_ivp
 
@@ -144,14 +154,13 @@ def numpy_peer(chain, torque, y0, repeats, ref_Q, rtol):
         return y, steps, nfev
 
     (y_end, steps, nfev), cold = timed(call)
-    warm = median_time(call, repeats)
     y_probe = np.asarray(y0, float) + 1e-3
     tau = np.asarray(amplitude)
     per_eval = median_time(lambda: peer.rhs(0.1, y_probe, tau), 200)
     return dict(
         run=f"peer: NumPy equations + solve_ivp DOP853, rtol {rtol:g}",
+        _call=call,
         cold_s=cold,
-        warm_s=warm,
         steps=steps,
         rhs_evals=nfev,
         error_Q=float(np.max(np.abs(y_end[:n] - ref_Q))),
@@ -185,7 +194,7 @@ def matched_speedups(rows):
     return out
 
 
-def scipy_peer(chain, torque, y0, repeats, ref_Q):
+def scipy_peer(chain, torque, y0, ref_Q):
     """solve_ivp(DOP853) on flexdyn's jitted right-hand side, piecewise between the input's jumps."""
     from scipy.integrate import solve_ivp
 
@@ -208,13 +217,12 @@ def scipy_peer(chain, torque, y0, repeats, ref_Q):
         return y, steps, nfev
 
     (y_end, steps, nfev), cold = timed(call)
-    warm = median_time(call, repeats)
     y_probe = np.asarray(y0) + 1e-3
     per_eval = median_time(lambda: rhs(0.1, y_probe), 200)
     return dict(
         run=f"peer: scipy solve_ivp DOP853, rtol {RTOL:g} (our jitted RHS)",
+        _call=call,
         cold_s=cold,
-        warm_s=warm,
         steps=steps,
         rhs_evals=nfev,
         error_Q=float(np.max(np.abs(y_end[:n] - ref_Q))),
@@ -226,6 +234,7 @@ COLUMNS = [
     ("run", "run", ""),
     ("cold_s", "cold [s]", ".3f"),
     ("warm_s", "warm [s]", ".4f"),
+    ("min_s", "min [s]", ".4f"),
     ("ratio", "warm / Tsit5", ".2f"),
     ("compile_s", "compile [s]", ".2f"),
     ("steps", "steps", "d"),
@@ -244,7 +253,7 @@ MATCHED_COLUMNS = [
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=5, help="warm runs per case (median reported)")
+    parser.add_argument("--repeats", type=int, default=5, help="round-robin rounds: warm calls per run (median)")
     parser.add_argument("--json", default=None, help="also write the results as JSON to this path")
     parser.add_argument("--no-jax-rhs-peer", action="store_true", help="skip the peer calling our jitted RHS")
     args = parser.parse_args(argv)
@@ -252,13 +261,19 @@ def main(argv=None):
     env = environment()
     chain, torque, y0, ts = problem()
     check = check_numpy_equations(chain)
-    rows, ref_Q = flexdyn_runs(chain, torque, y0, ts, args.repeats)
-    numpy_rows = [numpy_peer(chain, torque, y0, args.repeats, ref_Q, rtol) for rtol in PEER_RTOLS]
+    rows, ref_Q = flexdyn_runs(chain, torque, y0, ts)
+    numpy_rows = [numpy_peer(chain, torque, y0, ref_Q, rtol) for rtol in PEER_RTOLS]
     rows[3:3] = numpy_rows
     peer = None
     if not args.no_jax_rhs_peer:
-        peer = scipy_peer(chain, torque, y0, args.repeats, ref_Q)
+        peer = scipy_peer(chain, torque, y0, ref_Q)
         rows.insert(3 + len(numpy_rows), peer)
+    timed_rows = [r for r in rows if "_call" in r]
+    samples = round_robin({r["run"]: r.pop("_call") for r in timed_rows}, args.repeats)
+    for r in timed_rows:
+        r.update(warm_summary(samples[r["run"]]))
+        if r["run"].startswith("flexdyn"):
+            r["compile_s"] = max(r["cold_s"] - r["warm_s"], 0.0)
     tsit5 = next(r for r in rows if r["run"] == f"flexdyn Tsit5, adaptive rtol {RTOL:g}")
     for r in rows:
         if r.get("warm_s") is not None:
