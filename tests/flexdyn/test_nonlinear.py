@@ -145,7 +145,8 @@ def test_absent_terms_are_not_parameters():
         fd.RigidJoint(coulomb=-1e-3)
 
 
-@pytest.mark.slow  # 84 s in a 2-worker run; each force's derivatives stay in CI (the neutral-value test above)
+@pytest.mark.slow  # 84 s in a 2-worker run; friction's and drag's derivatives (the neutral-value test above) and
+# backlash's energy balance stay in CI
 def test_forward_dynamics_derivatives_with_friction_drag_and_backlash_match_finite_differences():
     """`fd.accelerations` has its own derivative rule (implicit function of the Lagrange
     residual, `flexdyn.chain`); with dry friction, drag on a flexible link and backlash in

@@ -95,7 +95,8 @@ def test_gradient_with_a_zero_order_hold_log():
     assert scale > 0
 
 
-@pytest.mark.slow  # 56 s in a 2-worker run; the vmapped adjoint with PDTracking stays in CI (test_fixed_step)
+@pytest.mark.slow  # 56 s in a 2-worker run; a vmapped discrete adjoint with PDTracking stays in CI (rk4_trajectory's,
+# test_fixed_step)
 def test_gradient_under_vmap_with_state_feedback():
     # A PD controller tracking a quintic move: the torque depends on the state, so each
     # stage's transpose carries the controller's derivative into the state's cotangent. The
