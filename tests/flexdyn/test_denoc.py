@@ -51,7 +51,8 @@ def _rel_err(x, y, scale=None):
 # {"rigid", "rigid-spong", "elastic", "elastic-spong"}.
 STRUCTURES = {
     # a flexible link on an elastic joint and a rigid link on a geared joint with its rotor: the
-    # smallest chain with every kind of term (CI runs the derivative test on it alone)
+    # smallest chain with flexible and rigid links, elastic and rigid joints and rotors (CI runs
+    # the derivative test on it alone; the Spong variants are in the four-link chain)
     "flex2-elastic+rigid-rotor": [(2, "elastic"), (0, "rigid")],
     "flex2-elastic+rigid-rotor+flex3": [(2, "elastic"), (0, "rigid"), (3, "rigid")],
     "rigid+flex3-elastic-spong+flex1-rigid-spong+rigid-elastic": [
