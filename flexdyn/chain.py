@@ -297,6 +297,7 @@ def tip_load(chain: Chain, i: int):
     return M + p.mass, S + p.mass * x, J + p.inertia + p.mass * x**2
 
 
+@eqx.filter_jit  # traced once per link structure and shapes, see `_solve_forward_dynamics`
 def _assemble_link(chain: Chain, i: int) -> LinkMatrices:
     link = chain.links[i]
     length = checked(link.length, type(link).__name__, "length", positive=True)
@@ -676,6 +677,16 @@ def _lagrange_residual(asm: AssembledChain, Q, Qd, Qdd, torque):
     return p_dot - jax.grad(kinetic_energy, argnums=1)(asm, Q, Qd) - generalised_forces(asm, Q, Qd, torque)
 
 
+# `_solve_forward_dynamics`, `_forward_dynamics_and_tangent` and `_assemble_link` are jitted
+# so that JAX traces each once per structure and shapes and reuses the jaxpr: diffrax
+# traces the vector field four times per solve (initial step, first stage, the stages'
+# scan, dense output), a fit traces the model in each of its programs, and each trace of
+# the forward dynamics costs ~1 s of Python (the energies' derivatives). Inside an outer
+# `jit` the nested programs are inlined by XLA, so the compiled code is the same.
+# Measured 2026-12-01 (2-core CPU, slow day): tracing `simulate` of paper 004's arm 4.8 ->
+# 2.7 s; a cold 4-parameter fit (bench_fit_vs_scipy's) 69 -> 56 s; a cold
+# `grad` through `simulate` 48-56 -> 37-39 s; warm run times unchanged within the noise.
+@eqx.filter_jit
 def _solve_forward_dynamics(asm: AssembledChain, Q, Qd, torque):
     M, h = mass_and_velocity_terms(asm, Q, Qd)
     factor = jsl.cho_factor(M)
@@ -702,6 +713,11 @@ def _forward_dynamics_jvp(static, primals, tangents):
     1.5 us; its JVP 5.3 -> 4.3 us, over 4 tangents 19.2 -> 5.5 us, its VJP (the transpose
     of this rule) 6.9 -> 4.3 us. Reverse mode transposes the linear map below, so it is
     covered too."""
+    return _forward_dynamics_and_tangent(static, primals, tangents)
+
+
+@eqx.filter_jit
+def _forward_dynamics_and_tangent(static, primals, tangents):
     dynamic, Q, Qd, torque = primals
     Qdd, factor = _solve_forward_dynamics(eqx.combine(dynamic, static), Q, Qd, torque)
     residual = lambda dyn_, Q_, Qd_, tau_: _lagrange_residual(eqx.combine(dyn_, static), Q_, Qd_, Qdd, tau_)  # noqa: E731

@@ -638,3 +638,40 @@ def test_stiffened_forward_dynamics_derivatives_match_finite_differences():
         differences[:, k] = (8.0 * (at(1) - at(-1)) - (at(2) - at(-2))) / (12.0 * h)
     scale = np.max(np.abs(differences), axis=0)
     assert np.max(np.abs(forward - differences) / scale) < 1e-7
+
+
+def test_a_solve_traces_the_forward_dynamics_and_the_assembly_once(monkeypatch):
+    """diffrax traces the vector field several times per solve, and a derivative adds the
+    tangent rule's traces; the forward dynamics and each link's assembly are jitted so that
+    each is traced once per structure and shapes (`flexdyn.chain`: ~1 s of Python each on
+    paper 004's arm). Counted here through a reverse-mode derivative of a solve."""
+    import flexdyn.chain as fc
+
+    counts = {"dynamics": 0, "assembly": 0}
+    dynamics, rigid_moments = fc.mass_and_velocity_terms, fc._rigid_moments
+
+    def counting_dynamics(*a):
+        counts["dynamics"] += 1
+        return dynamics(*a)
+
+    def counting_moments(link):
+        counts["assembly"] += 1
+        return rigid_moments(link)
+
+    monkeypatch.setattr(fc, "mass_and_velocity_terms", counting_dynamics)
+    monkeypatch.setattr(fc, "_rigid_moments", counting_moments)
+    jax.clear_caches()  # nothing traced earlier in this process is reused
+    chain = fd.rigs.flexible_link_joint_arm()
+    y0 = fd.initial_state(chain, joint_angles=[0.1, 0.0])
+    ts = jnp.linspace(0.0, 0.05, 3)
+
+    def loss(c):
+        return jnp.sum(fd.simulate(c, y0, ts, fd.BangBang([0.2, 0.2], 0.02)).Q[-1] ** 2)
+
+    # under JAX's default promotion (the suite's strict one is part of the trace's cache key,
+    # and diffrax checks its vector field under the default: one more trace)
+    with jax.numpy_dtype_promotion("standard"):
+        eqx.filter_eval_shape(eqx.filter_grad(loss), chain)
+    assert counts["dynamics"] == 2  # the primal's solve, and the tangent rule's
+    # each link once (`_rigid_moments` of link i and of the links distal to it: 2 + 1)
+    assert counts["assembly"] == 3
