@@ -297,7 +297,6 @@ def tip_load(chain: Chain, i: int):
     return M + p.mass, S + p.mass * x, J + p.inertia + p.mass * x**2
 
 
-@eqx.filter_jit  # traced once per link structure and shapes, see `_solve_forward_dynamics`
 def _assemble_link(chain: Chain, i: int) -> LinkMatrices:
     link = chain.links[i]
     length = checked(link.length, type(link).__name__, "length", positive=True)
@@ -677,11 +676,12 @@ def _lagrange_residual(asm: AssembledChain, Q, Qd, Qdd, torque):
     return p_dot - jax.grad(kinetic_energy, argnums=1)(asm, Q, Qd) - generalised_forces(asm, Q, Qd, torque)
 
 
-# `_solve_forward_dynamics`, `_forward_dynamics_and_tangent` and `_assemble_link` are jitted
-# so that JAX traces each once per structure and shapes and reuses the jaxpr: diffrax
-# traces the vector field four times per solve (initial step, first stage, the stages'
-# scan, dense output), a fit traces the model in each of its programs, and each trace of
-# the forward dynamics costs ~1 s of Python (the energies' derivatives). Inside an outer
+# `_solve_forward_dynamics` and `_forward_dynamics_and_tangent` are jitted so that JAX
+# traces each once per structure and shapes and reuses the jaxpr: one trace of `simulate`
+# calls the vector field four times (measured), a fit traces the model in each of its
+# programs, and each trace of the forward dynamics costs ~1.3 s of Python (the energies'
+# derivatives). (Jitting `_assemble_link` too gained nothing measurable: it is traced
+# once per program.) Inside an outer
 # `jit` the nested programs are inlined by XLA, so the compiled code is the same.
 # Measured 2026-12-01 (2-core CPU, slow day): tracing `simulate` of paper 004's arm 4.8 ->
 # 2.7 s; a cold 4-parameter fit (bench_fit_vs_scipy's) 69 -> 56 s; a cold

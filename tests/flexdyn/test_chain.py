@@ -18,6 +18,7 @@ from scipy.interpolate import CubicSpline
 from scipy.optimize import brentq
 
 import flexdyn as fd
+import flexdyn.chain as fc
 
 G = 9.81
 _mass_matrix = eqx.filter_jit(fd.mass_matrix)
@@ -640,26 +641,19 @@ def test_stiffened_forward_dynamics_derivatives_match_finite_differences():
     assert np.max(np.abs(forward - differences) / scale) < 1e-7
 
 
-def test_a_solve_traces_the_forward_dynamics_and_the_assembly_once(monkeypatch):
+def test_a_solve_traces_the_forward_dynamics_once(monkeypatch):
     """diffrax traces the vector field several times per solve, and a derivative adds the
-    tangent rule's traces; the forward dynamics and each link's assembly are jitted so that
-    each is traced once per structure and shapes (`flexdyn.chain`: ~1 s of Python each on
-    paper 004's arm). Counted here through a reverse-mode derivative of a solve."""
-    import flexdyn.chain as fc
-
-    counts = {"dynamics": 0, "assembly": 0}
-    dynamics, rigid_moments = fc.mass_and_velocity_terms, fc._rigid_moments
+    tangent rule's traces; the forward dynamics is jitted so that it is traced once per
+    structure and shapes (`flexdyn.chain`: ~1.3 s of Python each on paper 004's arm).
+    Counted here through a reverse-mode derivative of a solve."""
+    counts = {"dynamics": 0}
+    dynamics = fc.mass_and_velocity_terms
 
     def counting_dynamics(*a):
         counts["dynamics"] += 1
         return dynamics(*a)
 
-    def counting_moments(link):
-        counts["assembly"] += 1
-        return rigid_moments(link)
-
     monkeypatch.setattr(fc, "mass_and_velocity_terms", counting_dynamics)
-    monkeypatch.setattr(fc, "_rigid_moments", counting_moments)
     jax.clear_caches()  # nothing traced earlier in this process is reused
     chain = fd.rigs.flexible_link_joint_arm()
     y0 = fd.initial_state(chain, joint_angles=[0.1, 0.0])
@@ -673,5 +667,3 @@ def test_a_solve_traces_the_forward_dynamics_and_the_assembly_once(monkeypatch):
     with jax.numpy_dtype_promotion("standard"):
         eqx.filter_eval_shape(eqx.filter_grad(loss), chain)
     assert counts["dynamics"] == 2  # the primal's solve, and the tangent rule's
-    # each link once (`_rigid_moments` of link i and of the links distal to it: 2 + 1)
-    assert counts["assembly"] == 3
