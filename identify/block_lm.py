@@ -55,6 +55,34 @@ class _State(eqx.Module):
     U: jax.Array  # (L, n, k): y0 slots then offset slots
 
 
+def read_blocks(layout: Layout, y, f_info) -> _State:
+    """The residuals `r` `(L, n)` and the blocks `S` `(L, n, P)`, `U` `(L, n, k)` of the
+    block-arrow Jacobian at `y`, read from optimistix's linearisation `f_info` with `P + k`
+    products `f_info.jac.mv` (one probe per shared variable, one per nuisance slot for all
+    logs at once: their rows do not overlap)."""
+    L = layout.n_logs
+    flat, unravel = ravel_pytree(_shared(y))
+    P = flat.shape[0]
+    no_nuisance = {key: jnp.zeros_like(y[key]) for key in _NUISANCES}
+    probes = [{**unravel(jnp.zeros_like(flat).at[i].set(1.0)), **no_nuisance} for i in range(P)]
+    for kind, key in enumerate(_NUISANCES):
+        pos, used = layout.arrays(kind)
+        for j in range(pos.shape[1]):
+            v = jnp.zeros_like(y[key]).at[pos[used[:, j], j]].set(1.0)
+            zeros = {kk: jnp.zeros_like(y[kk]) for kk in _NUISANCES if kk != key}
+            probes.append({**unravel(jnp.zeros_like(flat)), key: v, **zeros})
+    r = f_info.residual.reshape(L, -1)
+    template = jax.tree_util.tree_map(jnp.zeros_like, y)
+    if not probes:
+        return _State(template, r, jnp.zeros((*r.shape, 0), r.dtype), jnp.zeros((*r.shape, 0), r.dtype))
+    batch = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *probes)
+    cols = jax.vmap(f_info.jac.mv)(batch)  # (P + k, L n)
+    cols = cols.reshape(len(probes), L, -1)
+    S = jnp.moveaxis(cols[:P], 0, -1)
+    U = jnp.moveaxis(cols[P:], 0, -1)
+    return _State(template, r, S, U)
+
+
 class BlockDampedNewtonDescent(optx.AbstractDescent):
     """The damped Newton (Levenberg-Marquardt) step, `lambda = 1 / step_size` as in
     `optx.DampedNewtonDescent`, solved block by block (module docstring). The variables `y`
@@ -73,29 +101,9 @@ class BlockDampedNewtonDescent(optx.AbstractDescent):
         return _State(template, jnp.zeros((L, n), dtype), jnp.zeros((L, n, P), dtype), jnp.zeros((L, n, k), dtype))
 
     def query(self, y, f_info, state):
-        """Read the blocks of the Jacobian at `y` from `f_info.jac` with `P + k` probes."""
+        """Read the blocks of the Jacobian at `y` from `f_info.jac` (`read_blocks`)."""
         del state
-        L = self.layout.n_logs
-        flat, unravel = ravel_pytree(_shared(y))
-        P = flat.shape[0]
-        no_nuisance = {key: jnp.zeros_like(y[key]) for key in _NUISANCES}
-        probes = [{**unravel(jnp.zeros_like(flat).at[i].set(1.0)), **no_nuisance} for i in range(P)]
-        for kind, key in enumerate(_NUISANCES):
-            pos, used = self.layout.arrays(kind)
-            for j in range(pos.shape[1]):
-                v = jnp.zeros_like(y[key]).at[pos[used[:, j], j]].set(1.0)
-                zeros = {kk: jnp.zeros_like(y[kk]) for kk in _NUISANCES if kk != key}
-                probes.append({**unravel(jnp.zeros_like(flat)), key: v, **zeros})
-        r = f_info.residual.reshape(L, -1)
-        template = jax.tree_util.tree_map(jnp.zeros_like, y)
-        if not probes:
-            return _State(template, r, jnp.zeros((*r.shape, 0), r.dtype), jnp.zeros((*r.shape, 0), r.dtype))
-        batch = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *probes)
-        cols = jax.vmap(f_info.jac.mv)(batch)  # (P + k, L n)
-        cols = cols.reshape(len(probes), L, -1)
-        S = jnp.moveaxis(cols[:P], 0, -1)
-        U = jnp.moveaxis(cols[P:], 0, -1)
-        return _State(template, r, S, U)
+        return read_blocks(self.layout, y, f_info)
 
     def step(self, step_size, state):
         pred = step_size > jnp.finfo(step_size.dtype).eps

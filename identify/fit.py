@@ -67,11 +67,12 @@ import optimistix as optx
 import flexdyn as fd
 
 from . import channels as ch, covariance, measurement as meas
-from .block_lm import BlockLevenbergMarquardt, Layout
+from .block_lm import BlockLevenbergMarquardt, Layout, read_blocks
 from .channels import state_names  # noqa: F401  (re-exported)
 from .covariance import Covariance
 from .measurement import Measurement
 from .residuals import (  # noqa: F401  (re-exported: identify.predict, diagnose)
+    FAILED_RESIDUAL,
     _chain,
     _initial_states,
     _measurement,
@@ -439,11 +440,18 @@ def _solve(problem: Problem, z0, sigma, horizon, step, budget, tau, max_steps: i
     # small fraction of a standard error (not when every single residual is frozen).
     # At most `budget` (traced) iterations, `max_steps` (static) >= every budget used.
     # First damping `tau * max diag(J^T J)` (`tau` traced).
+    # Returns the solution, optimistix's result, the number of steps, the cost and the
+    # linearisation at the solution, `(r, S, U)` (`identify.block_lm.read_blocks`, w.r.t.
+    # `z`): optimistix keeps the residuals and the linear map of the last accepted point,
+    # which is the solution, so the standard errors need no second Jacobian program (its
+    # compilation was ~10 s of a cold 4-parameter fit's 45 s on 2 cores, and the final
+    # residual evaluation another diffrax solve in this one). Needs >= 1 step (the first
+    # is always accepted); `fit` checks its budgets.
     solver = _BudgetedLM(_levenberg_marquardt(problem, rtol, atol, tau), budget)
     args = (problem, sigma, horizon, step)
     sol = optx.least_squares(_residual_fn_lm, solver, z0, args=args, max_steps=max_steps, throw=False)
-    r = _residual_fn(sol.value, args)
-    return sol.value, sol.result, sol.stats["num_steps"], jnp.sum(r**2)
+    lin = read_blocks(Layout.of(problem), sol.value, sol.state[0].f_info)
+    return sol.value, sol.result, sol.stats["num_steps"], jnp.sum(lin.r**2), (lin.r, lin.S, lin.U)
 
 
 @eqx.filter_jit
@@ -643,6 +651,7 @@ def fit(
     - `progress`: callable taking a message string (e.g. `print`), or None.
     """
     _check_damping(first_damping)
+    _check_budgets(max_steps=max_steps, early_max_steps=early_max_steps)
     fd.ensure_mapping_headroom()  # a fit compiles ~10-50 programs (flexdyn.program_cache)
     start = time.perf_counter()
     say = progress or (lambda msg: None)
@@ -711,7 +720,7 @@ def fit(
     for attempt, z in enumerate(candidates):
         if attempt:
             say(f"  a parameter ended on its bound: growing the horizon again from start #{attempt + 1}")
-        z, sigma_a, step, tried = _grow(
+        z, sigma_a, step, lin, tried = _grow(
             problem,
             z,
             sigma,
@@ -729,14 +738,14 @@ def fit(
         )
         x = _x_from_z(problem, z["phys"])
         bounded = _at_bounds(problem, np.asarray(x))
-        outcomes.append((bool(bounded), tried[-1]["cost"], z, sigma_a, step, tried))
+        outcomes.append((bool(bounded), tried[-1]["cost"], z, sigma_a, step, lin, tried))
         if not bounded:
             break
-    _, _, z, sigma, step, tried = min(outcomes, key=lambda o: (o[0], o[1]))
+    _, _, z, sigma, step, lin, tried = min(outcomes, key=lambda o: (o[0], o[1]))
     stages.extend(tried)
     say("  computing standard errors (exact Jacobian at the optimum) ...")
     x = _x_from_z(problem, z["phys"])
-    cov = _covariance_at(problem, x, z, sigma, step)
+    cov = _covariance_at(problem, x, z, sigma, step, *lin)
     return _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start)
 
 
@@ -746,19 +755,84 @@ def _dense_covariance(problem: Problem, r, J) -> Covariance:
     return covariance.dense(problem.names, problem.log_scale, np.asarray(r)[used], np.asarray(J)[used])
 
 
-def _covariance_at(problem: Problem, x, z, sigma, step) -> Covariance:
+def _covariance_at(problem: Problem, x, z, sigma, step, lin=None, horizon=None) -> Covariance:
     """The covariance at the optimum: block by block (`identify.covariance.blocked`, no
     dense Jacobian) when the Levenberg-Marquardt steps were (`BLOCK_SOLVE_MIN_LOGS` logs
-    with nuisances), else from the dense Jacobian."""
+    with nuisances), else from the dense Jacobian.
+
+    `lin`, `horizon`: the linearisation the last Levenberg-Marquardt solve ended with at
+    `z` (`_solve`) and that solve's horizon; used when it covers every sample, else (or
+    without it) the Jacobian is computed afresh."""
+    blocks = _natural_blocks(problem, z, lin, horizon) if lin is not None else None
+    if blocks is None:
+        if not _blocked(problem):
+            r, J, ok = _jacobian_natural(problem, x, z["y0"], z["offset"], sigma, step)
+            if not bool(ok):
+                raise _SimulationFailed(_FAILED_AT_OPTIMUM)
+            return _dense_covariance(problem, r, J)
+        blocks = jacobian_blocks_at(problem, x, z, sigma, step)
     if not _blocked(problem):
-        r, J, ok = _jacobian_natural(problem, x, z["y0"], z["offset"], sigma, step)
-        if not bool(ok):
-            raise RuntimeError(_FAILED_AT_OPTIMUM)
-        return _dense_covariance(problem, r, J)
-    return covariance.blocked(problem.names, problem.log_scale, *jacobian_blocks_at(problem, x, z, sigma, step))
+        r, S, U, slots, used = blocks
+        return _dense_covariance(problem, r.reshape(-1), _dense_jacobian(problem, S, U, slots))
+    return covariance.blocked(problem.names, problem.log_scale, *blocks)
+
+
+def _dx_dz(problem: Problem, z_phys) -> np.ndarray:
+    """`d x / d z` of `_x_from_z` (elementwise), host-side."""
+    lo, hi, z = np.asarray(problem.lower), np.asarray(problem.upper), np.asarray(z_phys, float)
+
+    def sig(v):  # the logistic, to full relative precision in both tails, without overflow
+        e = np.exp(-np.abs(v))
+        return np.where(v >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+
+    with np.errstate(invalid="ignore"):
+        both = (hi - lo) * sig(z) * sig(-z)
+    return np.where(
+        np.isfinite(lo) & np.isfinite(hi),
+        both,
+        np.where(np.isfinite(lo), sig(z), np.where(np.isfinite(hi), sig(-z), 1.0)),
+    )
+
+
+# Beyond this |z| a two-sided parameter is within 3e-7 of its range from a bound, where
+# JAX's derivative of the logistic, sigma (1 - sigma), loses digits in 1 - sigma (relative
+# 1e-16 / (1 - sigma), 1e-9 here): the linearisation w.r.t. z would not give the natural
+# Jacobian to full precision, so it is recomputed.
+_SIGMOID_Z_MAX = 15.0
+
+
+def _natural_blocks(problem: Problem, z, lin, horizon):
+    """The blocks `(r, S, U, slots, used)` (`jacobian_blocks_at`) from a Levenberg-Marquardt
+    solve's linearisation `lin` at `z` (w.r.t. the unconstrained `z`; the shared columns
+    divided by `d x / d z` give them w.r.t. the natural coordinates), or None where it
+    cannot stand for the full Jacobian: its horizon left samples out, or a parameter sits so
+    near a bound that `d x / d z` loses precision (`_SIGMOID_Z_MAX`) or underflows. Raises
+    if a log's simulation failed there (its residuals are the failure value of
+    `identify.residuals.residuals`)."""
+    mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
+    t = np.asarray(problem.t)
+    if horizon is not None and not np.all((t <= t[:, :1] + float(horizon))[:, :, None] | ~mask):
+        return None  # the horizon's samples (`identify.residuals._used`) are not all of them
+    zp = np.asarray(z["phys"])
+    two_sided = np.isfinite(np.asarray(problem.lower)) & np.isfinite(np.asarray(problem.upper))
+    if np.any(two_sided & (np.abs(zp) > _SIGMOID_Z_MAX)):
+        return None
+    scale = _dx_dz(problem, zp)
+    if not np.all(np.isfinite(scale) & (np.abs(scale) > 1e-250)):
+        return None
+    r, S, U = (np.asarray(a) for a in lin)
+    L, n = r.shape
+    used = mask.reshape(L, n)
+    if any(used[l].any() and np.all(r[l][used[l]] == FAILED_RESIDUAL) for l in range(L)):
+        raise _SimulationFailed(_FAILED_AT_OPTIMUM)
+    return r, S / scale, U, _nuisance_slots(problem), used
 
 
 _FAILED_AT_OPTIMUM = "fit: the simulation at the fitted parameters failed; check bounds and solver settings"
+
+
+class _SimulationFailed(RuntimeError):
+    """A log's simulation failed at the fitted parameters."""
 
 
 def jacobian_blocks_at(problem: Problem, x, z, sigma, step):
@@ -768,22 +842,46 @@ def jacobian_blocks_at(problem: Problem, x, z, sigma, step):
     `slots` their positions among the nuisances, `used` which residuals count)."""
     jac = _jacobian_blocks(problem, x, z["y0"], z["offset"], sigma, step)
     if not bool(jnp.all(jac.ok)):
-        raise RuntimeError(_FAILED_AT_OPTIMUM)
+        raise _SimulationFailed(_FAILED_AT_OPTIMUM)
     L, n, _ = jac.shared.shape
-    slots = []
-    start = 0
-    for kind, width in ((0, len(problem.y0_free)), (1, len(problem.offset_free))):
-        pos, used = jac.layout.arrays(kind)
-        slots.append(np.where(used, start + pos, -1))
-        start += width
     used = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :]).reshape(L, n)
     return (
         np.asarray(jac.r),
         np.asarray(jac.shared),
         np.concatenate([np.asarray(jac.y0), np.asarray(jac.offset)], axis=2),
-        np.concatenate(slots, axis=1),
+        _nuisance_slots(problem),
         used,
     )
+
+
+def _nuisance_slots(problem: Problem) -> np.ndarray:
+    """`(L, k)` position of each log's nuisance slot among the nuisance columns (initial-state
+    entries, then offsets), -1 on padding (`identify.covariance.blocked`)."""
+    layout = Layout.of(problem)
+    slots = []
+    start = 0
+    for kind, width in ((0, len(problem.y0_free)), (1, len(problem.offset_free))):
+        pos, used = layout.arrays(kind)
+        slots.append(np.where(used, start + pos, -1))
+        start += width
+    return np.concatenate(slots, axis=1)
+
+
+def _dense_jacobian(problem: Problem, S, U, slots) -> np.ndarray:
+    """The dense Jacobian `(L n, P + k_y0 + k_offset)` from the blocks (`_nuisance_slots`)."""
+    L, n, P = S.shape
+    J = np.zeros((L, n, P + len(problem.y0_free) + len(problem.offset_free)))
+    J[:, :, :P] = S
+    for l, j in zip(*np.nonzero(slots >= 0)):
+        J[l, :, P + slots[l, j]] = U[l, :, j]
+    return J.reshape(L * n, -1)
+
+
+def _check_budgets(**budgets):
+    # `_solve` reads the standard errors' linearisation from the last accepted step
+    for name, value in budgets.items():
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"fit: {name} expected a whole number of Levenberg-Marquardt steps >= 1, got {value!r}")
 
 
 def _check_damping(first_damping):
@@ -809,9 +907,11 @@ def _grow(
     say,
     tau_first,
 ):
-    """The growing-horizon stages (and a noise re-estimation round) from `z`."""
+    """The growing-horizon stages (and a noise re-estimation round) from `z`; returns the
+    last stage's `z`, noise levels, step, linearisation (`_solve`) and horizon, and the
+    stages' records."""
     stages = []
-    step = None
+    step = lin = None
     for rnd in range(rounds):
         # The horizon grows in the first round only; later rounds (new noise weights) start
         # at the optimum, where the full horizon is safe.
@@ -820,7 +920,7 @@ def _grow(
             step = _stage_step(problem, z, h, grid_safety)
             budget = jnp.asarray(max_steps if last else early_max_steps)  # traced: no recompilation
             tau = jnp.asarray(tau_first if (rnd == 0 and k == 0) else 0.0, dtype=float)
-            z, result, steps, cost = _solve(problem, z, sigma, jnp.asarray(h), step, budget, tau, cap, rtol, atol)
+            z, result, steps, cost, lin = _solve(problem, z, sigma, jnp.asarray(h), step, budget, tau, cap, rtol, atol)
             stages.append(
                 {"horizon_s": float(h), "iterations": int(steps), "cost": float(cost), "result": _result_name(result)}
             )
@@ -828,7 +928,7 @@ def _grow(
         if rnd + 1 < rounds:
             sigma = _reestimate_sigma(problem, z, sigma, estimate_noise, step)
             say("  noise re-estimated: " + ", ".join(f"{c}={float(s):.3g}" for c, s in zip(problem.channels, sigma)))
-    return z, sigma, step, stages
+    return z, sigma, step, (lin, h), stages
 
 
 def _at_bounds(problem: Problem, xs: np.ndarray) -> list[str]:
@@ -943,6 +1043,7 @@ def fit_independent(
     first stage starts with the damping `first_damping` (as in `fit` with one start).
     Returns one `FitResult` per log."""
     _check_damping(first_damping)
+    _check_budgets(max_steps=max_steps)
     fd.ensure_mapping_headroom()  # flexdyn.program_cache
     start = time.perf_counter()
     say = progress or (lambda msg: None)
@@ -983,7 +1084,9 @@ def fit_independent(
             [float(aligned_step(singles[min(k, L - 1)], step[k])) for k in range(step.shape[0])], dtype=step.dtype
         )
         tau = jnp.asarray(first_damping if k_stage == 0 else 0.0, dtype=float)
-        z, result, steps, cost = solve(stacked, z, sigma, jnp.asarray(h), step, max_steps, tau, max_steps, rtol, atol)
+        z, result, steps, cost, lin = solve(
+            stacked, z, sigma, jnp.asarray(h), step, max_steps, tau, max_steps, rtol, atol
+        )
         for k in range(L):
             stages[k].append(
                 {
@@ -996,9 +1099,23 @@ def fit_independent(
         say(f"  horizon {h:8.3f} s: {int(jnp.max(steps)):3d} iterations (slowest of {L} logs)")
     say("  computing standard errors (exact Jacobians at the optima) ...")
     x = jnp.stack([_x_from_z(singles[k], z["phys"][k]) for k in range(L)])
-    jac = eqx.filter_vmap(_jacobian_natural, in_axes=(0, 0, 0, 0, None, 0))
-    r, J, ok = jac(stacked, fbatch.shard_batch(x, mesh)[0], z["y0"], z["offset"], sigma, step)
-    failed = np.flatnonzero(~np.asarray(ok)[:L]).tolist()  # one host transfer, not one per log
+    lin = [np.asarray(a) for a in lin]  # one host transfer, not one per log
+    covs, failed = [], []
+    for k in range(L):
+        try:
+            covs.append(
+                _covariance_at(
+                    singles[k],
+                    x[k],
+                    {key: v[k] for key, v in z.items()},
+                    sigma,
+                    step[k],
+                    tuple(a[k] for a in lin),
+                    horizons[-1],
+                )
+            )
+        except _SimulationFailed:
+            failed.append(k)
     if failed:
         raise RuntimeError(
             f"fit_independent: the simulation of log(s) {failed} at the fitted parameters failed; "
@@ -1013,7 +1130,7 @@ def fit_independent(
             x[k],
             sigma,
             step[k],
-            _dense_covariance(singles[k], r[k], J[k]),
+            covs[k],
             stages[k],
             wall,
         )

@@ -139,15 +139,19 @@ def _used(problem, horizon):
     return mask
 
 
+# the weighted residual of every used sample of a log whose simulation failed
+FAILED_RESIDUAL = 1e6
+
+
 def residuals(problem, theta, y0_free, offset_free, sigma, horizon, step=None):
     """Weighted residuals (flat, log-major: `(L, T, C)` raveled; unused entries 0) and a
     success flag per log. A failed solve (wild parameters during the search) gives
-    residuals of 1e6, so the optimiser rejects the step; the final solution is checked
+    residuals of `FAILED_RESIDUAL` (1e6), so the optimiser rejects the step; the final solution is checked
     separately."""
     y0s = _initial_states(problem, y0_free)
     pred, ok = predict(problem, theta, y0s, horizon, step)
     r = (pred + _offsets(problem, offset_free)[:, None, :] - problem.measured) / sigma
-    r = jnp.where(ok[:, None, None], r, 1e6)
+    r = jnp.where(ok[:, None, None], r, FAILED_RESIDUAL)
     return jnp.where(_used(problem, horizon), r, 0.0).reshape(-1), ok
 
 
@@ -265,7 +269,7 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
         def f(flat_, u_):
             y0 = y0_known.at[idx].add(jnp.where(slot_used, u_ - y0_known[idx], 0.0))
             out, ok = _simulate_log(problem, theta_of(unravel(flat_)), t, tv, y0, horizon, step, False)
-            r = jnp.where(ok, (out + off - measured) / sigma, 1e6)
+            r = jnp.where(ok, (out + off - measured) / sigma, FAILED_RESIDUAL)
             r = jnp.where(used, r, 0.0).reshape(-1)
             return r, (r, ok)
 

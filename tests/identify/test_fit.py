@@ -31,6 +31,7 @@ import time
 
 import numpy as np
 import pytest
+from fresh_jacobian import assert_standard_errors_match, fit_module, fresh_covariance  # tests/ is on sys.path
 from scipy.integrate import quad
 from scipy.signal import find_peaks
 
@@ -147,6 +148,10 @@ def test_recovery_accuracy_and_ci(arm):
     for seed, factors in ((1, (1.2, 0.8, 1.2, 0.8)), (2, (0.8, 1.2, 0.8, 1.2)), (3, (1.2, 1.2, 0.8, 0.8))):
         result, seconds = arm.fit(seed, factors)
         print(describe(result, seconds, f"seed {seed}:"))
+        if seed == 1:
+            # the standard errors come from the Levenberg-Marquardt's last linearisation
+            # (`identify.fit._solve`); a Jacobian computed afresh at the optimum agrees
+            assert_standard_errors_match(result, fresh_covariance(result))
         assert result.converged, result.summary()
         for n, e in rel_errors(result).items():
             assert abs(e) <= BARS[n], f"seed {seed}: {n} off by {100 * e:+.3f}% (bar {100 * BARS[n]:.0f}%)"
@@ -553,14 +558,65 @@ def test_make_problem_rejects_bad_nuisances_naming_the_log(field, value, message
         identify.make_problem(chain, [identify.Parameter("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
 
 
-@pytest.mark.parametrize("value", [-1e-3, float("nan"), float("inf")])
-def test_fit_rejects_a_bad_first_damping(value):
+def _tiny_problem():
+    """A rigid pendulum's 11-sample log and its joint damping free: for argument checks."""
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(11) / 100.0
     log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7")
     params = [identify.Parameter("joint1.damping", 1e-3)]
     problem = identify.make_problem(chain, params, [log], {"theta1": 1e-3})
+    return problem, params
+
+
+@pytest.mark.parametrize("value", [-1e-3, float("nan"), float("inf")])
+def test_fit_rejects_a_bad_first_damping(value):
+    problem, params = _tiny_problem()
     with pytest.raises(ValueError, match="first_damping must be a finite number >= 0"):
         identify.fit(problem, params, first_damping=value)
     with pytest.raises(ValueError, match="first_damping must be a finite number >= 0"):
         identify.fit_independent(problem, params, first_damping=value)
+
+
+def test_dx_dz_is_the_derivative_of_the_bound_transform():
+    """`_dx_dz` (host-side, for the standard errors) against `jax.jacfwd` of `_x_from_z`,
+    for each kind of bound: both finite, lower only, upper only, none."""
+    import types
+
+    import jax
+    import jax.numpy as jnp
+
+    problem = types.SimpleNamespace(
+        lower=jnp.asarray([-1.0, 0.5, -np.inf, -np.inf]), upper=jnp.asarray([3.0, np.inf, 2.0, np.inf])
+    )
+    for z in (np.array([0.3, -1.2, 0.7, 5.0]), np.array([-30.0, 40.0, -40.0, -2.0])):
+        exact = np.diag(np.asarray(jax.jacfwd(lambda z_: fit_module._x_from_z(problem, z_))(jnp.asarray(z))))
+        np.testing.assert_allclose(fit_module._dx_dz(problem, z), exact, rtol=1e-12, atol=0.0)
+
+
+def test_standard_errors_fall_back_to_a_fresh_jacobian_when_the_last_solve_saw_part_of_the_log(arm):
+    """The last linearisation stands for the full Jacobian only when its horizon covers every
+    sample and no parameter is pressed against a bound; otherwise `_natural_blocks` declines
+    it. It reports a log whose simulation
+    failed at the optimum (its residuals all `FAILED_RESIDUAL`) instead of using it."""
+    params = [identify.Parameter(n, v, v * 1e-2, v * 1e2) for n, v in TRUTH.items()]
+    problem = identify.make_problem(arm.chain, params, [arm.log(1)], noise=arm.noise)
+    n = problem.t.shape[1] * len(problem.channels)
+    z = {"phys": np.zeros(len(params)), "y0": np.zeros(0), "offset": np.zeros(0)}
+    lin = (np.ones((1, n)), np.ones((1, n, len(params))), np.zeros((1, n, 0)))
+    full = float(problem.t[0, -1] - problem.t[0, 0])
+    assert fit_module._natural_blocks(problem, z, lin, full) is not None
+    assert fit_module._natural_blocks(problem, z, lin, 0.5 * full) is None
+    # a parameter pressed against a bound: d x / d z from the logistic has lost digits
+    near_bound = {**z, "phys": np.array([0.0, 16.0, 0.0, 0.0])}
+    assert fit_module._natural_blocks(problem, near_bound, lin, full) is None
+    failed = (np.full((1, n), fit_module.FAILED_RESIDUAL), *lin[1:])
+    with pytest.raises(RuntimeError, match="the simulation at the fitted parameters failed"):
+        fit_module._natural_blocks(problem, z, failed, full)
+
+
+@pytest.mark.parametrize("budget", [{"max_steps": 0}, {"early_max_steps": 0}, {"max_steps": 2.5}])
+def test_fit_rejects_an_iteration_budget_below_one(budget):
+    problem, params = _tiny_problem()
+    (name,) = budget
+    with pytest.raises(ValueError, match=f"fit: {name} expected a whole number of Levenberg-Marquardt steps >= 1"):
+        identify.fit(problem, params, **budget)
