@@ -32,6 +32,10 @@ class AbstractInput(eqx.Module):
         """Times (s) where the input is discontinuous, or None."""
         return None
 
+    def step_times(self):
+        """Times (s) an adaptive step must land on (not a discontinuity), or None."""
+        return None
+
 
 class ZeroTorque(AbstractInput):
     """No applied torque (free motion)."""
@@ -122,6 +126,27 @@ class SampledTorque(AbstractInput):
 
     def jump_times(self):
         return self.times if self.hold == "zoh" else None
+
+    def step_times(self):
+        """With `hold="linear"`: the first and last sample of every run of equal samples (a
+        stretch where the torque is constant), except the log's own ends; `inf` in the
+        other entries (no step lands there), so the array's length is the number of
+        samples and it may be traced. A chain at rest under a constant torque gives an
+        adaptive solver an error estimate of exactly zero, so its steps grow tenfold each
+        and step over an input that starts later: measured, a flexible link at rest for
+        4 s with a 0.4 s doublet after, `simulate` at rtol 1e-11 returned no motion at all
+        (7 steps). Landing on the ends of the constant stretch puts the change inside the
+        next step, whose error estimate sees it. A torque that changes at every sample
+        has no stretch: every entry is `inf` and no step is clipped."""
+        if self.hold != "linear":
+            return None
+        v, t = self.values, self.times
+        same = jnp.all(v[1:] == v[:-1], axis=1)  # the torque is constant on [t_k, t_k+1]
+        no = jnp.zeros(1, bool)
+        first = jnp.concatenate([same & ~jnp.concatenate([no, same[:-1]]), no])  # a run's first sample
+        last = jnp.concatenate([no, same & ~jnp.concatenate([same[1:], no])])  # its last sample
+        mark = (first | last).at[0].set(False).at[-1].set(False)
+        return jnp.where(mark, t, jnp.inf)
 
 
 class QuinticReference(eqx.Module):

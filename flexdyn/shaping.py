@@ -120,6 +120,12 @@ class ShapedTorque(AbstractInput):
             return None
         return jnp.sort(jnp.concatenate([jumps + ti for sh in self.shapers for ti in sh.times]))
 
+    def step_times(self):
+        steps = self.base.step_times()
+        if steps is None:
+            return None
+        return jnp.sort(jnp.concatenate([steps + ti for sh in self.shapers for ti in sh.times]))
+
 
 class ShapedReference(eqx.Module):
     """A reference (`position`, `velocity`, `acceleration` of t, e.g. `fd.QuinticReference`)

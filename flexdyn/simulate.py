@@ -85,11 +85,13 @@ def prepare(chain, y0, ts, torque, caller: str):
 def adaptive_controller(torque: AbstractInput, rtol: float, atol: float, dtmax: float | None = None):
     """diffrax's PID step-size controller (steps of at most `dtmax` s, if given), with the
     steps clipped onto the input's jumps (`torque.jump_times()`) so that no stage reads the
-    far side of a discontinuity."""
+    far side of a discontinuity, and onto its step times (`torque.step_times()`: e.g. where
+    a sampled torque's constant stretch ends, so that a chain at rest does not step over
+    the input that follows)."""
     controller = diffrax.PIDController(rtol=rtol, atol=atol, dtmax=dtmax)
-    jumps = torque.jump_times()
-    if jumps is not None:
-        controller = diffrax.ClipStepSizeController(controller, jump_ts=jumps)
+    jumps, steps = torque.jump_times(), torque.step_times()
+    if jumps is not None or steps is not None:
+        controller = diffrax.ClipStepSizeController(controller, step_ts=steps, jump_ts=jumps)
     return controller
 
 

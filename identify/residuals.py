@@ -34,6 +34,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 import flexdyn as fd
+from flexdyn.simulate import adaptive_controller as _adaptive_controller
 
 from . import channels as ch, measurement as meas
 
@@ -88,7 +89,8 @@ def _simulate_log(problem, theta, t, torque_v, y0, horizon, step, stats: bool):
     if step is not None:
         solver, controller, dt0 = diffrax.Tsit5(), diffrax.ConstantStepSize(), step
     elif problem.dt is None:
-        solver, controller, dt0 = diffrax.Tsit5(), diffrax.PIDController(rtol=problem.rtol, atol=problem.atol), None
+        # (steps clipped onto the torque's constant stretches' ends: `fd.SampledTorque.step_times`)
+        solver, controller, dt0 = diffrax.Tsit5(), _adaptive_controller(torque, problem.rtol, problem.atol), None
     else:
         solver, controller, dt0 = fd.RK4(), diffrax.ConstantStepSize(), problem.dt
     sol = diffrax.diffeqsolve(

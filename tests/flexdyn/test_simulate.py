@@ -251,6 +251,30 @@ def test_sampled_torque_linear_and_zoh():
     np.testing.assert_allclose(np.asarray(one(jnp.asarray(0.05), None)), [0.5])
 
 
+def test_sampled_torque_after_a_rest_is_not_stepped_over():
+    """A rigid link in the horizontal plane, at rest for 4 s, then a sampled doublet
+    (+0.05 N m for 0.2 s, then -0.05 N m). Oracle: the closed form of a free rotor,
+    `theta(T) = (1 / J) int_0^T (T - s) tau(s) ds` with `J = J_hub + m l^2 / 3` (exact for
+    the linearly interpolated samples: Simpson's rule on each sample interval). At rest the
+    adaptive error estimate is exactly zero and, without `SampledTorque.step_times`, the
+    steps grew past the doublet and the link never moved (also a flexible link: see
+    `step_times`)."""
+    length, mass, hub = 0.5, 0.2, 0.02
+    chain = fd.Chain([fd.RigidLink(length, mass)], joints=[fd.RigidJoint(damping=0.0)], hubs=[fd.Hub(inertia=hub)])
+    t = np.arange(0.0, 4.6, 4e-3)
+    tau = np.where((t >= 4.0) & (t < 4.2), 0.05, 0.0) - np.where((t >= 4.2) & (t < 4.4), 0.05, 0.0)
+    traj = fd.simulate(chain, fd.initial_state(chain, joint_angles=[0.0]), jnp.asarray(t), fd.SampledTorque(t, tau))
+    T = t[-1]
+    mid = 0.5 * (t[1:] + t[:-1])
+    g = lambda s, v: (T - s) * v  # noqa: E731
+    integral = np.sum(
+        np.diff(t) / 6 * (g(t[:-1], tau[:-1]) + 4 * g(mid, 0.5 * (tau[1:] + tau[:-1])) + g(t[1:], tau[1:]))
+    )
+    expected = integral / (hub + mass * length**2 / 3)
+    assert expected > 0.05  # it moves (0.0545 rad)
+    assert float(traj.Q[-1, 0]) == pytest.approx(expected, rel=1e-8)
+
+
 def test_sampled_torque_rejects_non_monotonic_times():
     with pytest.raises(ValueError, match=r"SampledTorque.times.*sample 2 "):
         fd.SampledTorque([0.0, 0.1, 0.1, 0.3], [0.0, 1.0, 2.0, 3.0])
