@@ -620,3 +620,18 @@ def test_fit_rejects_an_iteration_budget_below_one(budget):
     (name,) = budget
     with pytest.raises(ValueError, match=f"fit: {name} expected a whole number of Levenberg-Marquardt steps >= 1"):
         identify.fit(problem, params, **budget)
+
+
+def test_a_stage_step_is_at_most_the_torque_sample_interval():
+    """`aligned_step` caps a stage's constant step at the torque's sample interval: the mean
+    adaptive step of a log that rests before its input (0.10-0.33 s measured on a 4 ms log,
+    8-27x the stiffest mode's stability limit) must not become the grid; a shorter step
+    is shortened to divide the interval."""
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(101) * 4e-3
+    torque = np.where(t >= 0.3, 0.01, 0.0)[:, None]
+    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, torque=torque, name="rest_then_step")
+    params = [identify.Parameter("joint1.damping", 1e-3)]
+    problem = identify.make_problem(chain, params, [log], {"theta1": 1e-3})
+    assert float(fit_module.aligned_step(problem, 0.33)) == pytest.approx(4e-3, rel=1e-12)
+    assert float(fit_module.aligned_step(problem, 1.5e-3)) == pytest.approx(4e-3 / 3, rel=1e-12)
