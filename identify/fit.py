@@ -765,11 +765,6 @@ def _covariance_at(problem: Problem, x, z, sigma, step, lin=None, horizon=None) 
     without it) the Jacobian is computed afresh."""
     blocks = _natural_blocks(problem, z, lin, horizon) if lin is not None else None
     if blocks is None:
-        if not _blocked(problem):
-            r, J, ok = _jacobian_natural(problem, x, z["y0"], z["offset"], sigma, step)
-            if not bool(ok):
-                raise _SimulationFailed(_FAILED_AT_OPTIMUM)
-            return _dense_covariance(problem, r, J)
         blocks = jacobian_blocks_at(problem, x, z, sigma, step)
     if not _blocked(problem):
         r, S, U, slots, used = blocks

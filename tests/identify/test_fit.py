@@ -151,7 +151,13 @@ def test_recovery_accuracy_and_ci(arm):
         if seed == 1:
             # the standard errors come from the Levenberg-Marquardt's last linearisation
             # (`identify.fit._solve`); a Jacobian computed afresh at the optimum agrees
-            assert_standard_errors_match(result, fresh_covariance(result))
+            fresh = fresh_covariance(result)
+            assert_standard_errors_match(result, fresh)
+            # and the fallback without that linearisation (block Jacobian computed afresh)
+            x = fit_module._x_from_z(result.problem, result.z["phys"])
+            sigma = np.asarray([result.sigma[c] for c in result.problem.channels])
+            fallback = fit_module._covariance_at(result.problem, x, result.z, sigma, result.step)
+            np.testing.assert_allclose(fallback.std_errors, fresh.std_errors, rtol=1e-8)
         assert result.converged, result.summary()
         for n, e in rel_errors(result).items():
             assert abs(e) <= BARS[n], f"seed {seed}: {n} off by {100 * e:+.3f}% (bar {100 * BARS[n]:.0f}%)"
