@@ -71,8 +71,8 @@ def _parser() -> argparse.ArgumentParser:
         type=int,
         default=4,
         metavar="N",
-        help="horizon stages of the fit: the horizon doubles N-1 times up to the logs' length (default 4; 1 is "
-        "plain single shooting)",
+        help="horizon stages of the fit: the horizon (from each log's onset, where its input or motion starts) "
+        "doubles N-1 times up to the logs' length (default 4; 1 is plain single shooting)",
     )
     fit.add_argument("--quiet", action="store_true", help="print no progress, only the results")
     fit.add_argument(

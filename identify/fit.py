@@ -27,9 +27,13 @@ a stiffness puts the simulated oscillation out of phase after a few periods,
 and the loss has a local minimum per period slip. We therefore fit first on a
 short prefix of every log (a few oscillation periods), where the phase error is
 small, and grow the horizon geometrically to the full length, each stage
-starting from the previous optimum. The horizon is a traced argument (samples
-beyond it are masked and the solve stops at it), so all stages share one
-compiled program. `benchmarks/bench_fit_convergence.py` measures this against
+starting from the previous optimum. The horizon counts from each log's onset
+(`log_onset`: where the torque first rises from zero, or the arm moves before it;
+a log driven or released from its first sample has its onset there), so the first
+stages of a log that rests before its input see the start of the motion, not the
+rest; they simulate such a log from its onset, and the last stage from its first
+sample. The horizon is a traced argument (samples beyond it are masked and the solve
+stops at it), so all stages share one compiled program. `benchmarks/bench_fit_convergence.py` measures this against
 plain single shooting.
 
 **First damping.** optimistix's Levenberg-Marquardt starts at damping 1, an undamped
@@ -77,6 +81,7 @@ from .residuals import (  # noqa: F401  (re-exported: identify.predict, diagnose
     _initial_states,
     _measurement,
     _offsets,
+    _used,
     log_blocked,
     log_jacobian,
     predict,
@@ -158,6 +163,7 @@ class Problem(eqx.Module):
     torque_t: jax.Array  # (L, T)
     torque_v: jax.Array  # (L, T, n_joints)
     y0_known: jax.Array  # (L, 2n)
+    onset: jax.Array  # (L,) s, on each log's clock: where its input or motion starts (`log_onset`)
     names: tuple[str, ...] = eqx.field(static=True)
     log_scale: tuple[bool, ...] = eqx.field(static=True)
     channels: tuple[str, ...] = eqx.field(static=True)
@@ -276,6 +282,12 @@ def make_problem(
         else:
             rms = np.sqrt(np.mean(measured[:, :, j][valid & present[:, j : j + 1]] ** 2))
             sigma.append(0.01 * rms if rms > 0 else 1.0)
+    onset = []
+    for l, log in enumerate(logs):
+        k = len(log.t)
+        onset.append(
+            log_onset(t[l, :k], torque_v[l, :k], measured[l, :k][:, present[l]], np.asarray(sigma)[present[l]])
+        )
     return Problem(
         chain=chain,
         measurement=measurement,
@@ -289,6 +301,7 @@ def make_problem(
         torque_t=jnp.asarray(t),
         torque_v=jnp.asarray(torque_v),
         y0_known=jnp.asarray(y0_known),
+        onset=jnp.asarray(onset, dtype=float),
         names=tuple(names),
         log_scale=tuple(log_scale),
         channels=tuple(channels),
@@ -300,6 +313,49 @@ def make_problem(
         dt=dt,
         max_steps=max_steps,
     )
+
+
+#: `log_onset`: a log moves once a channel leaves its resting value by more than this many
+#: noise standard deviations (a false trigger on Gaussian noise: 6e-7 per sample).
+ONSET_SIGMAS = 5.0
+#: `log_onset`: a channel's resting value is the median of at most this many first samples
+ONSET_REST_SAMPLES = 16
+
+
+def log_onset(t, torque, measured, sigma) -> float:
+    """The time (s, on the log's clock) from which a log that starts at rest is driven: the
+    earlier of
+    - the input's start: the sample before the first one with a non-zero torque (the torque
+      is linear between samples, so it starts to rise there);
+    - the motion's start, where it comes first (the arm nudged before the input): the
+      sample before the first one at which a recorded channel is more than `ONSET_SIGMAS`
+      noise standard deviations from its resting value, the median of its first
+      `ONSET_REST_SAMPLES` samples (of those before the input, if fewer).
+
+    The first sample's time for every other log: one with no input (a release, a free
+    decay: it moves from its initial state), and one whose torque is not zero at its first
+    sample (driven from its start, or holding the arm against gravity: the first sample is
+    the safe choice).
+
+    `t` `(T,)`, `torque` `(T, n_joints)`, `measured` `(T, C)`, `sigma` `(C,)` (SI).
+
+    A fit's horizons count from here (`fit`, `identify.residuals.predict`): a rig that sits
+    still for seconds before the experimenter starts the input is common, and a growing
+    horizon counted from the log's start would fit its first stages to the rest alone
+    (measured: a 4-parameter flexible arm at rest for 3 s before two 0.05 N m doublets,
+    fitted from guesses 20 % off, ended with joint damping -98 % and payload +20 %)."""
+    t, torque = np.asarray(t, float), np.asarray(torque, float).reshape(len(t), -1)
+    measured, sigma = np.asarray(measured, float).reshape(len(t), -1), np.asarray(sigma, float)
+    driven = np.flatnonzero(np.any(torque != 0.0, axis=1))
+    if driven.size == 0 or driven[0] == 0:
+        return float(t[0])
+    k = k_in = int(driven[0])
+    if measured.shape[1]:
+        rest = np.median(measured[: min(k_in, ONSET_REST_SAMPLES)], axis=0)
+        moved = np.flatnonzero(np.any(np.abs(measured[:k_in] - rest) > ONSET_SIGMAS * sigma, axis=1))
+        if moved.size:
+            k = int(moved[0])
+    return float(t[max(k - 1, 0)])
 
 
 # ---------------------------------------------------------------------------
@@ -460,7 +516,10 @@ def _grid_step(problem: Problem, z, horizon, safety: float):
     adaptive solver (the problem's rtol/atol) takes at the current parameters."""
     theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
     _, ok, n = predict(problem, theta, _initial_states(problem, z["y0"]), horizon, stats=True)
-    span = jnp.minimum(problem.t[:, -1] - problem.t[:, 0], horizon)
+    # The span from the onset: before it the chain rests and the adaptive solver's steps
+    # grow tenfold each (a handful of steps for seconds of rest), so the mean step over
+    # the whole solve would be the rest's, not the motion's.
+    span = jnp.minimum(problem.t[:, -1], problem.onset + horizon) - problem.onset
     return safety * jnp.min(span / jnp.maximum(n, 1)), jnp.all(ok)
 
 
@@ -574,6 +633,13 @@ class FitResult:
             "cost": self.cost,
             "n_residuals": self.n_residuals,
             "stages": self.stages,
+            # where each log's horizons count from (`log_onset`), s after its first sample
+            "onset_s": {
+                name: float(o - t0)
+                for name, o, t0 in zip(
+                    self.problem.log_names, np.asarray(self.problem.onset), np.asarray(self.problem.t[:, 0])
+                )
+            },
             "converged": self.converged,
             "at_bounds": self.at_bounds,
             "identifiability_warnings": self.identifiability,
@@ -583,7 +649,9 @@ class FitResult:
 
 
 def _default_horizons(problem: Problem, n_stages: int) -> list[float]:
-    duration = float(np.max(np.asarray(problem.t[:, -1] - problem.t[:, 0])))
+    """`n_stages` horizons (s from each log's onset, `log_onset`) doubling up to the
+    longest log's length after its onset."""
+    duration = float(np.max(np.asarray(problem.t[:, -1] - problem.onset)))
     if n_stages <= 1:
         return [duration]
     first = duration / 2 ** (n_stages - 1)
@@ -613,8 +681,12 @@ def fit(
 
     **Arguments:**
     - `problem`, `parameters`: from `make_problem` (the same parameters, for the guesses).
-    - `horizons`: horizon (s, from each log's start) of each stage; default `n_stages`
-      horizons doubling up to the full length (`n_stages=1`: plain single shooting).
+    - `horizons`: horizon (s, from each log's onset: where its input or motion starts,
+      `log_onset`; the log's start for a log that moves from its first sample) of each
+      stage; default `n_stages` horizons doubling up to the full length (`n_stages=1`:
+      plain single shooting). A stage that ends before a log does simulates that log
+      from its onset, from its initial state (the rest before it skipped:
+      `identify.residuals._simulate_log`); the last stage simulates every log whole.
     - `estimate_noise`: re-estimate the noise level of these channels (True: all) from
       the residuals after the first pass and refit once with the new weights.
     - `max_steps`, `rtol`, `atol`: Levenberg-Marquardt settings per stage (termination on
@@ -665,6 +737,12 @@ def fit(
     }
     sigma = problem.sigma
     horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
+    late = np.asarray(problem.onset - problem.t[:, 0])
+    if len(horizons) > 1 and np.any(late > 0):
+        say(
+            "  horizons count from each log's onset (its input or motion starts): "
+            + ", ".join(f"{name} at {d:.3g} s" for name, d in zip(problem.log_names, late) if d > 0)
+        )
     stages = []
     if estimate_noise is True:
         estimate_noise = problem.channels
@@ -805,9 +883,8 @@ def _natural_blocks(problem: Problem, z, lin, horizon):
     if a log's simulation failed there (its residuals are the failure value of
     `identify.residuals.residuals`)."""
     mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
-    t = np.asarray(problem.t)
-    if horizon is not None and not np.all((t <= t[:, :1] + float(horizon))[:, :, None] | ~mask):
-        return None  # the horizon's samples (`identify.residuals._used`) are not all of them
+    if horizon is not None and not np.array_equal(np.asarray(_used(problem, float(horizon))), mask):
+        return None  # the horizon's samples are not all of them
     zp = np.asarray(z["phys"])
     two_sided = np.isfinite(np.asarray(problem.lower)) & np.isfinite(np.asarray(problem.upper))
     if np.any(two_sided & (np.abs(zp) > _SIGMOID_Z_MAX)):
@@ -1002,7 +1079,7 @@ def _split(problem: Problem) -> tuple[Problem, list[Problem]]:
     per_log_off = [tuple(c for l, c in problem.offset_free if l == k) for k in range(L)]
     if len(set(per_log_y0)) > 1 or len(set(per_log_off)) > 1:
         raise ValueError("fit_independent: every log must estimate the same initial-state entries and offsets")
-    fields = ("t", "valid", "measured", "present", "torque_t", "torque_v", "y0_known")
+    fields = ("t", "valid", "measured", "present", "torque_t", "torque_v", "y0_known", "onset")
     singles = []
     for k in range(L):
         singles.append(
@@ -1066,6 +1143,12 @@ def fit_independent(
     (stacked, z), _ = fbatch.shard_batch((stacked, z), mesh)
     sigma = problem.sigma
     horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
+    late = np.asarray(problem.onset - problem.t[:, 0])
+    if len(horizons) > 1 and np.any(late > 0):
+        say(
+            "  horizons count from each log's onset (its input or motion starts): "
+            + ", ".join(f"{name} at {d:.3g} s" for name, d in zip(problem.log_names, late) if d > 0)
+        )
     grid = eqx.filter_vmap(_grid_step, in_axes=(0, 0, None, None))
     solve = eqx.filter_vmap(_solve, in_axes=(0, 0, None, None, 0, None, None, None, None, None))
     stages = [[] for _ in range(L)]
@@ -1144,15 +1227,18 @@ def _result_name(result) -> str:
 
 def _dominant_frequency(problem: Problem, channel: str, f_lo: float, f_hi: float) -> float | None:
     """Frequency (Hz) of the largest periodogram peak of a recorded channel in
-    [f_lo, f_hi], summed over the logs that record it (Hann window, mean removed)."""
+    [f_lo, f_hi], summed over the logs that record it (Hann window, mean removed), each
+    log from its onset (`log_onset`: a Hann window over seconds of rest before the input
+    would weigh the motion at the log's end down to nothing)."""
     j = problem.channels.index(channel)
     total, freqs = None, None
     valid, present = np.asarray(problem.valid), np.asarray(problem.present)
     for l in range(valid.shape[0]):
         if not present[l, j]:
             continue
-        t = np.asarray(problem.t[l])[valid[l]]
-        y = np.asarray(problem.measured[l, :, j])[valid[l]]
+        keep = valid[l] & (np.asarray(problem.t[l]) >= float(problem.onset[l]))
+        t = np.asarray(problem.t[l])[keep]
+        y = np.asarray(problem.measured[l, :, j])[keep]
         if len(t) < 16:
             continue
         dt = float(np.median(np.diff(t)))

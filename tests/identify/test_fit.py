@@ -29,6 +29,7 @@ import dataclasses
 import math
 import time
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from fresh_jacobian import assert_standard_errors_match, fit_module, fresh_covariance  # tests/ is on sys.path
@@ -202,6 +203,106 @@ def test_one_start_growing_horizon_needs_the_scaled_first_damping(arm):
     print(describe(classical, seconds, "optimistix's first damping:"))
     assert not within_bars(classical)
     assert classical.value["joint1.damping"] < 0.05 * TRUTH["joint1.damping"]
+
+
+# ---------------------------------------------------------------------------
+# CI-sized: a log that rests before its input (horizons from the onset)
+# ---------------------------------------------------------------------------
+
+REST_S = 3.0
+
+
+def test_a_log_that_rests_before_its_input_is_fitted_from_its_onset(arm):
+    """The rig sits still for 3 s before the doublets start (the scenario's input, delayed):
+    the growing horizon counts from the log's onset (`identify.fit.log_onset`), so its short
+    first stages see the start of the motion, not 0.5-2 s of rest, and the frequency
+    initialisation reads the spectrum of the motion. The default fit from guesses 20 % off
+    recovers the four parameters within the issue's bars, in one pass of the growing horizon.
+
+    Counted from the log's start (the code before `log_onset`), this seed's fit ended with
+    joint damping -98.6 %, payload +20 % and EI +7 % (cost 4,672 for 2,100 residuals), after
+    the frequency initialisation had put EI's guess at 0.45 of the truth (the spectrum's Hann
+    window over the rest weighed the motion down: a 2.7 Hz peak for a 4.2 Hz mode). Over
+    seeds 1-8 (guesses alternating +-20 %): 7 of 8 fits within the bars before, 8 of 8 now,
+    the other seven at the same optimum."""
+    # (simulated, not the scenario's log delayed: the torque is linear between samples, so
+    # a log that starts at 0.05 N m is not the same input as one that rises to it from 0 in
+    # the sample before; that 4 ms ramp alone, fitted as the delayed log, costs ~3,000
+    # instead of ~2,100 and biases the damping by +30 %)
+    t = np.arange(0.0, REST_S + T_END, DT)
+    torque = doublets(t - REST_S)
+    torque[t < REST_S] = 0.0
+    log = identify.simulate_log(
+        arm.chain, t, torque=torque, channels=CHANNELS, noise=arm.noise, rng=np.random.default_rng(5)
+    )
+    factors = (1.2, 0.8, 1.2, 0.8)
+    params = [
+        identify.Parameter(name, value * f, value * 1e-2, value * 1e2)
+        for (name, value), f in zip(TRUTH.items(), factors)
+    ]
+    problem = identify.make_problem(arm.chain, params, [log], noise=arm.noise)
+    # the torque's first change is at REST_S; it is linear between samples, so it starts
+    # to change one sample before
+    assert float(problem.onset[0]) == pytest.approx(REST_S - DT, abs=1e-9)
+    # An early stage simulates the log from its onset (the rest skipped): the arm rests at
+    # its equilibrium until the input, so by time invariance the outputs up to the stage's
+    # horizon are the whole log's solve's (both adaptive, rtol 1e-10)
+    y0s = fit_module._initial_states(problem, jnp.zeros(0))
+    truth = jnp.asarray(list(TRUTH.values()))
+    early, ok_early = fit_module.predict(problem, truth, y0s, jnp.asarray(0.3))
+    whole, ok_whole = fit_module.predict(problem, truth, y0s)
+    within = np.asarray(problem.t[0]) <= REST_S - DT + 0.3
+    assert bool(ok_early[0]) and bool(ok_whole[0]) and within.sum() >= round(REST_S / DT) + 70  # 0.28 s of motion
+    np.testing.assert_allclose(np.asarray(early[0])[within], np.asarray(whole[0])[within], rtol=0, atol=1e-9)
+    x0 = fit_module._frequency_initialise(problem, fit_module._x_from_theta(problem, [p.guess for p in params]), print)
+    assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.15)
+    start = time.perf_counter()
+    result = identify.fit(problem, params, estimate_noise=False)
+    print(describe(result, time.perf_counter() - start, "rest then doublets:"))
+    assert result.converged, result.summary()
+    # the first growing-horizon pass lands (the multi-start stage and four stages; no
+    # restart from another start)
+    assert len(result.stages) == 5, result.stages
+    for n, e in rel_errors(result).items():
+        assert abs(e) <= BARS[n], f"{n} off by {100 * e:+.3f}% (bar {100 * BARS[n]:.0f}%)\n{result.summary()}"
+
+
+def _rest_then(t, k_input, rng, sigma=1e-3):
+    """Two channels of white noise (`sigma`) at rest, a torque that steps at sample `k_input`."""
+    measured = rng.normal(0.0, sigma, (len(t), 2))
+    torque = np.zeros((len(t), 1))
+    torque[k_input:] = 0.05
+    return measured, torque, np.array([sigma, sigma])
+
+
+def test_log_onset_is_where_the_input_or_the_motion_starts():
+    """`log_onset` on logs built with a known onset: the sample before the torque first
+    rises (noise at rest, 600 samples at 5 standard deviations' threshold, does not trigger
+    it), the sample before the motion where the log moves before its input; the first
+    sample for a log driven from its first sample, for one released at its start (no input),
+    and for one in which nothing happens."""
+    rng = np.random.default_rng(5)
+    t = 0.25 + np.arange(1000) * 4e-3
+    measured, torque, sigma = _rest_then(t, 600, rng)
+    measured[:, 1] += np.where(t >= t[600], 0.02 * np.sin(2 * np.pi * 4.0 * (t - t[600])), 0.0)
+    assert fit_module.log_onset(t, torque, measured, sigma) == t[599]
+    # the arm is nudged at sample 300, before the input: its motion starts the log
+    measured[300:, 0] += 0.01
+    assert fit_module.log_onset(t, torque, measured, sigma) == t[299]
+    # driven from the first sample on (a doublet: the torque changes later)
+    torque = np.where(t < t[500], 0.05, -0.05)[:, None]
+    assert fit_module.log_onset(t, torque, measured, sigma) == t[0]
+    # the torque rises from zero after the first sample
+    torque[0] = 0.0
+    assert fit_module.log_onset(t, torque, measured, sigma) == t[0]
+    # released at the first sample, no input: a decaying oscillation from t[0]
+    released = 0.3 * np.exp(-t) * np.cos(2 * np.pi * 2.0 * (t - t[0]))
+    assert fit_module.log_onset(t, np.zeros((len(t), 1)), released[:, None], sigma[:1]) == t[0]
+    # no input and no motion: nothing to skip
+    measured, _, sigma = _rest_then(t, 0, rng)
+    assert fit_module.log_onset(t, np.zeros((len(t), 1)), measured, sigma) == t[0]
+    # no channel recorded: the input alone
+    assert fit_module.log_onset(t, _rest_then(t, 600, rng)[1], np.zeros((len(t), 0)), np.zeros(0)) == t[599]
 
 
 # ---------------------------------------------------------------------------
