@@ -40,6 +40,7 @@ from .fit import (
     fit as fit,
     fit_independent as fit_independent,
     fitted_outputs as fitted_outputs,
+    log_onset as log_onset,
     make_problem as make_problem,
     predict as predict,
 )

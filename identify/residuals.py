@@ -84,7 +84,7 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     The solve stops at `onset + horizon`. It starts at `t[0]`, except when it stops before
     the log's end (an early stage of a growing horizon, `identify.fit`): then it starts at
     the onset, from `y0`, and the samples before it get `y0`'s outputs. Up to its onset a
-    log shows the rig at rest (`identify.fit.log_onset`), so a model at rest there is what
+    log shows the rig at rest (`identify.log_onset`), so a model at rest there is what
     the full solve would give with the right parameters; the early stages only have to
     land the fit in the right basin, and integrating seconds of rest at the motion's step
     in each of them made a fit several times slower (measured: a 4-parameter flexible arm

@@ -214,7 +214,7 @@ REST_S = 3.0
 
 def test_a_log_that_rests_before_its_input_is_fitted_from_its_onset(arm):
     """The rig sits still for 3 s before the doublets start (the scenario's input, delayed):
-    the growing horizon counts from the log's onset (`identify.fit.log_onset`), so its short
+    the growing horizon counts from the log's onset (`identify.log_onset`), so its short
     first stages see the start of the motion, not 0.5-2 s of rest, and the frequency
     initialisation reads the spectrum of the motion. The default fit from guesses 20 % off
     recovers the four parameters within the issue's bars, in one pass of the growing horizon.
@@ -285,7 +285,7 @@ def test_log_onset_is_where_the_input_or_the_motion_starts():
     t = 0.25 + np.arange(1000) * 4e-3
     measured, torque, sigma = _rest_then(t, 600, rng)
     measured[:, 1] += np.where(t >= t[600], 0.02 * np.sin(2 * np.pi * 4.0 * (t - t[600])), 0.0)
-    assert fit_module.log_onset(t, torque, measured, sigma) == t[599]
+    assert identify.log_onset(t, torque, measured, sigma) == t[599]
     # the arm is nudged at sample 300, before the input: its motion starts the log
     measured[300:, 0] += 0.01
     assert fit_module.log_onset(t, torque, measured, sigma) == t[299]
