@@ -288,21 +288,21 @@ def test_log_onset_is_where_the_input_or_the_motion_starts():
     assert identify.log_onset(t, torque, measured, sigma) == t[599]
     # the arm is nudged at sample 300, before the input: its motion starts the log
     measured[300:, 0] += 0.01
-    assert fit_module.log_onset(t, torque, measured, sigma) == t[299]
+    assert identify.log_onset(t, torque, measured, sigma) == t[299]
     # driven from the first sample on (a doublet: the torque changes later)
     torque = np.where(t < t[500], 0.05, -0.05)[:, None]
-    assert fit_module.log_onset(t, torque, measured, sigma) == t[0]
+    assert identify.log_onset(t, torque, measured, sigma) == t[0]
     # the torque rises from zero after the first sample
     torque[0] = 0.0
-    assert fit_module.log_onset(t, torque, measured, sigma) == t[0]
+    assert identify.log_onset(t, torque, measured, sigma) == t[0]
     # released at the first sample, no input: a decaying oscillation from t[0]
     released = 0.3 * np.exp(-t) * np.cos(2 * np.pi * 2.0 * (t - t[0]))
-    assert fit_module.log_onset(t, np.zeros((len(t), 1)), released[:, None], sigma[:1]) == t[0]
+    assert identify.log_onset(t, np.zeros((len(t), 1)), released[:, None], sigma[:1]) == t[0]
     # no input and no motion: nothing to skip
     measured, _, sigma = _rest_then(t, 0, rng)
-    assert fit_module.log_onset(t, np.zeros((len(t), 1)), measured, sigma) == t[0]
+    assert identify.log_onset(t, np.zeros((len(t), 1)), measured, sigma) == t[0]
     # no channel recorded: the input alone
-    assert fit_module.log_onset(t, _rest_then(t, 600, rng)[1], np.zeros((len(t), 0)), np.zeros(0)) == t[599]
+    assert identify.log_onset(t, _rest_then(t, 600, rng)[1], np.zeros((len(t), 0)), np.zeros(0)) == t[599]
 
 
 # ---------------------------------------------------------------------------
