@@ -1,0 +1,141 @@
+"""The frequency-domain initialisation of flexural stiffness (`identify.frequency_init`).
+
+Oracles: closed forms of the windowed spectrum of a sine and of white noise; the known
+EI of synthetic logs (the 4-parameter flexible arm of `test_fit`, flexural mode 4.2 Hz
+at the truth) under inputs whose spectra are not the free vibration's, where picking the
+largest peak (what `identify.fit` did before) is shown to be far off first.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+from fresh_jacobian import fit_module  # tests/ is on sys.path
+from test_fit import BARS, CHANNELS, DT, TRUTH, Arm, rel_errors  # tests/identify/ is on sys.path
+
+import identify
+from identify import frequency_init
+
+
+def test_amplitude_spectrum_of_a_sine_and_of_white_noise():
+    """A sine of amplitude A on a frequency bin peaks there at A sum(w) / 2 (Hann window w);
+    white noise of standard deviation s has mean power s^2 sum(w^2) in every bin, the
+    noise floor `spectral_similarity` adds to the model's spectrum."""
+    dt, n = 1e-3, 4000
+    t = np.arange(n) * dt
+    f0, amplitude = 25.0, 0.3  # 100 cycles in the n samples: on a bin
+    f, a, white = frequency_init.amplitude_spectrum(t, 0.7 + amplitude * np.sin(2 * np.pi * f0 * t))
+    w = np.hanning(n)
+    assert white == pytest.approx(float(w @ w), rel=1e-12)
+    k = int(np.argmax(a))
+    assert f[k] == pytest.approx(f0, abs=1e-9)
+    assert a[k] == pytest.approx(amplitude * w.sum() / 2, rel=1e-3)
+    sigma = 0.02
+    f, a, white = frequency_init.amplitude_spectrum(t, np.random.default_rng(0).normal(0.0, sigma, n))
+    band = (f > 5.0) & (f < 450.0)
+    assert np.mean(a[band] ** 2) == pytest.approx(sigma**2 * white, rel=0.05)
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return Arm()
+
+
+def _problem(arm, t, torque, factor_ei, seed=1):
+    """The arm's log under `torque` and the problem from guesses EI x `factor_ei`, the other
+    three parameters 20 % off (bounds 1e-2 to 1e2 times the truth)."""
+    log = identify.simulate_log(
+        arm.chain, t, torque=torque, channels=CHANNELS, noise=arm.noise, rng=np.random.default_rng(seed)
+    )
+    factors = (factor_ei, 0.8, 1.2, 0.8)
+    params = [identify.Parameter(n, v * f, v * 1e-2, v * 1e2) for (n, v), f in zip(TRUTH.items(), factors)]
+    return identify.make_problem(arm.chain, params, [log], noise=arm.noise), params
+
+
+def _peak_picking(problem, params) -> float:
+    """The EI guess scaled by (f_peak / f_model)^2: f_peak the largest peak of the tip's
+    measured spectrum from the onset in the band, f_model the model's flexural frequency
+    at the guess (the estimate `identify.fit` used before matched spectra)."""
+    chain = fit_module._chain(problem, np.asarray([p.guess for p in params]))
+    f_model = frequency_init.flexural_frequency(chain, 0)
+    t, y = np.asarray(problem.t[0]), np.asarray(problem.measured[0, :, problem.channels.index("tip1")])
+    keep = t >= float(problem.onset[0])
+    f, a, _ = frequency_init.amplitude_spectrum(t[keep], y[keep])
+    band = (f >= frequency_init.BAND[0] * f_model) & (f <= frequency_init.BAND[1] * f_model)
+    f_peak = f[band][np.argmax(a[band])]
+    return params[0].guess * (f_peak / f_model) ** 2
+
+
+def _square(t):
+    return np.where(t < 1.5, 0.05 * np.sign(np.sin(2 * np.pi * 1.0 * t)), 0.0)
+
+
+INPUTS = {
+    # a drive below the flexural mode: the response's line is the drive's
+    "sine 1.5 Hz": (2.0, lambda t: 0.05 * np.sin(2 * np.pi * 1.5 * t)),
+    # above it
+    "sine 7 Hz": (2.0, lambda t: 0.05 * np.sin(2 * np.pi * 7.0 * t)),
+    # harmonics at 1, 3, 5 Hz, then 0.5 s free
+    "square 1 Hz": (2.0, _square),
+    # a doublet and a record that ends 0.2 s after it (the free vibration is half a period)
+    "short record": (0.6, lambda t: np.where(t < 0.2, 0.05, np.where(t < 0.4, -0.05, 0.0))),
+}
+
+
+@pytest.mark.parametrize(
+    "name, factor_ei",
+    [("sine 1.5 Hz", 0.5), ("sine 1.5 Hz", 2.0), ("sine 7 Hz", 2.0), ("square 1 Hz", 0.5), ("short record", 2.0)],
+)
+def test_matched_spectra_find_the_stiffness_where_peak_picking_fails(arm, name, factor_ei):
+    """From a guess of EI x0.5 or x2 (flexural frequency x0.71 or x1.41), the initialisation
+    puts EI within 10 % of the truth (the factor grid's step is 41 % in EI before the
+    parabolic refinement), where the largest peak of the measured spectrum, taken as the
+    flexural frequency, puts it more than 40 % off (measured: 0.14, 3.0, 0.05 and 0.52 of
+    the truth)."""
+    duration, drive = INPUTS[name]
+    t = np.arange(0.0, duration, DT)
+    problem, params = _problem(arm, t, drive(t)[:, None], factor_ei)
+    assert abs(math.log(_peak_picking(problem, params) / TRUTH["link1.EI"])) > math.log(1.4)
+    said = []
+    start = time.perf_counter()
+    x0 = fit_module._frequency_initialise(
+        problem, fit_module._x_from_theta(problem, [p.guess for p in params]), said.append
+    )
+    print(name, f"x{factor_ei}:", said, f"{time.perf_counter() - start:.1f} s")
+    assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.10), said
+    # the other parameters are not touched
+    np.testing.assert_array_equal(x0[1:], fit_module._x_from_theta(problem, [p.guess for p in params])[1:])
+
+
+def test_a_log_without_flexural_motion_keeps_the_guess(arm):
+    """The arm at rest, no input: the tip channel is white noise and every tried EI
+    simulates no deflection, so every factor's expected spectrum is the noise floor alone
+    and no factor beats the guess: the guess is kept, and the progress message says why."""
+    t = np.arange(0.0, 1.0, DT)
+    problem, params = _problem(arm, t, np.zeros((len(t), 1)), 2.0)
+    said = []
+    x = fit_module._x_from_theta(problem, [p.guess for p in params])
+    x0 = fit_module._frequency_initialise(problem, x, said.append)
+    np.testing.assert_array_equal(x0, x)
+    assert len(said) == 1 and "guess kept" in said[0], said
+
+
+@pytest.mark.slow  # ~60 s on 2 cores
+def test_the_default_fit_of_a_sine_driven_log_converges(arm):
+    """A 3 s log driven by a 1.5 Hz sine, guesses EI x2 and the others 20 % off: the default
+    fit recovers the four parameters within the issue's bars. With the peak-picking
+    initialisation (EI's guess put at 0.14 of the truth, out of every multi-start point's
+    reach) this fit ended with damping on its bound (-99 %), payload +46 %, EI +15 %, after
+    restarts from the next-best starts (103 s); without any initialisation it converged.
+    (The 2 s version of the log was fitted either way.)"""
+    t = np.arange(0.0, 3.0, DT)
+    problem, params = _problem(arm, t, (0.05 * np.sin(2 * np.pi * 1.5 * t))[:, None], 2.0)
+    start = time.perf_counter()
+    result = identify.fit(problem, params, estimate_noise=False)
+    print(result.summary(), f"\n{time.perf_counter() - start:.1f} s")
+    assert result.converged, result.summary()
+    for n, e in rel_errors(result).items():
+        assert abs(e) <= BARS[n], f"{n} off by {100 * e:+.3f}% (bar {100 * BARS[n]:.0f}%)\n{result.summary()}"
