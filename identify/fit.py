@@ -1121,12 +1121,15 @@ def fit_independent(
     atol: float = 1e-10,
     grid_safety: float = 0.5,
     first_damping: float = 1e-3,
+    frequency_init: bool = True,
     progress=None,
 ) -> list[FitResult]:
     """Independent fits of every log of `problem` (each log its own parameter values), all
     in one `vmap`ped call per stage: the batch runs in lockstep, each log with its own
     integration step. The noise levels are those of `problem` (not re-estimated); the
     first stage starts with the damping `first_damping` (as in `fit` with one start).
+    `frequency_init`: each log's free `link<i>.EI` guess from its own flexural spectrum,
+    as in `fit` (`identify.frequency_init`), all logs' simulations batched.
     Returns one `FitResult` per log."""
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps)
@@ -1160,6 +1163,8 @@ def fit_independent(
     _say_onsets(problem, horizons, say)
     grid = eqx.filter_vmap(_grid_step, in_axes=(0, 0, None, None))
     solve = eqx.filter_vmap(_solve, in_axes=(0, 0, None, None, 0, None, None, None, None, None))
+    if frequency_init:
+        z = _frequency_initialise_independent(problem, singles, stacked, z, x0, grid, grid_safety, say)
     stages = [[] for _ in range(L)]
     for k_stage, h in enumerate(horizons):
         step, ok, _ = grid(stacked, z, jnp.asarray(h), grid_safety)
@@ -1234,29 +1239,72 @@ def _result_name(result) -> str:
     return "failed"
 
 
+def _stiffness_limits(problem: Problem):
+    """SI bounds of the parameters, 0.1 % of each finite range inside (what a frequency
+    initialisation may try), or None when no `link<i>.EI` is free."""
+    if not any(re.fullmatch(r"link\d+\.EI", n) for n in problem.names):
+        return None
+    lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
+    span = hi - lo
+    margin = np.where(np.isfinite(span), 1e-3 * span, 0.0)
+    return tuple(np.asarray(_theta_from_x(problem, jnp.asarray(b)), float) for b in (lo + margin, hi - margin))
+
+
+def _whole(problem: Problem):
+    """A horizon beyond the end of every log (a stage horizon that simulates whole logs)."""
+    return jnp.asarray(float(jnp.max(problem.t[:, -1] - problem.onset)) + 1.0)
+
+
+def _z_rows(problem: Problem, thetas) -> np.ndarray:
+    return np.stack([_z_from_x(problem, _x_from_theta(problem, theta)) for theta in thetas])
+
+
 def _frequency_initialise(problem: Problem, x0: np.ndarray, say, safety: float = 0.5) -> np.ndarray:
     """`x0` (natural coordinates) with the free `link<i>.EI` guesses rescaled so that the
     model's simulated flexural channel matches the measured one's amplitude spectrum
     (`identify.frequency_init`). The simulations are `_grid_step`'s (`safety`: the fit's
     `grid_safety`, a static argument), the program the fit's stages use anyway."""
     x0 = np.asarray(x0, float)
-    if not any(re.fullmatch(r"link\d+\.EI", n) for n in problem.names):
+    limits = _stiffness_limits(problem)
+    if limits is None:
         return x0
-    lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
-    span = hi - lo
-    margin = np.where(np.isfinite(span), 1e-3 * span, 0.0)
-    limits = tuple(np.asarray(_theta_from_x(problem, jnp.asarray(b)), float) for b in (lo + margin, hi - margin))
     y0 = jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float)
     offset = jnp.zeros(len(problem.offset_free))
-    whole = jnp.asarray(float(jnp.max(problem.t[:, -1] - problem.onset)) + 1.0)
+    whole = _whole(problem)
 
-    def simulate(theta):
-        z = {"phys": jnp.asarray(_z_from_x(problem, _x_from_theta(problem, theta))), "y0": y0, "offset": offset}
+    def simulate(thetas):
+        z = {"phys": jnp.asarray(_z_rows(problem, thetas)[0]), "y0": y0, "offset": offset}
         _, ok, outputs = _grid_step(problem, z, whole, safety)
-        return np.asarray(outputs), np.asarray(ok)
+        return np.asarray(outputs)[None], np.asarray(ok)[None]
 
-    theta = initialise_stiffness(problem, np.asarray(_theta_from_x(problem, jnp.asarray(x0))), limits, simulate, say)
-    return _x_from_theta(problem, theta)
+    theta = np.asarray(_theta_from_x(problem, jnp.asarray(x0)))
+    return _x_from_theta(problem, initialise_stiffness([problem], theta[None], limits, simulate, say)[0])
+
+
+def _frequency_initialise_independent(problem: Problem, singles, stacked, z, x0, grid, safety: float, say):
+    """`fit_independent`'s batch `z` with each log's own frequency initialisation of the
+    free `link<i>.EI` (`_frequency_initialise`, every log from the common guess `x0`), the
+    simulations of all logs in one call of the stages' vmapped `_grid_step` (`grid`) per
+    EI factor tried. `z` is padded to the batch's device multiple and sharded
+    (`flexdyn.batch`); the padding repeats the last log."""
+    limits = _stiffness_limits(problem)
+    if limits is None:
+        return z
+    n_logs, n_batch = len(singles), z["phys"].shape[0]
+    whole = _whole(problem)
+
+    def batch_phys(thetas):
+        rows = _z_rows(problem, thetas)
+        rows = np.concatenate([rows, np.repeat(rows[-1:], n_batch - n_logs, axis=0)])
+        return jax.device_put(jnp.asarray(rows, dtype=z["phys"].dtype), z["phys"].sharding)
+
+    def simulate(thetas):
+        _, ok, outputs = grid(stacked, {**z, "phys": batch_phys(thetas)}, whole, safety)
+        return np.asarray(outputs)[:n_logs], np.asarray(ok)[:n_logs]
+
+    theta = np.asarray(_theta_from_x(problem, jnp.asarray(x0)))
+    thetas = initialise_stiffness(singles, np.tile(theta, (n_logs, 1)), limits, simulate, say)
+    return {**z, "phys": batch_phys(thetas)}
 
 
 def _starts(problem: Problem, x0: np.ndarray, n_starts: int, spread: float) -> np.ndarray:

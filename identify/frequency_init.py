@@ -35,6 +35,9 @@ doublet at 0.52, and the default fit from the sine-driven logs ended in a wrong 
 converged. Matched spectra put EI at the truth within the factor grid's resolution in
 every one of those cases.
 
+`identify.fit_independent` does this for every log on its own (each log its own EI), the
+simulations of all logs batched: one vmapped call per factor.
+
 The spectrum cannot always tell: when the best similarity is less than `MIN_GAIN` above
 the guess's (a record with no flexural motion, a drive whose response hardly depends on
 EI), the guess is kept. The links are initialised one at a time, each with the others'
@@ -50,7 +53,7 @@ say that the link hardly deflects, as the fit itself would.
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import jax.numpy as jnp
 import numpy as np
@@ -139,69 +142,123 @@ def flexural_frequency(chain: fd.Chain, link: int) -> float | None:
 
 
 def initialise_stiffness(
-    problem,
-    theta: np.ndarray,
+    problems: Sequence,
+    thetas: np.ndarray,
     limits: tuple[np.ndarray, np.ndarray],
     simulate: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
     say: Callable[[str], None],
 ) -> np.ndarray:
-    """`theta` (SI, `problem.names` order) with every free `link<i>.EI` that has a recorded
-    flexural channel replaced by the matched-spectra estimate (module docstring), one link
-    after another, each with the others' current values.
+    """`thetas` `(B, P)` (SI, `names` order) with every free `link<i>.EI` that has a
+    recorded flexural channel replaced by the matched-spectra estimate (module docstring),
+    one link after another, each with the others' current values.
 
-    `limits`: SI bounds `(lower, upper)` of each parameter that a tried value must lie in;
-    `simulate(theta)`: outputs `(L, T, C)` of every whole log and a success flag per log."""
-    theta = np.asarray(theta, float).copy()
+    `problems`: `B` problems with the same parameters, channels and rig structure, each with
+    its own parameter values `thetas[b]`: one fit's problem (`identify.fit`, `B = 1`), or
+    the one-log problems of independent fits (`identify.fit_independent`), whose
+    simulations run as one batch. `limits`: SI bounds `(lower, upper)` `(P,)` that a tried
+    value must lie in; `simulate(thetas)`: outputs `(B, L, T, C)` of every whole log of
+    every problem, and whether each problem's simulations succeeded `(B,)`."""
+    thetas = np.array(thetas, float).reshape(len(problems), -1)
     lower, upper = (np.asarray(b, float) for b in limits)
-    for k, name in enumerate(problem.names):
+    first = problems[0]
+    n_items, n_factors = len(problems), len(FACTORS)
+    unit = int(np.flatnonzero(FACTORS == 1.0)[0])
+    for k, name in enumerate(first.names):
         m = re.fullmatch(r"link(\d+)\.EI", name)
         if m is None:
             continue
         i = int(m[1]) - 1
-        channel = next((c for c in (f"tip{i + 1}", f"curvature{i + 1}") if c in problem.channels), None)
-        if channel is None or not problem.chain.layout.modal[i]:
+        channel = next((c for c in (f"tip{i + 1}", f"curvature{i + 1}") if c in first.channels), None)
+        if channel is None or not first.chain.layout.modal[i]:
             continue
-        f_model = flexural_frequency(_chain(problem, jnp.asarray(theta)), i)
-        if f_model is None:
-            continue
-        band = (BAND[0] * f_model, BAND[1] * f_model)
-        j = problem.channels.index(channel)
+        j = first.channels.index(channel)
+        f_model = _flexural_frequencies(problems, thetas, i)
+        bands = [None if f is None else (BAND[0] * f, BAND[1] * f) for f in f_model]
+        guess = thetas[:, k].copy()
 
-        def score(factor, k=k, j=j, band=band):
-            trial = theta.copy()
-            trial[k] *= factor
+        def scores_at(factors, k=k, j=j, bands=bands, guess=guess):
+            """Similarity of every problem with EI at `guess * factors` `(B,)` (-inf where
+            outside the limits, where its simulation failed or there is no band)."""
+            value = guess * factors
+            inside = (value >= lower[k]) & (value <= upper[k])
+            out = np.full(n_items, -np.inf)
+            if not inside.any():
+                return out
+            trial = thetas.copy()
+            trial[:, k] = np.clip(value, lower[k], upper[k])
             outputs, ok = simulate(trial)
-            return spectral_similarity(problem, j, outputs, band) if np.all(ok) else -np.inf
+            for b in range(n_items):
+                if inside[b] and ok[b] and bands[b] is not None:
+                    out[b] = spectral_similarity(problems[b], j, outputs[b], bands[b])
+            return out
 
-        guess = float(theta[k])
-        tried = [f for f in FACTORS if lower[k] <= guess * f <= upper[k]]
-        scores = [score(f) for f in tried]
-        best = int(np.argmax(scores))
-        factor, similarity = float(tried[best]), float(scores[best])
-        if 0 < best < len(tried) - 1 and all(np.isfinite(scores[best - 1 : best + 2])):
-            # the vertex of the parabola through the best factor and its neighbours (log EI)
-            s_m, s_0, s_p = scores[best - 1 : best + 2]
-            curvature = s_m - 2.0 * s_0 + s_p
-            if curvature < 0:
-                h = np.log(tried[best + 1] / tried[best])
-                vertex = float(tried[best] * np.exp(0.5 * h * (s_m - s_p) / curvature))
-                s_v = score(vertex)
-                if s_v > similarity:
-                    factor, similarity = vertex, s_v
-        at_guess = scores[tried.index(1.0)] if 1.0 in tried else -np.inf
-        where = f"{channel}'s spectrum ({band[0]:.3g}-{band[1]:.3g} Hz)"
-        if factor == 1.0:
-            say(f"  frequency initialisation: {where} matches the model best at the guess of {name} ({similarity:.3f})")
-            continue
-        if similarity < at_guess + MIN_GAIN:
+        scores = np.stack([scores_at(np.full(n_items, f)) for f in FACTORS], axis=1)  # (B, F)
+        best = np.argmax(scores, axis=1)
+        factor = FACTORS[best].astype(float)
+        similarity = scores[np.arange(n_items), best]
+        # the vertex of the parabola through the best factor and its neighbours (log EI)
+        vertex = factor.copy()
+        refine = np.zeros(n_items, bool)
+        h = np.log(FACTORS[1] / FACTORS[0])
+        for b in range(n_items):
+            if 0 < best[b] < n_factors - 1:
+                s_m, s_0, s_p = scores[b, best[b] - 1 : best[b] + 2]
+                curvature = s_m - 2.0 * s_0 + s_p
+                if np.all(np.isfinite([s_m, s_0, s_p])) and curvature < 0:
+                    vertex[b] = factor[b] * np.exp(0.5 * h * (s_m - s_p) / curvature)
+                    refine[b] = True
+        if refine.any():
+            at_vertex = scores_at(vertex)
+            better = refine & (at_vertex > similarity)
+            factor = np.where(better, vertex, factor)
+            similarity = np.where(better, at_vertex, similarity)
+        at_guess = scores[:, unit]
+        moved = np.isfinite(similarity) & (factor != 1.0) & (similarity >= at_guess + MIN_GAIN)
+        thetas[:, k] = np.where(moved, guess * factor, guess)
+        if n_items == 1:
+            _say_one(say, name, channel, bands[0], factor[0], similarity[0], at_guess[0], moved[0])
+        else:
+            moved_by = factor[moved]
             say(
-                f"  frequency initialisation: {where} does not single out {name} (similarity {similarity:.3f} at "
-                f"x{factor:.3g}, {at_guess:.3f} at the guess): guess kept"
+                f"  frequency initialisation of {name} from {channel}'s spectrum, {n_items} logs: "
+                + (
+                    f"moved in {int(moved.sum())} (x{moved_by.min():.3g} to x{moved_by.max():.3g}, "
+                    f"median x{np.median(moved_by):.3g}), "
+                    if moved.any()
+                    else ""
+                )
+                + f"guess kept in {int((~moved).sum())}"
             )
-            continue
-        theta[k] = guess * factor
+    return thetas
+
+
+def _flexural_frequencies(problems, thetas, link: int) -> list[float | None]:
+    """`flexural_frequency` of each problem's rig at its parameters (one modal analysis per
+    distinct parameter vector: at the start, every independent fit has the same guess)."""
+    seen = {}
+    out = []
+    for problem, theta in zip(problems, thetas):
+        key = theta.tobytes()
+        if key not in seen:
+            seen[key] = flexural_frequency(_chain(problem, jnp.asarray(theta)), link)
+        out.append(seen[key])
+    return out
+
+
+def _say_one(say, name, channel, band, factor, similarity, at_guess, moved):
+    if band is None or not np.isfinite(similarity):
+        say(f"  frequency initialisation: no spectrum of {channel} to compare (failed simulations): {name} kept")
+        return
+    where = f"{channel}'s spectrum ({band[0]:.3g}-{band[1]:.3g} Hz)"
+    if factor == 1.0:
+        say(f"  frequency initialisation: {where} matches the model best at the guess of {name} ({similarity:.3f})")
+    elif not moved:
+        say(
+            f"  frequency initialisation: {where} does not single out {name} (similarity {similarity:.3f} at "
+            f"x{factor:.3g}, {at_guess:.3f} at the guess): guess kept"
+        )
+    else:
         say(
             f"  frequency initialisation: {where} matches the model's best at {name} x{factor:.3g} "
             f"(similarity {similarity:.3f}; {at_guess:.3f} at the guess)"
         )
-    return theta
