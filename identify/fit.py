@@ -1250,9 +1250,12 @@ def _stiffness_limits(problem: Problem):
     return tuple(np.asarray(_theta_from_x(problem, jnp.asarray(b)), float) for b in (lo + margin, hi - margin))
 
 
-def _whole(problem: Problem):
-    """A horizon beyond the end of every log (a stage horizon that simulates whole logs)."""
-    return jnp.asarray(float(jnp.max(problem.t[:, -1] - problem.onset)) + 1.0)
+def _span_horizon(problem: Problem, span: float):
+    """The stage horizon (from each log's onset) that simulates `span` s of every log, or
+    whole logs (a horizon beyond every log's end) when `span` reaches past them all; an
+    array, so that it is traced like the stages' horizons (one program)."""
+    whole = float(jnp.max(problem.t[:, -1] - problem.onset))
+    return jnp.asarray(span if span < whole else whole + 1.0, dtype=float)
 
 
 def _z_rows(problem: Problem, thetas) -> np.ndarray:
@@ -1270,11 +1273,10 @@ def _frequency_initialise(problem: Problem, x0: np.ndarray, say, safety: float =
         return x0
     y0 = jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float)
     offset = jnp.zeros(len(problem.offset_free))
-    whole = _whole(problem)
 
-    def simulate(thetas):
+    def simulate(thetas, span):
         z = {"phys": jnp.asarray(_z_rows(problem, thetas)[0]), "y0": y0, "offset": offset}
-        _, ok, outputs = _grid_step(problem, z, whole, safety)
+        _, ok, outputs = _grid_step(problem, z, _span_horizon(problem, span), safety)
         return np.asarray(outputs)[None], np.asarray(ok)[None]
 
     theta = np.asarray(_theta_from_x(problem, jnp.asarray(x0)))
@@ -1291,15 +1293,14 @@ def _frequency_initialise_independent(problem: Problem, singles, stacked, z, x0,
     if limits is None:
         return z
     n_logs, n_batch = len(singles), z["phys"].shape[0]
-    whole = _whole(problem)
 
     def batch_phys(thetas):
         rows = _z_rows(problem, thetas)
         rows = np.concatenate([rows, np.repeat(rows[-1:], n_batch - n_logs, axis=0)])
         return jax.device_put(jnp.asarray(rows, dtype=z["phys"].dtype), z["phys"].sharding)
 
-    def simulate(thetas):
-        _, ok, outputs = grid(stacked, {**z, "phys": batch_phys(thetas)}, whole, safety)
+    def simulate(thetas, span):
+        _, ok, outputs = grid(stacked, {**z, "phys": batch_phys(thetas)}, _span_horizon(problem, span), safety)
         return np.asarray(outputs)[:n_logs], np.asarray(ok)[:n_logs]
 
     theta = np.asarray(_theta_from_x(problem, jnp.asarray(x0)))

@@ -22,7 +22,9 @@ analysis about the resting pose), the inner products summed over the logs. A par
 through the best factor and its neighbours (in log EI) refines it with one more
 simulation. Both spectra see the same input, window and record length, so whatever the
 input puts into the spectrum (a driving sine's line, a square wave's harmonics, the
-leakage of a short record) is in both.
+leakage of a short record) is in both. At most `PERIODS` (60) flexural periods of the
+model at the guess are compared from each log's onset, and simulated: a long log costs
+no more than one of that length.
 
 Picking the largest peak of the measured spectrum and scaling EI by the squared ratio of
 its frequency to the model's natural frequency (what `identify.fit` did before) assumed
@@ -72,6 +74,9 @@ BAND = (0.25, 4.0)
 MIN_GAIN = 1e-3
 #: zero padding of the FFT (a finer frequency grid)
 PAD = 4
+#: the spectra compare at most this many flexural periods of the model at the guess from
+#: each log's onset (the simulations stop there): a long log costs no more than a short one
+PERIODS = 60.0
 
 
 def amplitude_spectrum(t, y) -> tuple[np.ndarray, np.ndarray, float]:
@@ -88,12 +93,12 @@ def amplitude_spectrum(t, y) -> tuple[np.ndarray, np.ndarray, float]:
     return np.fft.rfftfreq(n, dt), np.abs(np.fft.rfft((y - y.mean()) * w, n)), float(w @ w)
 
 
-def spectral_similarity(problem, j: int, predicted, band: tuple[float, float]) -> float:
+def spectral_similarity(problem, j: int, predicted, band: tuple[float, float], span: float = np.inf) -> float:
     """Cosine similarity of the measured amplitude spectrum of channel index `j` and the
     one expected from `predicted` `(L, T, C)` plus the channel's white noise
     (`problem.sigma[j]`: `sqrt(|FFT(w y_sim)|^2 + sigma^2 sum(w^2))`), in `band` (Hz),
-    each log from its onset, the inner products summed over the logs that record the
-    channel (0 when either has no power there). Without the noise term, a channel whose
+    each log from its onset up to `span` s after it, the inner products summed over the
+    logs that record the channel (0 when either has no power there). Without the noise term, a channel whose
     noise hides its flexural motion matched a model whose spectrum is as flat as the
     noise's: the stiffest link tried."""
     dot = meas_sq = sim_sq = 0.0
@@ -102,7 +107,7 @@ def spectral_similarity(problem, j: int, predicted, band: tuple[float, float]) -
         if not present[l, j]:
             continue
         t = np.asarray(problem.t[l])
-        keep = valid[l] & (t >= float(problem.onset[l]))
+        keep = valid[l] & (t >= float(problem.onset[l])) & (t <= float(problem.onset[l]) + span)
         if keep.sum() < 16:
             continue
         f, a_meas, _ = amplitude_spectrum(t[keep], np.asarray(problem.measured[l, :, j])[keep])
@@ -145,7 +150,7 @@ def initialise_stiffness(
     problems: Sequence,
     thetas: np.ndarray,
     limits: tuple[np.ndarray, np.ndarray],
-    simulate: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    simulate: Callable[[np.ndarray, float], tuple[np.ndarray, np.ndarray]],
     say: Callable[[str], None],
 ) -> np.ndarray:
     """`thetas` `(B, P)` (SI, `names` order) with every free `link<i>.EI` that has a
@@ -156,8 +161,9 @@ def initialise_stiffness(
     its own parameter values `thetas[b]`: one fit's problem (`identify.fit`, `B = 1`), or
     the one-log problems of independent fits (`identify.fit_independent`), whose
     simulations run as one batch. `limits`: SI bounds `(lower, upper)` `(P,)` that a tried
-    value must lie in; `simulate(thetas)`: outputs `(B, L, T, C)` of every whole log of
-    every problem, and whether each problem's simulations succeeded `(B,)`."""
+    value must lie in; `simulate(thetas, span)`: outputs `(B, L, T, C)` of every log of
+    every problem up to `span` s (`PERIODS` flexural periods of the model at the guess)
+    after its onset, and whether each problem's simulations succeeded `(B,)`."""
     thetas = np.array(thetas, float).reshape(len(problems), -1)
     lower, upper = (np.asarray(b, float) for b in limits)
     first = problems[0]
@@ -174,9 +180,11 @@ def initialise_stiffness(
         j = first.channels.index(channel)
         f_model = _flexural_frequencies(problems, thetas, i)
         bands = [None if f is None else (BAND[0] * f, BAND[1] * f) for f in f_model]
+        known = [f for f in f_model if f is not None]
+        span = PERIODS / min(known) if known else np.inf
         guess = thetas[:, k].copy()
 
-        def scores_at(factors, k=k, j=j, bands=bands, guess=guess):
+        def scores_at(factors, k=k, j=j, bands=bands, guess=guess, span=span):
             """Similarity of every problem with EI at `guess * factors` `(B,)` (-inf where
             outside the limits, where its simulation failed or there is no band)."""
             value = guess * factors
@@ -186,10 +194,10 @@ def initialise_stiffness(
                 return out
             trial = thetas.copy()
             trial[:, k] = np.clip(value, lower[k], upper[k])
-            outputs, ok = simulate(trial)
+            outputs, ok = simulate(trial, span)
             for b in range(n_items):
                 if inside[b] and ok[b] and bands[b] is not None:
-                    out[b] = spectral_similarity(problems[b], j, outputs[b], bands[b])
+                    out[b] = spectral_similarity(problems[b], j, outputs[b], bands[b], span)
             return out
 
         scores = np.stack([scores_at(np.full(n_items, f)) for f in FACTORS], axis=1)  # (B, F)
