@@ -72,6 +72,11 @@ FACTORS = 2.0 ** (np.arange(-8, 9) / 2)
 BAND = (0.25, 4.0)
 #: the best factor replaces the guess only if its similarity exceeds the guess's by this
 MIN_GAIN = 1e-3
+#: below this best similarity the progress line warns that no EI matches the spectrum well
+#: (measured: >= 0.99 on every synthetic log the model generated; 0.75-0.86 for a tip
+#: channel of noise only; 0.79 on the spinning-link example, whose model lacks geometric
+#: stiffening)
+POOR_MATCH = 0.9
 #: zero padding of the FFT (a finer frequency grid)
 PAD = 4
 #: the spectra compare at most this many flexural periods of the model at the guess from
@@ -237,6 +242,13 @@ def initialise_stiffness(
                 )
                 + f"guess kept in {int((~moved).sum())}"
             )
+            poor = np.isfinite(similarity) & (similarity < POOR_MATCH)
+            if poor.any():
+                say(
+                    f"  frequency initialisation: WARNING: in {int(poor.sum())} log(s) no {name} tried makes the "
+                    f"model's {channel} spectrum match the log's well (best similarity {similarity[poor].min():.3f} "
+                    "at worst): little flexural motion recorded, or the model misses what shapes it"
+                )
     return thetas
 
 
@@ -258,6 +270,12 @@ def _say_one(say, name, channel, band, factor, similarity, at_guess, moved):
         say(f"  frequency initialisation: no spectrum of {channel} to compare (failed simulations): {name} kept")
         return
     where = f"{channel}'s spectrum ({band[0]:.3g}-{band[1]:.3g} Hz)"
+    if similarity < POOR_MATCH:
+        say(
+            f"  frequency initialisation: WARNING: no {name} tried makes the model match {where} well "
+            f"(best similarity {similarity:.3f}): the channel may record little flexural motion "
+            "(noise only? units?), or the model misses what shapes it"
+        )
     if factor == 1.0:
         say(f"  frequency initialisation: {where} matches the model best at the guess of {name} ({similarity:.3f})")
     elif not moved:

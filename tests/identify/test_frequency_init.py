@@ -225,3 +225,24 @@ def test_a_long_log_is_compared_over_its_first_flexural_periods(arm, monkeypatch
     assert len(spans) in (17, 18) and all(s == pytest.approx(8.0 / f_model, rel=1e-12) for s in spans), spans
     assert 8.0 / f_model < 0.5 * t[-1]
     assert theta[0, 0] == pytest.approx(TRUTH["link1.EI"], rel=0.10), said
+
+
+def test_a_tip_channel_of_noise_only_is_flagged_as_a_poor_match(arm):
+    """The doublet log with its tip channel replaced by white noise at the channel's noise
+    level (a strain gauge that was not connected): no EI makes the model's spectrum match
+    (a noise spectrum is flat), and the progress line warns so; on the intact log it does
+    not (similarity >= 0.99)."""
+    said = {}
+    for kind in ("intact", "noise only"):
+        log = arm.log(1)
+        if kind == "noise only":
+            log.outputs["tip1"] = np.random.default_rng(7).normal(0.0, arm.noise["tip1"], len(arm.t))
+        factors = (2.0, 0.8, 1.2, 0.8)
+        params = [identify.Parameter(n, v * f, v * 1e-2, v * 1e2) for (n, v), f in zip(TRUTH.items(), factors)]
+        problem = identify.make_problem(arm.chain, params, [log], noise=arm.noise)
+        said[kind] = []
+        x = fit_module._x_from_theta(problem, [p.guess for p in params])
+        fit_module._frequency_initialise(problem, x, said[kind].append)
+    print(said)
+    assert not any("WARNING" in m for m in said["intact"]), said
+    assert any("WARNING" in m and "no link1.EI tried" in m for m in said["noise only"]), said
