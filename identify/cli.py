@@ -74,6 +74,12 @@ def _parser() -> argparse.ArgumentParser:
         help="horizon stages of the fit: the horizon (from each log's onset, where its input or motion starts) "
         "doubles N-1 times up to the logs' length (default 4; 1 is plain single shooting)",
     )
+    fit.add_argument(
+        "--no-frequency-init",
+        action="store_true",
+        help="keep the guesses of the links' EI as given (default: each free link<i>.EI with a recorded tip or "
+        "curvature channel starts where the model's simulated spectrum best matches the log's)",
+    )
     fit.add_argument("--quiet", action="store_true", help="print no progress, only the results")
     fit.add_argument(
         "--force",
@@ -394,7 +400,7 @@ def _fit_command(args) -> int:
         last[0] = now
 
     try:
-        result = fit_experiment(exp, n_stages=args.stages, progress=progress)
+        result = fit_experiment(exp, n_stages=args.stages, frequency_init=not args.no_frequency_init, progress=progress)
     except (RuntimeError, ValueError) as e:
         print(f"identify fit: the fit failed: {e}", file=sys.stderr, flush=True)
         return 1

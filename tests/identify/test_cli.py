@@ -191,3 +191,23 @@ def test_help_and_usage_errors(capsys):
     assert main([]) == 2
     assert main(["fit", "x.toml", "--stages", "0"]) == 2
     assert "--stages" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flag, expected", [([], True), (["--no-frequency-init"], False)])
+def test_frequency_init_flag_reaches_the_fit(tmp_path, monkeypatch, capsys, flag, expected):
+    """`--no-frequency-init` keeps the EI guesses as given: the fit is called with
+    `frequency_init=False` (True without the flag). The fit is replaced by a stand-in that
+    records its options and fails, which the command reports as exit 1."""
+    import identify.run
+
+    exp = _copy_example(tmp_path / "example")
+    seen = {}
+
+    def stand_in(experiment, **options):
+        seen.update(options)
+        raise RuntimeError("stand-in fit")
+
+    monkeypatch.setattr(identify.run, "fit_experiment", stand_in)
+    assert main(["fit", str(exp), "--out", str(tmp_path / "out"), "--quiet", *flag]) == 1
+    assert seen["frequency_init"] is expected
+    assert "stand-in fit" in capsys.readouterr().err
