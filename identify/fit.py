@@ -59,7 +59,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 import time
 from collections.abc import Callable, Sequence
 
@@ -75,7 +74,7 @@ from . import channels as ch, covariance, measurement as meas
 from .block_lm import BlockLevenbergMarquardt, Layout, read_blocks
 from .channels import state_names  # noqa: F401  (re-exported)
 from .covariance import Covariance
-from .frequency_init import initialise_stiffness
+from .frequency_init import STIFFNESS, initialise_stiffness
 from .measurement import Measurement
 from .residuals import (  # noqa: F401  (re-exported: identify.predict, diagnose)
     FAILED_RESIDUAL,
@@ -1242,7 +1241,7 @@ def _result_name(result) -> str:
 def _stiffness_limits(problem: Problem):
     """SI bounds of the parameters, 0.1 % of each finite range inside (what a frequency
     initialisation may try), or None when no `link<i>.EI` is free."""
-    if not any(re.fullmatch(r"link\d+\.EI", n) for n in problem.names):
+    if not any(STIFFNESS.fullmatch(n) for n in problem.names):
         return None
     lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
     span = hi - lo

@@ -84,6 +84,10 @@ PAD = 4
 PERIODS = 60.0
 
 
+#: a free parameter this module initialises: link i's flexural stiffness
+STIFFNESS = re.compile(r"link(\d+)\.EI")
+
+
 def amplitude_spectrum(t, y) -> tuple[np.ndarray, np.ndarray, float]:
     """Frequencies (Hz) and amplitude spectrum `|FFT(w * (y - mean))|` of samples `y` at
     times `t` (s), interpolated onto a uniform grid at the median interval (gaps and
@@ -175,7 +179,7 @@ def initialise_stiffness(
     n_items, n_factors = len(problems), len(FACTORS)
     unit = int(np.flatnonzero(FACTORS == 1.0)[0])
     for k, name in enumerate(first.names):
-        m = re.fullmatch(r"link(\d+)\.EI", name)
+        m = STIFFNESS.fullmatch(name)
         if m is None:
             continue
         i = int(m[1]) - 1
