@@ -66,7 +66,7 @@ from scipy import stats
 
 import flexdyn as fd
 
-from . import catalogue as cat, evidence as ev, measurement as meas
+from . import catalogue as cat, evidence as ev, measurement as meas, noise_floor as nf
 from .fit import (
     Z95,
     FitResult,
@@ -413,6 +413,13 @@ class Diagnosis:
         return [c.name for c in self.causes]
 
     @property
+    def left_unexplained(self) -> list[str]:
+        """The channels whose held-out residual under the extended model is above
+        `identify.noise_floor.POOR_FIT` times the held-out data's model-free noise floor."""
+        floor = self.held_out.get("noise_floor", {})
+        return [c for c, rms in self.held_out["extended"].items() if c in floor and rms > nf.POOR_FIT * floor[c]]
+
+    @property
     def excess_explained_text(self) -> str:
         """`fraction_of_excess_explained` as text ("n/a ..." when there is no excess)."""
         if self.fraction_of_excess_explained is None:
@@ -440,11 +447,21 @@ class Diagnosis:
             if check["flagged"]:
                 lines.append(f"model check: {check['message']}")
         lines.append("")
-        lines.append("held-out RMS per channel (baseline -> extended, gain):")
+        floor = self.held_out.get("noise_floor", {})
+        lines.append(
+            "held-out RMS per channel (baseline -> extended, gain; the data's model-free noise floor, "
+            "identify.noise_floor):"
+        )
         for c in self.held_out["baseline"]:
             lines.append(
                 f"  {c}: {self.held_out['baseline'][c]:.4g} -> {self.held_out['extended'][c]:.4g} "
-                f"({self.held_out['gain'][c]:.2f}x)"
+                f"({self.held_out['gain'][c]:.2f}x)" + (f"; floor {floor[c]:.4g}" if c in floor else "")
+            )
+        for c in self.left_unexplained:
+            ratio = self.held_out["extended"][c] / floor[c]
+            lines.append(
+                f"  {c}: the {'extended' if self.causes else 'baseline'} model's held-out residual is still "
+                f"{ratio:.3g} times the noise floor: an effect is left unexplained (or the noise is not white)"
             )
         lines.append(
             f"total dBIC {self.delta_bic_total:.1f}; fraction of the held-out residual explained "
@@ -560,7 +577,8 @@ def diagnose_logs(
         chain, parameters, fit_logs, noise, rtol=rtol, atol=1e-2 * rtol, measurement=measurement
     )
     estimate = [c for c in base_problem.channels if noise.get(c) is None]
-    options = dict(fit_options or {})
+    # the baseline misses an effect on purpose: no restarts for its poor fit (`fit`)
+    options = {"restart_poor_fit": False, **(fit_options or {})}
     base = fit(base_problem, parameters, estimate_noise=estimate or False, progress=progress, **options)
     sigma = np.asarray([base.sigma[c] for c in base_problem.channels])
     sigma_j = jnp.asarray(sigma)
@@ -1160,7 +1178,7 @@ def diagnose_logs(
         evidence=evidence,
         rounds=rounds,
         causes=causes,
-        held_out=_held_out_summary(rms_base, rms_ext, ho_cost0, ho_cost1),
+        held_out=_held_out_summary(rms_base, rms_ext, ho_cost0, ho_cost1, _floor_per_channel(ho_problem)),
         delta_bic_total=0.0,
         fraction_explained=0.0,
         fraction_of_excess_explained=None,
@@ -1230,12 +1248,26 @@ def _promising(drops: dict, cost: float, n: int, bic_threshold: float) -> set:
     }
 
 
-def _held_out_summary(rms_base: dict, rms_ext: dict, cost_base: float, cost_ext: float) -> dict:
+def _held_out_summary(rms_base: dict, rms_ext: dict, cost_base: float, cost_ext: float, floor: dict) -> dict:
+    """`floor`: each channel's model-free noise floor on the held-out logs (`_floor_per_channel`),
+    what the best model could reach."""
     return {
         "baseline": rms_base,
         "extended": rms_ext,
         "gain": {c: rms_base[c] / rms_ext[c] if rms_ext[c] > 0 else float("inf") for c in rms_base},
         "gain_total": math.sqrt(cost_base / cost_ext) if cost_ext > 0 else float("inf"),
+        "noise_floor": floor,
+    }
+
+
+def _floor_per_channel(problem: Problem) -> dict:
+    """Per channel, the model-free noise floor of the problem's logs (SI; `identify.noise_floor`,
+    the sample-weighted RMS over the logs)."""
+    floor, count = nf.channel_floors(problem.t, problem.measured, problem.valid, problem.present)
+    return {
+        c: float(np.sqrt(np.sum(count[:, j] * floor[:, j] ** 2) / count[:, j].sum()))
+        for j, c in enumerate(problem.channels)
+        if count[:, j].sum() > 0
     }
 
 
@@ -1293,6 +1325,7 @@ def _stacked(outer: Diagnosis, inner: Diagnosis) -> Diagnosis:
             inner.held_out["extended"],
             costs["held_out"]["baseline"],
             costs["held_out"]["extended"],
+            outer.held_out["noise_floor"],
         ),
         extended_chain=inner.extended_chain,
         extended_measurement=inner.extended_measurement,
@@ -1410,6 +1443,7 @@ def _structural_score(
             start_spread=3.0,
             estimate_noise=False,
             frequency_init=False,
+            restart_poor_fit=False,
             max_steps=60,
         )
         fitted = fd.with_parameters(struct_chain, {n: v for n, v in res.value.items()})

@@ -201,12 +201,27 @@ def markdown(diag, title: str = "") -> str:
     lines.append("")
     lines.append("## Gain on held-out data")
     lines.append("")
-    lines.append("| channel | baseline RMS | extended RMS | gain |")
-    lines.append("| --- | ---: | ---: | ---: |")
+    floor = diag.held_out.get("noise_floor", {})
+    lines.append("| channel | baseline RMS | extended RMS | gain | noise floor |")
+    lines.append("| --- | ---: | ---: | ---: | ---: |")
     for c in diag.held_out["baseline"]:
         lines.append(
             f"| {c} | {diag.held_out['baseline'][c]:.4g} | {diag.held_out['extended'][c]:.4g} "
-            f"| {diag.held_out['gain'][c]:.2f}x |"
+            f"| {diag.held_out['gain'][c]:.2f}x | {floor[c]:.4g} |"
+            if c in floor
+            else f"| {c} | {diag.held_out['baseline'][c]:.4g} | {diag.held_out['extended'][c]:.4g} "
+            f"| {diag.held_out['gain'][c]:.2f}x | |"
+        )
+    lines.append("")
+    lines.append(
+        "The noise floor is estimated from the held-out samples alone, without any model "
+        "(`identify.noise_floor`): a model that explains the data reaches it."
+    )
+    for c in diag.left_unexplained:
+        lines.append(
+            f"The extended model's held-out residual of {c} is still "
+            f"{diag.held_out['extended'][c] / floor[c]:.3g} times its noise floor: an effect is left "
+            "unexplained, or the noise is not white."
         )
     lines.append("")
     lines.append(

@@ -43,6 +43,14 @@ guess it overshoots and rejects step after step. A solve from a single guess sta
 stage and the stages continuing from an optimum keep optimistix's start (measured in
 `fit`'s docstring).
 
+**Goodness of fit.** An optimum from which Levenberg-Marquardt cannot move is not
+necessarily the right one, and the cost cannot tell (the noise levels that weight it are
+re-estimated from the residuals). Every result compares each channel's residual RMS with a
+noise floor estimated from the measured samples alone (`identify.noise_floor`: about 1 in
+the right basin of a model that matches the rig), flags the channels above
+`noise_floor.POOR_FIT` (`FitResult.poor_fit`), and `fit` restarts the growing horizon from
+its next-best starts when a channel is flagged (`restart_poor_fit`).
+
 **Uncertainty.** `Cov = s^2 (J^T J)^+` with `J` the weighted residual Jacobian
 at the optimum and `s^2 = RSS / (N - P)` the residual variance (so the error
 bars are honest even when the noise levels given were not). 95 % intervals are
@@ -70,7 +78,7 @@ import optimistix as optx
 
 import flexdyn as fd
 
-from . import channels as ch, covariance, measurement as meas
+from . import channels as ch, covariance, measurement as meas, noise_floor as nf
 from .block_lm import BlockLevenbergMarquardt, Layout, read_blocks
 from .channels import state_names  # noqa: F401  (re-exported)
 from .covariance import Covariance
@@ -577,6 +585,9 @@ class FitResult:
     problem: Problem = dataclasses.field(repr=False)
     z: dict = dataclasses.field(repr=False)
     step: object = dataclasses.field(repr=False, default=None)
+    # channel -> {'residual_rms', 'noise_floor', 'ratio', 'poor'} (`identify.noise_floor`):
+    # does the fitted model explain the data down to a noise floor estimated without it?
+    fit_quality: dict = dataclasses.field(default_factory=dict)
 
     @property
     def value(self) -> dict:
@@ -591,6 +602,12 @@ class FitResult:
     def measurement(self) -> Measurement:
         """The problem's measurement model with the fitted values of its parameters."""
         return meas.with_parameters(self.problem.measurement, meas.split_values(self.value)[1])
+
+    @property
+    def poor_fit(self) -> list[str]:
+        """The channels whose residual RMS exceeds `identify.noise_floor.POOR_FIT` times
+        their model-free noise floor: a wrong basin or a missing effect."""
+        return [c for c, q in self.fit_quality.items() if q["poor"]]
 
     def summary(self) -> str:
         lines = [
@@ -609,8 +626,20 @@ class FitResult:
             f"{its} LM iterations in {len(self.stages)} horizon stages, {self.wall_time:.1f} s, "
             f"{'converged' if self.converged else 'NOT converged'}"
         )
+        if self.fit_quality:
+            lines.append(
+                "residual RMS / model-free noise floor: "
+                + ", ".join(f"{c} {q['ratio']:.3g}" for c, q in self.fit_quality.items())
+            )
         for name in self.at_bounds:
             lines.append(f"warning: {name} ended on its bound: widen the bounds or improve the guess")
+        for c in self.poor_fit:
+            q = self.fit_quality[c]
+            lines.append(
+                f"warning: the residual of {c} (RMS {q['residual_rms']:.3g}) is {q['ratio']:.3g} times its noise "
+                f"floor ({q['noise_floor']:.3g}, estimated from the data alone): the fit ended in a wrong basin "
+                "or the model misses an effect (try other guesses, or `identify diagnose`)"
+            )
         for w in self.identifiability:
             lines.append(
                 f"warning: the data cannot separate {w['combination']} (singular value ratio {w['ratio']:.2g})"
@@ -648,6 +677,7 @@ class FitResult:
             "converged": self.converged,
             "at_bounds": self.at_bounds,
             "identifiability_warnings": self.identifiability,
+            "fit_quality": self.fit_quality,
             "singular_values": self.singular_values.tolist(),
             "wall_time_s": self.wall_time,
         }
@@ -688,6 +718,7 @@ def fit(
     start_spread: float = 2.0,
     early_max_steps: int = 60,
     max_restarts: int = 2,
+    restart_poor_fit: bool = True,
     frequency_init: bool = True,
     first_damping: float = 1e-3,
     progress=None,
@@ -717,8 +748,17 @@ def fit(
       see `_starts`), and the best continues. Measured on the
       4-parameter flexible-arm benchmark: from guesses -50 %/+100 % off, single-start
       growing horizon converged in 20 of 24 trials, all failures starting at 2x EI.
-    - `max_restarts`: if the fit ends with a parameter on a bound (a wrong basin), the
-      growing horizon is run again from up to this many next-best starts.
+    - `max_restarts`: if the fit ends with a parameter on a bound, or (`restart_poor_fit`)
+      with a channel's residual RMS above `identify.noise_floor.POOR_FIT` (3) times its
+      noise floor estimated from the data alone (both signs of a wrong basin), the growing
+      horizon is run again from up to this many next-best starts of the multi-start stage
+      (none with `n_starts=1`). The result is the attempt off the bounds with the lowest
+      `identify.noise_floor.score`; a restart that ends with the same score (within
+      `SAME_SCORE`, 10 %) as an earlier one stops the restarts: the same misfit from two
+      starts is the model's, not the start's (a missing effect: `identify diagnose`).
+    - `restart_poor_fit`: restart on a poor fit, as above (`diagnose` turns it off: its
+      baseline misses an effect on purpose). Every result reports its goodness of fit
+      (`FitResult.fit_quality`, `poor_fit`) either way.
     - `early_max_steps`: iteration budget of the stages before the last (they only need
       to land in the right basin).
     - `frequency_init`: before fitting, replace the guess of every free `link<i>.EI` whose
@@ -805,12 +845,16 @@ def fit(
             f"  horizon {h:8.3f} s: {n_starts} starts, best cost {float(costs[best]):.6g} "
             f"(start {best}; others {', '.join(f'{float(c):.4g}' for c in costs)})"
         )
-    # Grow the horizon from the best start; if that ends on a bound of a parameter (a
-    # wrong basin), try the next-best starts and keep the lowest cost off the bounds.
-    outcomes = []
+    # Grow the horizon from the best start; if that ends on a bound of a parameter or with
+    # a residual far above the model-free noise floor (a wrong basin: `restart_poor_fit`),
+    # try the next-best starts, and keep the one off the bounds that explains the data
+    # best (`identify.noise_floor.score`: unlike the cost, it does not depend on the noise
+    # weights each attempt re-estimated).
+    floors = _floors(problem)
+    outcomes, why = [], ""
     for attempt, z in enumerate(candidates):
         if attempt:
-            say(f"  a parameter ended on its bound: growing the horizon again from start #{attempt + 1}")
+            say(f"  {why}: growing the horizon again from start #{attempt + 1}")
         z, sigma_a, step, lin, tried = _grow(
             problem,
             z,
@@ -828,16 +872,36 @@ def fit(
             0.0 if n_starts > 1 and problem.names else first_damping,
         )
         x = _x_from_z(problem, z["phys"])
-        bounded = _at_bounds(problem, np.asarray(x))
-        outcomes.append((bool(bounded), tried[-1]["cost"], z, sigma_a, step, lin, tried))
-        if not bounded:
+        bounded = bool(_at_bounds(problem, np.asarray(x)))
+        ms = _residual_ms(problem, z, sigma_a, step, lin)
+        quality = nf.goodness(problem.channels, ms, *floors)
+        poor = [c for c, q in quality.items() if q["poor"]]
+        score = nf.score(ms, *floors)
+        same = not bounded and any(abs(score - o[1]) <= SAME_SCORE * o[1] for o in outcomes if not o[0])
+        outcomes.append((bounded, score, z, sigma_a, step, lin, tried, ms))
+        if not bounded and not (restart_poor_fit and poor):
             break
-    _, _, z, sigma, step, lin, tried = min(outcomes, key=lambda o: (o[0], o[1]))
+        if same:  # the same misfit again: the model, not the start, is the cause
+            say("  the restart ended with the same misfit: keeping the best so far")
+            break
+        why = (
+            "a parameter ended on its bound"
+            if bounded
+            else "the residual of "
+            + ", ".join(f"{c} is {quality[c]['ratio']:.3g}" for c in poor)
+            + " times the noise floor"
+        )
+    _, _, z, sigma, step, lin, tried, ms = min(outcomes, key=lambda o: (o[0], o[1]))
     stages.extend(tried)
     say("  computing standard errors (exact Jacobian at the optimum) ...")
     x = _x_from_z(problem, z["phys"])
     cov = _covariance_at(problem, x, z, sigma, step, *lin)
-    return _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start)
+    return _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, ms)
+
+
+#: `fit`: a restart whose `identify.noise_floor.score` is within this fraction of an earlier
+#: attempt's ended with the same misfit (the same basin, or a model that misses an effect)
+SAME_SCORE = 0.1
 
 
 def _dense_covariance(problem: Problem, r, J) -> Covariance:
@@ -1031,9 +1095,36 @@ def _at_bounds(problem: Problem, xs: np.ndarray) -> list[str]:
     return out
 
 
-def _finish(problem: Problem, parameters, z, x, sigma, step, cov: Covariance, stages, wall_time) -> FitResult:
+def _residual_ms(problem: Problem, z, sigma, step, lin=None) -> np.ndarray:
+    """Each log's mean squared residual per channel (SI), `(L, C)`, at `z` over every
+    sample: from `lin = ((r, S, U), horizon)`, the last Levenberg-Marquardt solve's
+    linearisation at `z` (`_grow`), when its horizon covered every sample, else from one
+    simulation."""
+    mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
+    r = None
+    if lin is not None:
+        (r_lin, *_), horizon = lin
+        if horizon is None or np.array_equal(np.asarray(_used(problem, float(horizon))), mask):
+            r = r_lin
+    if r is None:
+        theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
+        r, _ = _residuals_from(problem, theta, z["y0"], z["offset"], sigma, None, step)
+    res = np.asarray(r).reshape(mask.shape) * np.asarray(sigma)
+    return np.sum(np.where(mask, res, 0.0) ** 2, axis=1) / np.maximum(mask.sum(axis=1), 1)
+
+
+def _floors(problem: Problem):
+    """`identify.noise_floor.channel_floors` of the problem's logs."""
+    return nf.channel_floors(problem.t, problem.measured, problem.valid, problem.present)
+
+
+def _finish(
+    problem: Problem, parameters, z, x, sigma, step, cov: Covariance, stages, wall_time, residual_ms
+) -> FitResult:
     """Host-side statistics of a converged fit: intervals, nuisances, convergence (the
-    covariance and identifiability from `identify.covariance`)."""
+    covariance and identifiability from `identify.covariance`), the goodness of fit
+    against the model-free noise floor (`identify.noise_floor`; `residual_ms`:
+    `_residual_ms` at `z`)."""
     se_nat = cov.std_errors
     p = len(problem.names)
     xs = np.asarray(x)
@@ -1078,6 +1169,7 @@ def _finish(problem: Problem, parameters, z, x, sigma, step, cov: Covariance, st
         identifiability=cov.identifiability,
         singular_values=cov.singular_values,
         wall_time=wall_time,
+        fit_quality=nf.goodness(problem.channels, residual_ms, *_floors(problem)),
         problem=problem,
         z=z,
         step=step,
@@ -1224,6 +1316,13 @@ def fit_independent(
             covs[k],
             stages[k],
             wall,
+            _residual_ms(
+                singles[k],
+                {key: v[k] for key, v in z.items()},
+                sigma,
+                step[k],
+                (tuple(a[k] for a in lin), horizons[-1]),
+            ),
         )
         for k in range(L)
     ]

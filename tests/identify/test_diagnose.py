@@ -105,6 +105,12 @@ def test_quadratic_damping_hidden_and_told_apart_from_dry_friction():
     assert not scores["coulomb_friction"].screened
     assert scores["coulomb_friction"].delta_bic > scores["quadratic_damping"].delta_bic + 50
     assert scores["coulomb_friction"].held_out_gain < scores["quadratic_damping"].held_out_gain
+    # against the held-out data's model-free noise floor (identify.noise_floor): the baseline
+    # leaves the drag in its residual, the extended model reaches the floor
+    floor = diag.held_out["noise_floor"]["theta1"]
+    ratios = {k: diag.held_out[k]["theta1"] / floor for k in ("baseline", "extended")}
+    assert ratios["baseline"] > 2.0 and 0.8 < ratios["extended"] < 1.2, ratios
+    assert diag.left_unexplained == [] and "floor" in diagnosis_report.markdown(diag)
 
 
 @pytest.mark.slow
@@ -125,6 +131,9 @@ def test_no_effect_names_no_cause(monkeypatch):
     diag = run(logs_of(pendulum(), 14))
     assert diag.named == [], diag.summary()
     assert "no catalogue entry explains" in diag.summary()
+    # nothing to explain: the baseline's held-out residual is at the data's own noise floor
+    ratio = diag.held_out["baseline"]["theta1"] / diag.held_out["noise_floor"]["theta1"]
+    assert 0.8 < ratio < 1.2 and diag.left_unexplained == [], ratio
     assert len(checks) >= 1 + len(diag.rounds), (len(checks), len(diag.rounds))
     # model checks: none for a rigid pendulum; a flagged one (a flexible link spinning at 0.57
     # of its first frequency, tests/identify/test_evidence.py) shows in every output

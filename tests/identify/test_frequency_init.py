@@ -178,6 +178,8 @@ def test_independent_fits_initialise_each_logs_own_stiffness(arm):
     for result, e in zip(results, eis):
         assert result.converged
         assert result.value["link1.EI"] == pytest.approx(e, rel=BARS["link1.EI"])
+        # each log's residuals against its own model-free noise floor (`identify.noise_floor`)
+        assert all(0.8 < q["ratio"] < 1.2 for q in result.fit_quality.values()), result.fit_quality
 
 
 @pytest.mark.slow  # ~70 s on 2 cores
@@ -195,6 +197,7 @@ def test_independent_fits_of_sine_driven_logs_from_a_far_guess(arm):
     problem = identify.make_problem(arm.chain, params, logs, noise=arm.noise)
     results = identify.fit_independent(problem, params, progress=print)
     for result, e in zip(results, eis):
+        assert result.poor_fit == [], result.summary()
         truth = {**TRUTH, "link1.EI": e}
         for n, v in truth.items():
             assert result.value[n] == pytest.approx(v, rel=BARS[n]), f"log with EI {e}: {n}\n{result.summary()}"

@@ -1,0 +1,116 @@
+"""The model-free noise floor (`identify.noise_floor`) against closed forms: white noise
+(the estimator is unbiased), a sine's leakage `A (2 sin(pi f dt))^k / sqrt(2 C(2k, k))`,
+the bias of first-order filtered noise, exact cancellation of a polynomial on an irregular
+grid, the pooled ratio of several logs."""
+
+from __future__ import annotations
+
+from math import comb
+
+import numpy as np
+import pytest
+
+from identify import noise_floor as nf
+
+
+def _binomial(k: int) -> np.ndarray:
+    """The k-th difference's coefficients, (-1)^(k-j) C(k, j)."""
+    return np.array([(-1) ** (k - j) * comb(k, j) for j in range(k + 1)], float)
+
+
+@pytest.mark.parametrize("order", [2, nf.ORDER])
+def test_white_noise_on_an_irregular_grid_is_estimated_without_bias(order):
+    """Gaussian noise of sd 0.3 on a line sampled at jittered times: the floor is 0.3 within
+    5 standard errors. The normalised differences of neighbouring windows are correlated
+    (`rho_m = sum_j b_j b_(j+m) / sum b^2` on a uniform grid), so the relative standard
+    error of the floor is sqrt((1 + 2 sum_m rho_m^2) / (2 n)) (the jitter changes it little)."""
+    rng = np.random.default_rng(0)
+    n = 200_000
+    t = np.cumsum(rng.uniform(0.5e-3, 1.5e-3, n))
+    y = 2.0 - 7.0 * t + 0.3 * rng.standard_normal(n)
+    b = _binomial(order)
+    rho = [np.dot(b[: len(b) - m], b[m:]) / np.dot(b, b) for m in range(1, order + 1)]
+    se = np.sqrt((1 + 2 * np.sum(np.square(rho))) / (2 * n))
+    assert nf.noise_floor(t, y, order) == pytest.approx(0.3, rel=5 * se)
+
+
+def test_a_polynomial_of_degree_below_the_order_leaves_no_floor():
+    t = np.cumsum(np.random.default_rng(1).uniform(1e-3, 3e-3, 500))
+    y = 0.4 + 3.0 * t - 2.0 * t**2 + 5.0 * t**3
+    assert nf.noise_floor(t, y) < 1e-9 * np.std(y)
+    assert nf.noise_floor(t, y, order=2) > 1e-6  # order 2 cancels only lines
+
+
+@pytest.mark.parametrize("order", [2, nf.ORDER])
+@pytest.mark.parametrize("f_hz, dt", [(10.0, 1e-3), (4.2, 4e-3), (40.0, 1e-3)])
+def test_a_sines_leakage_is_its_closed_form(order, f_hz, dt):
+    """Uniform samples of A sin(2 pi f t), noise-free: the k-th difference is a sine of
+    amplitude A (2 sin(pi f dt))^k, so over whole periods the floor is
+    A (2 sin(pi f dt))^k / sqrt(2 C(2k, k))."""
+    A = 0.7
+    t = np.arange(0.0, 50.0 / f_hz, dt)
+    expected = A * (2 * np.sin(np.pi * f_hz * dt)) ** order / np.sqrt(2 * comb(2 * order, order))
+    assert nf.noise_floor(t, A * np.sin(2 * np.pi * f_hz * t), order) == pytest.approx(expected, rel=2e-2)
+
+
+@pytest.mark.parametrize("a", [0.53, 0.73])
+def test_filtered_noise_makes_the_floor_smaller_by_its_closed_form(a):
+    """AR(1) noise `e_i = a e_(i-1) + w_i` (a first-order low-pass; `a = exp(-2 pi fc dt)`:
+    0.53 at a tenth of the sampling rate, 0.73 at a twentieth) has autocorrelation
+    `a^|m|`, so the k-th difference's mean square is `var(e) sum_ij b_i b_j a^|i-j|`: the
+    floor is `sqrt(sum_ij b_i b_j a^|i-j| / C(2k, k))` of the noise (0.59 and 0.42 at order
+    4, the module docstring's)."""
+    rng = np.random.default_rng(2)
+    n = 400_000
+    w = rng.standard_normal(n)
+    e = np.empty(n)
+    e[0] = w[0] / np.sqrt(1 - a**2)
+    for i in range(1, n):
+        e[i] = a * e[i - 1] + w[i]
+    t = np.arange(n) * 1e-3
+    k = nf.ORDER
+    b = _binomial(k)
+    i = np.arange(k + 1)
+    factor = np.sqrt(b @ (a ** np.abs(i[:, None] - i[None, :])) @ b / comb(2 * k, k))
+    assert nf.noise_floor(t, e) / np.std(e) == pytest.approx(factor, rel=0.02)
+    assert factor == pytest.approx({0.53: 0.59, 0.73: 0.42}[a], abs=0.01)
+
+
+def test_goodness_pools_logs_by_their_samples_and_flags_a_poor_channel():
+    """Two logs, two channels (log 1 records only the first): the pooled RMS and floor are
+    the sample-weighted root mean squares; a channel whose residual is 4 floors is poor,
+    one at 1.3 is not."""
+    residual_ms = np.array([[1.0, 16.0], [2.0, 0.0]])
+    floor = np.array([[1.0, 1.0], [1.0, 0.0]])
+    count = np.array([[100, 100], [300, 0]])
+    q = nf.goodness(("a", "b"), residual_ms, floor, count)
+    assert q["a"]["residual_rms"] == pytest.approx(np.sqrt((100 * 1 + 300 * 2) / 400))
+    assert q["a"]["noise_floor"] == pytest.approx(1.0)
+    assert not q["a"]["poor"] and q["b"]["poor"] and q["b"]["ratio"] == pytest.approx(4.0)
+    assert nf.score(residual_ms, floor, count) == pytest.approx(((100 + 600) / 400 + 16) / 2)
+
+
+def test_channel_floors_skip_padding_and_missing_channels():
+    """Padded samples (`valid` False) do not enter a log's floor; a channel a log does not
+    record has floor and count 0; a constant channel's floor is `RESOLUTION` of its RMS."""
+    rng = np.random.default_rng(3)
+    t = np.tile(np.arange(1000) * 1e-3, (2, 1))
+    measured = np.zeros((2, 1000, 2))
+    measured[0, :, 0] = 0.1 * rng.standard_normal(1000)
+    measured[0, 600:, 0] = 1e3  # padding of a shorter log: must not count
+    measured[1, :, 0] = 5.0
+    valid = np.ones((2, 1000), bool)
+    valid[0, 600:] = False
+    present = np.array([[True, False], [True, False]])
+    floor, count = nf.channel_floors(t, measured, valid, present)
+    assert floor[0, 0] == pytest.approx(nf.noise_floor(t[0, :600], measured[0, :600, 0]))
+    assert 0.08 < floor[0, 0] < 0.12
+    assert floor[1, 0] == pytest.approx(nf.RESOLUTION * 5.0)
+    assert count.tolist() == [[600, 0], [1000, 0]] and floor[0, 1] == 0.0
+
+
+def test_bad_samples_are_refused_with_a_message():
+    with pytest.raises(ValueError, match="strictly increasing"):
+        nf.noise_floor([0.0, 1.0, 1.0, 2.0, 3.0, 4.0], [0.0, 1.0, 2.0, 3.0, 4.0, 5.0])
+    with pytest.raises(ValueError, match="same length"):
+        nf.noise_floor([0.0, 1.0, 2.0], [0.0, 1.0])
