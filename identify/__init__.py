@@ -7,6 +7,9 @@
   (cluster-robust, each log a cluster).
 - `make_problem` / `fit`: the same on in-memory logs (`LogData`).
 - `residual_report`: residual whiteness and input cross-correlation (MATLAB `resid`).
+- `noise_floor`: each channel's noise level estimated from the data alone; every fit
+  compares its residuals with it (`FitResult.fit_quality`, `poor_fit`: a wrong basin or a
+  missing effect).
 - `diagnose(experiment)` / `diagnose_logs(...)`: what the fitted model gets wrong, which
   catalogue extension (`identify.catalogue`) explains it, the extended model and its gain
   on held-out data; `write_report` writes the JSON/Markdown report with plots.
@@ -14,7 +17,7 @@
   model and the log (`identify.measurement`), fittable by name like the chain's parameters.
 """
 
-from . import catalogue as catalogue, evidence as evidence, measurement as measurement
+from . import catalogue as catalogue, evidence as evidence, measurement as measurement, noise_floor as noise_floor
 from .channels import check_channel as check_channel, state_names as state_names
 from .diagnose import (
     Cause as Cause,

@@ -49,7 +49,8 @@ re-estimated from the residuals). Every result compares each channel's residual 
 noise floor estimated from the measured samples alone (`identify.noise_floor`: about 1 in
 the right basin of a model that matches the rig), flags the channels above
 `noise_floor.POOR_FIT` (`FitResult.poor_fit`), and `fit` restarts the growing horizon from
-its next-best starts when a channel is flagged (`restart_poor_fit`).
+its next-best starts when a channel is flagged (`restart_poor_fit`); `fit_independent`
+retries a flagged log from the median of the other logs' parameters.
 
 **Uncertainty.** `Cov = s^2 (J^T J)^+` with `J` the weighted residual Jacobian
 at the optimum and `s^2 = RSS / (N - P)` the residual variance (so the error
@@ -1213,6 +1214,7 @@ def fit_independent(
     grid_safety: float = 0.5,
     first_damping: float = 1e-3,
     frequency_init: bool = True,
+    restart_poor_fit: bool = True,
     progress=None,
 ) -> list[FitResult]:
     """Independent fits of every log of `problem` (each log its own parameter values), all
@@ -1221,6 +1223,12 @@ def fit_independent(
     first stage starts with the damping `first_damping` (as in `fit` with one start).
     `frequency_init`: each log's free `link<i>.EI` guess from its own flexural spectrum,
     as in `fit` (`identify.frequency_init`), all logs' simulations batched.
+    `restart_poor_fit`: when some logs end with a channel above
+    `identify.noise_floor.POOR_FIT` times its noise floor and others do not, the poor
+    logs' horizons are grown again (the whole batch, in the same compiled programs) from
+    the median of the other logs' parameters, and each poor log keeps the attempt that
+    explains its data best (`identify.noise_floor.score`). When every log is poor (a
+    model that misses an effect) nothing is retried.
     Returns one `FitResult` per log."""
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps)
@@ -1256,33 +1264,92 @@ def fit_independent(
     solve = eqx.filter_vmap(_solve, in_axes=(0, 0, None, None, 0, None, None, None, None, None))
     if frequency_init:
         z = _frequency_initialise_independent(problem, singles, stacked, z, x0, grid, grid_safety, say)
-    stages = [[] for _ in range(L)]
-    for k_stage, h in enumerate(horizons):
-        step, ok, _ = grid(stacked, z, jnp.asarray(h), grid_safety)
-        if not bool(jnp.all(ok)):
-            raise RuntimeError("fit_independent: a simulation at the current parameters failed")
-        # each log's step aligned with its torque samples (`aligned_step`); padding entries
-        # repeat the last log
-        step = jnp.asarray(
-            [float(aligned_step(singles[min(k, L - 1)], step[k])) for k in range(step.shape[0])], dtype=step.dtype
-        )
-        tau = jnp.asarray(first_damping if k_stage == 0 else 0.0, dtype=float)
-        z, result, steps, cost, lin = solve(
-            stacked, z, sigma, jnp.asarray(h), step, max_steps, tau, max_steps, rtol, atol
-        )
-        for k in range(L):
-            stages[k].append(
-                {
-                    "horizon_s": float(h),
-                    "iterations": int(steps[k]),
-                    "cost": float(cost[k]),
-                    "result": _result_name(jax.tree_util.tree_map(lambda a: a[k], result)),
-                }
+
+    def grow(z, label=""):
+        """The growing horizon for the whole batch from `z`: the last stage's `z`, steps,
+        linearisation (on the host) and every log's stage records."""
+        stages = [[] for _ in range(L)]
+        for k_stage, h in enumerate(horizons):
+            step, ok, _ = grid(stacked, z, jnp.asarray(h), grid_safety)
+            if not bool(jnp.all(ok)):
+                raise RuntimeError("fit_independent: a simulation at the current parameters failed")
+            # each log's step aligned with its torque samples (`aligned_step`); padding
+            # entries repeat the last log
+            step = jnp.asarray(
+                [float(aligned_step(singles[min(k, L - 1)], step[k])) for k in range(step.shape[0])], dtype=step.dtype
             )
-        say(f"  horizon {h:8.3f} s: {int(jnp.max(steps)):3d} iterations (slowest of {L} logs)")
+            tau = jnp.asarray(first_damping if k_stage == 0 else 0.0, dtype=float)
+            z, result, steps, cost, lin = solve(
+                stacked, z, sigma, jnp.asarray(h), step, max_steps, tau, max_steps, rtol, atol
+            )
+            for k in range(L):
+                stages[k].append(
+                    {
+                        "horizon_s": float(h),
+                        "iterations": int(steps[k]),
+                        "cost": float(cost[k]),
+                        "result": _result_name(jax.tree_util.tree_map(lambda a: a[k], result)),
+                    }
+                )
+            say(f"  {label}horizon {h:8.3f} s: {int(jnp.max(steps)):3d} iterations (slowest of {L} logs)")
+        return z, step, [np.asarray(a) for a in lin], stages  # lin: one host transfer, not one per log
+
+    def quality(z, step, lin):
+        """Each log's `_residual_ms` at `z` (every sample: the last stage's horizon)."""
+        return [
+            _residual_ms(
+                singles[k],
+                {key: v[k] for key, v in z.items()},
+                sigma,
+                step[k],
+                (tuple(a[k] for a in lin), horizons[-1]),
+            )
+            for k in range(L)
+        ]
+
+    z_start = z
+    z, step, lin, stages = grow(z)
+    ms = quality(z, step, lin)
+    floors = [_floors(q) for q in singles]
+    scores = np.asarray([nf.score(ms[k], *floors[k]) for k in range(L)])
+    poor = [k for k in range(L) if any(q["poor"] for q in nf.goodness(problem.channels, ms[k], *floors[k]).values())]
+    good = [k for k in range(L) if k not in poor]
+    if restart_poor_fit and poor and good:
+        # A log left far above its noise floor while others fit theirs: grow its horizon
+        # again from the good logs' median parameters (a wrong basin is that log's alone;
+        # a model that misses an effect leaves every log poor, and nothing is retried).
+        # The same compiled programs: the batch keeps its size, the good logs restart
+        # where they were and keep their first results.
+        say(
+            f"  log(s) {', '.join(problem.log_names[k] for k in poor)} left far above the noise floor: "
+            f"growing the horizon again from the median of the other {len(good)} log(s)' parameters"
+        )
+        phys = np.asarray(z["phys"]).copy()
+        phys[poor] = np.median(phys[good], axis=0)
+        y0 = np.asarray(z["y0"]).copy()
+        y0[poor] = np.asarray(z_start["y0"])[poor]
+        off = np.asarray(z["offset"]).copy()
+        off[poor] = np.asarray(z_start["offset"])[poor]
+        z2 = {key: jax.device_put(v, z[key].sharding) for key, v in (("phys", phys), ("y0", y0), ("offset", off))}
+        z2, step2, lin2, stages2 = grow(z2, "again: ")
+        ms2 = quality(z2, step2, lin2)
+        better = [k for k in poor if nf.score(ms2[k], *floors[k]) < scores[k]]
+        say(f"  kept the new fit of {len(better)} of {len(poor)} log(s)")
+        if better:
+            pick = np.zeros(z["phys"].shape[0], bool)
+            pick[better] = True
+            z = {
+                key: jax.device_put(
+                    np.where(pick.reshape(-1, *[1] * (np.ndim(v) - 1)), np.asarray(z2[key]), np.asarray(v)), v.sharding
+                )
+                for key, v in z.items()
+            }
+            step = jnp.where(jnp.asarray(pick), step2, step)
+            lin = [np.where(pick.reshape(-1, *[1] * (a.ndim - 1)), a2, a) for a, a2 in zip(lin, lin2)]
+            for k in better:
+                stages[k], ms[k] = stages[k] + stages2[k], ms2[k]
     say("  computing standard errors (exact Jacobians at the optima) ...")
     x = jnp.stack([_x_from_z(singles[k], z["phys"][k]) for k in range(L)])
-    lin = [np.asarray(a) for a in lin]  # one host transfer, not one per log
     covs, failed = [], []
     for k in range(L):
         try:
@@ -1316,13 +1383,7 @@ def fit_independent(
             covs[k],
             stages[k],
             wall,
-            _residual_ms(
-                singles[k],
-                {key: v[k] for key, v in z.items()},
-                sigma,
-                step[k],
-                (tuple(a[k] for a in lin), horizons[-1]),
-            ),
+            ms[k],
         )
         for k in range(L)
     ]

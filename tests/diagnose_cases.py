@@ -124,13 +124,6 @@ def arm_logs(truth, seed, measurement=None, channels=("theta1", "tip1"), noise=N
 def diagnose_arm(logs, base=None, noise=None, **kw):
     fit_logs, held, desc = split_logs(logs[:2], logs[2:])
     base = arm() if base is None else base
-    # No frequency-domain EI initialisation: the guess is within 50 % anyway, and the
-    # diagnosis tests and the confusion benchmark were measured without it. (It was off
-    # because the largest peak of the tip's spectrum under bang-bang is the input's, not
-    # the mode's; the matched-spectra initialisation that replaced peak picking is not
-    # misled: from guesses 1.5, 0.5 and 3.0 it puts EI at 0.999, 1.000 and 0.997 on seed
-    # 1's two fit logs.)
-    kw.setdefault("fit_options", {"frequency_init": False})
     noise = {c: {**ARM_NOISE, **(noise or {})}[c] for c in logs[0].outputs}
     return diagnose_logs(base, ARM_PARAMS, fit_logs, held, noise, split=desc, **kw)
 

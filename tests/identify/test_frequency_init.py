@@ -203,6 +203,35 @@ def test_independent_fits_of_sine_driven_logs_from_a_far_guess(arm):
             assert result.value[n] == pytest.approx(v, rel=BARS[n]), f"log with EI {e}: {n}\n{result.summary()}"
 
 
+@pytest.mark.slow  # ~3 min on 2 cores
+def test_independent_fits_retry_a_log_left_in_a_wrong_basin(arm):
+    """The logs of the previous test with EI 0.7 and 1.0 N m^2, the same far guesses, without
+    the initialisation: the EI = 1.0 log ends in a wrong basin (its residuals 3.3 and 8.5
+    times the noise floor), the other fits its data. `fit_independent` grows that log's
+    horizon again from the other's parameters and both end within the bars, at the floor.
+    With `restart_poor_fit=False` the wrong basin stays and is reported (`poor_fit`)."""
+    eis = (0.7, 1.0)
+    t = np.arange(0.0, 3.0, DT)
+    logs = _own_ei_logs(arm, t, (0.05 * np.sin(2 * np.pi * 1.5 * t))[:, None], eis)
+    factors = (6.0, 0.8, 1.2, 0.8)
+    params = [identify.Parameter(n, v * f, v * 1e-2, v * 1e2) for (n, v), f in zip(TRUTH.items(), factors)]
+    problem = identify.make_problem(arm.chain, params, logs, noise=arm.noise)
+    for restart in (False, True):
+        said = []
+        results = identify.fit_independent(
+            problem, params, frequency_init=False, restart_poor_fit=restart, progress=said.append
+        )
+        print("\n".join(said), *(r.summary() for r in results), sep="\n")
+        assert results[0].poor_fit == [] and results[0].value["link1.EI"] == pytest.approx(0.7, rel=BARS["link1.EI"])
+        if not restart:
+            assert results[1].poor_fit == ["theta1", "tip1"], results[1].summary()
+            continue
+        assert any("log1 left far above the noise floor" in m for m in said), said
+        assert results[1].poor_fit == [], results[1].summary()
+        for n, v in {**TRUTH, "link1.EI": 1.0}.items():
+            assert results[1].value[n] == pytest.approx(v, rel=BARS[n]), f"{n}\n{results[1].summary()}"
+
+
 def test_a_long_log_is_compared_over_its_first_flexural_periods(arm, monkeypatch):
     """The spectra compare at most `PERIODS` flexural periods of the model at the guess from
     the onset, and the simulations stop there. With 8 periods (EI guess x2: the model at
