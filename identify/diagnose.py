@@ -46,7 +46,11 @@ the model, and measure the gain on held-out data.
 
 The result (`Diagnosis`) holds the baseline fit, the evidence, every candidate's scores,
 the accepted causes with their parameters and 95 % intervals (from the exact Jacobian
-of the final extended fit), and the gain per channel. `identify.report_diagnosis`
+of the final extended fit), and the gain per channel, next to each channel's noise floor
+on the held-out logs, estimated from their samples without any model
+(`identify.noise_floor`): what a model that explains the data reaches. A channel whose
+extended model's held-out residual is still above `noise_floor.POOR_FIT` (2) floors is
+reported as left unexplained (`Diagnosis.left_unexplained`). `identify.report_diagnosis`
 writes the JSON and Markdown report with plots.
 """
 

@@ -99,3 +99,7 @@ def test_fits_of_both_experiment_files(tmp_path):
     held = stiff["validation"]["spin_mid"]["residuals"]["tip1"]["rms"]
     assert held < 1.1 * 0.02e-3, held
     assert math.isclose(stiff["cost"], stiff["n_residuals"], rel_tol=0.1), (stiff["cost"], stiff["n_residuals"])
+    # against the logs' model-free noise floor (identify.noise_floor): the linear link's tip
+    # residual is far above it (a missing effect), the stiffened one's at it
+    assert lin["fit_quality"]["tip1"]["ratio"] > 10, lin["fit_quality"]
+    assert all(0.8 < q["ratio"] < 1.2 for q in stiff["fit_quality"].values()), stiff["fit_quality"]
