@@ -752,8 +752,9 @@ def fit(
     - `max_restarts`: if the fit ends with a parameter on a bound, or (`restart_poor_fit`)
       with a channel's residual RMS above `identify.noise_floor.POOR_FIT` (3) times its
       noise floor estimated from the data alone (both signs of a wrong basin), the growing
-      horizon is run again from up to this many next-best starts of the multi-start stage
-      (none with `n_starts=1`). The result is the attempt off the bounds with the lowest
+      horizon is run again from up to this many next-best distinct optima of the
+      multi-start stage (`_distinct`: starts that ended at the same short-horizon cost
+      count once; none with `n_starts=1`). The result is the attempt off the bounds with the lowest
       `identify.noise_floor.score`; a restart that ends with the same score (within
       `SAME_SCORE`, 10 %) as an earlier one stops the restarts: the same misfit from two
       starts is the model's, not the start's (a missing effect: `identify diagnose`).
@@ -830,7 +831,7 @@ def fit(
         ]
         costs = np.asarray([float(r[3]) for r in runs])
         order = np.argsort(np.where(np.isfinite(costs), costs, np.inf))
-        candidates = [runs[int(i)][0] for i in order[: max_restarts + 1]]
+        candidates = _distinct([runs[int(i)][0] for i in order], costs[order])[: max_restarts + 1]
         best = int(order[0])
         stages.append(
             {
@@ -855,7 +856,7 @@ def fit(
     outcomes, why = [], ""
     for attempt, z in enumerate(candidates):
         if attempt:
-            say(f"  {why}: growing the horizon again from start #{attempt + 1}")
+            say(f"  {why}: growing the horizon again from the first stage's optimum #{attempt + 1}")
         z, sigma_a, step, lin, tried = _grow(
             problem,
             z,
@@ -898,6 +899,25 @@ def fit(
     x = _x_from_z(problem, z["phys"])
     cov = _covariance_at(problem, x, z, sigma, step, *lin)
     return _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, ms)
+
+
+#: `_distinct`: two optima of the multi-start stage are the same when their costs agree to
+#: this relative tolerance (starts that end in one basin of the short horizon agree to
+#: ~1e-7 in cost while a direction it cannot see, such as a damping, may still differ)
+DISTINCT_COST = 1e-4
+
+
+def _distinct(zs: list, costs) -> list:
+    """The multi-start stage's optima `zs` (best first, with their `costs`) without repeats:
+    several starts often end at the same short-horizon optimum, and a restart from a
+    repeat would grow the horizon into the same basin again. An optimum whose cost is
+    within `DISTINCT_COST` of a better one's is dropped, as is a failed one (infinite)."""
+    kept, kept_costs = [], []
+    for z, c in zip(zs, costs):
+        if np.isfinite(c) and all(abs(c - k) > DISTINCT_COST * abs(k) for k in kept_costs):
+            kept.append(z)
+            kept_costs.append(c)
+    return kept or zs[:1]
 
 
 #: `fit`: a restart whose `identify.noise_floor.score` is within this fraction of an earlier
