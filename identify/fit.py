@@ -641,6 +641,11 @@ class FitResult:
                 f"floor ({q['noise_floor']:.3g}, estimated from the data alone): the fit ended in a wrong basin "
                 "or the model misses an effect (try other guesses, or `identify diagnose`)"
             )
+        if self.poor_fit:
+            lines.append(
+                "note: the intervals above assume white residuals; with model error in the residual they are "
+                "too narrow (identify.clustered_uncertainty assumes only independent logs)"
+            )
         for w in self.identifiability:
             lines.append(
                 f"warning: the data cannot separate {w['combination']} (singular value ratio {w['ratio']:.2g})"
