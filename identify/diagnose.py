@@ -1268,11 +1268,8 @@ def _floor_per_channel(problem: Problem) -> dict:
     """Per channel, the model-free noise floor of the problem's logs (SI; `identify.noise_floor`,
     the sample-weighted RMS over the logs)."""
     floor, count = nf.channel_floors(problem.t, problem.measured, problem.valid, problem.present)
-    return {
-        c: float(np.sqrt(np.sum(count[:, j] * floor[:, j] ** 2) / count[:, j].sum()))
-        for j, c in enumerate(problem.channels)
-        if count[:, j].sum() > 0
-    }
+    f2 = nf.pooled(np.square(floor), count)
+    return {c: float(np.sqrt(v)) for c, v in zip(problem.channels, f2) if not np.isnan(v)}
 
 
 def _with_totals(diag: Diagnosis, wall_time: float) -> Diagnosis:

@@ -108,18 +108,26 @@ def channel_floors(t, measured, valid, present) -> tuple[np.ndarray, np.ndarray]
     return floor, count
 
 
+def pooled(mean_square, count) -> np.ndarray:
+    """Per channel, the sample-weighted mean over the logs of `mean_square` `(L, C)` (each
+    log's mean of a squared quantity, `count` `(L, C)` its samples): `(C,)`, NaN for a
+    channel no log records."""
+    mean_square, count = np.asarray(mean_square, float), np.asarray(count, float)
+    n = count.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, np.sum(count * mean_square, axis=0) / n, np.nan)
+
+
 def goodness(channels, residual_ms, floor, count) -> dict:
-    """Per channel, pooled over the logs that record it: `{'residual_rms', 'noise_floor',
-    'ratio', 'poor'}` (SI; `poor`: ratio above `POOR_FIT`). `residual_ms` `(L, C)`: each
-    log's mean squared residual per channel; `floor`, `count`: `channel_floors`."""
-    residual_ms, floor, count = (np.asarray(a, float) for a in (residual_ms, floor, count))
+    """Per channel, pooled over the logs that record it (`pooled`): `{'residual_rms',
+    'noise_floor', 'ratio', 'poor'}` (SI; `poor`: ratio above `POOR_FIT`). `residual_ms`
+    `(L, C)`: each log's mean squared residual per channel; `floor`, `count`:
+    `channel_floors`."""
+    ms_all, f2_all = pooled(residual_ms, count), pooled(np.square(floor), count)
     out = {}
-    for j, c in enumerate(channels):
-        n = count[:, j]
-        if n.sum() == 0:
+    for c, ms, f2 in zip(channels, ms_all, f2_all):
+        if np.isnan(ms):
             continue
-        ms = float(np.sum(n * residual_ms[:, j]) / n.sum())
-        f2 = float(np.sum(n * floor[:, j] ** 2) / n.sum())
         ratio = float(np.sqrt(ms / f2)) if f2 > 0 else (0.0 if ms == 0 else float("inf"))
         out[c] = {
             "residual_rms": float(np.sqrt(ms)),
@@ -132,11 +140,8 @@ def goodness(channels, residual_ms, floor, count) -> dict:
 
 def score(residual_ms, floor, count) -> float:
     """One number to compare two fits of the same logs (lower is better): the mean over
-    the recorded channels of the squared ratio, each log's mean square weighted by its
-    samples (`goodness`). Unlike the fit's cost it does not depend on the noise weights
-    each fit re-estimated."""
-    residual_ms, floor, count = (np.asarray(a, float) for a in (residual_ms, floor, count))
-    used = count.sum(axis=0) > 0
-    ms = np.sum(count * residual_ms, axis=0)[used]
-    f2 = np.sum(count * floor**2, axis=0)[used]
-    return float(np.mean(ms / np.maximum(f2, np.finfo(float).tiny)))
+    the recorded channels of the squared ratio (`goodness`). Unlike the fit's cost it does
+    not depend on the noise weights each fit re-estimated."""
+    ms, f2 = pooled(residual_ms, count), pooled(np.square(floor), count)
+    used = ~np.isnan(ms)
+    return float(np.mean(ms[used] / np.maximum(f2[used], np.finfo(float).tiny)))
