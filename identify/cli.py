@@ -1,6 +1,7 @@
 """The `identify` command line (also `python -m identify`).
 
-    identify fit EXPERIMENT.toml [--out DIR] [--stages N] [--quiet] [--force]
+    identify fit EXPERIMENT.toml [--out DIR] [--stages N] [--no-frequency-init] [--max-restarts N]
+                 [--no-restart-poor-fit] [--quiet] [--force]
     identify diagnose EXPERIMENT.toml [--out DIR] [--only NAME,...] [--max-effects N] [--quiet] [--force]
 
 `diagnose` fits the experiment's model, shows what it gets wrong, tries the catalogue of
@@ -79,6 +80,21 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="keep the guesses of the links' EI as given (default: each free link<i>.EI with a recorded tip or "
         "curvature channel starts where the model's simulated spectrum best matches the log's)",
+    )
+    fit.add_argument(
+        "--max-restarts",
+        type=int,
+        default=2,
+        metavar="N",
+        help="if the fit ends with a parameter on a bound, or a channel's residual above twice its noise floor "
+        "estimated from the log alone, run the growing horizon again from up to N other optima of the first stage "
+        "(default 2; 0: never)",
+    )
+    fit.add_argument(
+        "--no-restart-poor-fit",
+        action="store_true",
+        help="restart only when a parameter ends on a bound, not on a poor fit (a model that misses an effect "
+        "is poor from every start: the restart costs one more fit and the fit reports the misfit either way)",
     )
     fit.add_argument("--quiet", action="store_true", help="print no progress, only the results")
     fit.add_argument(
@@ -351,6 +367,8 @@ def _fit_command(args) -> int:
 
     if args.stages < 1:
         return error(f"--stages expects an integer >= 1, got {args.stages}")
+    if args.max_restarts < 0:
+        return error(f"--max-restarts expects an integer >= 0, got {args.max_restarts}")
 
     from .experiment import ExperimentError, load_experiment
     from .logs import LogError
@@ -400,7 +418,14 @@ def _fit_command(args) -> int:
         last[0] = now
 
     try:
-        result = fit_experiment(exp, n_stages=args.stages, frequency_init=not args.no_frequency_init, progress=progress)
+        result = fit_experiment(
+            exp,
+            n_stages=args.stages,
+            frequency_init=not args.no_frequency_init,
+            max_restarts=args.max_restarts,
+            restart_poor_fit=not args.no_restart_poor_fit,
+            progress=progress,
+        )
     except (RuntimeError, ValueError) as e:
         print(f"identify fit: the fit failed: {e}", file=sys.stderr, flush=True)
         return 1

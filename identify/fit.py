@@ -755,7 +755,7 @@ def fit(
       4-parameter flexible-arm benchmark: from guesses -50 %/+100 % off, single-start
       growing horizon converged in 20 of 24 trials, all failures starting at 2x EI.
     - `max_restarts`: if the fit ends with a parameter on a bound, or (`restart_poor_fit`)
-      with a channel's residual RMS above `identify.noise_floor.POOR_FIT` (3) times its
+      with a channel's residual RMS above `identify.noise_floor.POOR_FIT` (2) times its
       noise floor estimated from the data alone (both signs of a wrong basin), the growing
       horizon is run again from up to this many next-best distinct optima of the
       multi-start stage (`_distinct`: starts that ended at the same short-horizon cost

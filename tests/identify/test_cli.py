@@ -193,11 +193,20 @@ def test_help_and_usage_errors(capsys):
     assert "--stages" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("flag, expected", [([], True), (["--no-frequency-init"], False)])
-def test_frequency_init_flag_reaches_the_fit(tmp_path, monkeypatch, capsys, flag, expected):
-    """`--no-frequency-init` keeps the EI guesses as given: the fit is called with
-    `frequency_init=False` (True without the flag). The fit is replaced by a stand-in that
-    records its options and fails, which the command reports as exit 1."""
+@pytest.mark.parametrize(
+    "flag, expected",
+    [
+        ([], {"frequency_init": True, "restart_poor_fit": True, "max_restarts": 2}),
+        (["--no-frequency-init"], {"frequency_init": False}),
+        (["--no-restart-poor-fit"], {"restart_poor_fit": False, "max_restarts": 2}),
+        (["--max-restarts", "0"], {"max_restarts": 0, "restart_poor_fit": True}),
+    ],
+)
+def test_fit_flags_reach_the_fit(tmp_path, monkeypatch, capsys, flag, expected):
+    """`--no-frequency-init` keeps the EI guesses as given (`frequency_init=False`),
+    `--no-restart-poor-fit` and `--max-restarts` set the fit's restarts; the defaults
+    are the library's (`identify.fit`). The fit is replaced by a stand-in that records its
+    options and fails, which the command reports as exit 1."""
     import identify.run
 
     exp = _copy_example(tmp_path / "example")
@@ -209,5 +218,26 @@ def test_frequency_init_flag_reaches_the_fit(tmp_path, monkeypatch, capsys, flag
 
     monkeypatch.setattr(identify.run, "fit_experiment", stand_in)
     assert main(["fit", str(exp), "--out", str(tmp_path / "out"), "--quiet", *flag]) == 1
-    assert seen["frequency_init"] is expected
+    for key, value in expected.items():
+        assert seen[key] == value, key
     assert "stand-in fit" in capsys.readouterr().err
+
+
+def test_library_defaults_match_the_command_line():
+    """The command's defaults are `identify.fit`'s (a change to one must reach the other)."""
+    import inspect
+
+    from identify import fit
+    from identify.cli import _parser
+
+    args = _parser().parse_args(["fit", "x.toml"])
+    defaults = inspect.signature(fit).parameters
+    assert args.max_restarts == defaults["max_restarts"].default
+    assert (not args.no_restart_poor_fit) == defaults["restart_poor_fit"].default
+    assert (not args.no_frequency_init) == defaults["frequency_init"].default
+    assert args.stages == defaults["n_stages"].default
+
+
+def test_negative_max_restarts_is_a_usage_error(capsys):
+    assert main(["fit", "x.toml", "--max-restarts", "-1"]) == 2
+    assert "--max-restarts expects an integer >= 0, got -1" in capsys.readouterr().err
