@@ -10,13 +10,17 @@ whose `tip<i>` or `curvature<i>` channel is recorded, the model is simulated wit
 logs' own inputs and initial states at the guesses, with EI scaled by each factor of
 `FACTORS` (1/16 to 16: the flexural frequency from 1/4 to 4 times the guess's), and the
 factor is chosen whose simulated channel's amplitude spectrum, with the channel's noise
-floor, is most similar to the measured one,
+floor, matches the measured one best in shape and in level,
 
-    similarity(s) = <A_meas, A_model(s)> / (|A_meas| |A_model(s)|),
+    match(s) = 2 <A_meas, A_model(s)> / (|A_meas|^2 + |A_model(s)|^2),
     A_meas = |FFT(w (y - mean y))|,   A_model(s) = sqrt(|FFT(w (y_sim(s) - mean))|^2 + sigma^2 sum w^2)
 
 (`w` the Hann window, `sigma` the channel's noise level) of each log from its onset
-(`identify.log_onset`), over
+(`identify.log_onset`), the inner products summed over the logs. `match` is the cosine
+similarity of the two spectra (their shape) times `2r / (1 + r^2)`, `r = |A_model| /
+|A_meas|` (their level); it is 1 only when both agree. When the channel's sensor gain is a
+free parameter (`sensor.<channel>.gain`), the gain absorbs the level, and the shape alone
+(the cosine) is compared. The spectra are compared over
 the band from 1/4 to 4 times the model's flexural frequency at the guess (the modal
 analysis about the resting pose), the inner products summed over the logs. A parabola
 through the best factor and its neighbours (in log EI) refines it with one more
@@ -40,16 +44,26 @@ every one of those cases.
 `identify.fit_independent` does this for every log on its own (each log its own EI), the
 simulations of all logs batched: one vmapped call per factor.
 
-The spectrum cannot always tell: when the best similarity is less than `MIN_GAIN` above
+**Shape and level.** The shape alone (the cosine similarity, which this module compared
+until 2026-12-02) cannot tell EI when the response is forced well below the flexural
+mode: the spectrum is the drive's lines at every EI, and only their height, the
+quasi-static deflection ~ load / EI, depends on it. Measured on paper 004's two-link arm
+(`fd.rigs.flexible_link_joint_arm`) driven by 1.0 and 1.7 Hz sines for 2 s, guesses (EI1,
+EI2) at (0.5, 2), (2, 0.5), (1.4, 1.4) of the truth: with the shape alone EI1 went to
+0.85, 1.34, 0.88 and EI2 hardly moved (2.0, 0.58, 1.4: its tip's spectrum had a cosine of
+0.99-1.00 at every factor tried); with the level as well, (0.91, 1.04), (1.00, 1.00),
+(0.99, 0.99) (`tests/identify/test_frequency_init.py`). The single-link cases above are
+found either way. The level is what the fit's own time-domain loss sees: a tip channel
+recorded twice too large with its gain fixed puts EI at 0.78 of the truth here (a softer
+link deflects more), where the fit would go too; with the gain free, at the truth.
+
+The spectrum cannot always tell: when the best match is less than `MIN_GAIN` above
 the guess's (a record with no flexural motion, a drive whose response hardly depends on
 EI), the guess is kept. The links are initialised one at a time, each with the others'
-current values. Measured on paper 004's two-link arm (`fd.rigs.flexible_link_joint_arm`)
-driven by 1.0 and 1.7 Hz sines for 2 s, guesses (EI1, EI2) at (0.5, 2), (2, 0.5), (1.4, 1.4)
-of the truth: EI1 went to 0.87, 1.33, 0.89; EI2 hardly moved (2.0, 0.61, 1.27): its tip's
-spectrum is the drives' lines at every factor tried (similarity 0.99-1.00 throughout). A
-tip channel that records only noise (1 % of the true deflection's RMS) matched a 4 to 16
-times stiffer link than the guess (8 trials): the flattest simulated spectra; the data then
-say that the link hardly deflects, as the fit itself would.
+current values. A tip channel that records only noise (1 % of the true deflection's RMS)
+matched a 4 to 16 times stiffer link than the guess (8 trials, shape alone): the flattest
+simulated spectra; the data then say that the link hardly deflects, as the fit itself
+would. The progress line warns when no EI tried reaches a shape similarity of `POOR_MATCH`.
 """
 
 from __future__ import annotations
@@ -70,12 +84,12 @@ FACTORS = 2.0 ** (np.arange(-8, 9) / 2)
 #: the band of the spectra compared, in multiples of the model's flexural frequency at
 #: the guess (it contains the flexural frequency of every factor in `FACTORS`)
 BAND = (0.25, 4.0)
-#: the best factor replaces the guess only if its similarity exceeds the guess's by this
+#: the best factor replaces the guess only if its match exceeds the guess's by this
 MIN_GAIN = 1e-3
-#: below this best similarity the progress line warns that no EI matches the spectrum well
-#: (measured: >= 0.99 on every synthetic log the model generated; 0.75-0.86 for a tip
-#: channel of noise only; 0.79 on the spinning-link example, whose model lacks geometric
-#: stiffening)
+#: below this best shape similarity (cosine) of any EI tried, the progress line warns that
+#: no EI matches the spectrum well (measured: >= 0.99 on every synthetic log the model
+#: generated; 0.75-0.86 for a tip channel of noise only; 0.79 on the spinning-link example,
+#: whose model lacks geometric stiffening)
 POOR_MATCH = 0.9
 #: zero padding of the FFT (a finer frequency grid)
 PAD = 4
@@ -102,14 +116,22 @@ def amplitude_spectrum(t, y) -> tuple[np.ndarray, np.ndarray, float]:
     return np.fft.rfftfreq(n, dt), np.abs(np.fft.rfft((y - y.mean()) * w, n)), float(w @ w)
 
 
-def spectral_similarity(problem, j: int, predicted, band: tuple[float, float], span: float = np.inf) -> float:
-    """Cosine similarity of the measured amplitude spectrum of channel index `j` and the
-    one expected from `predicted` `(L, T, C)` plus the channel's white noise
-    (`problem.sigma[j]`: `sqrt(|FFT(w y_sim)|^2 + sigma^2 sum(w^2))`), in `band` (Hz),
-    each log from its onset up to `span` s after it, the inner products summed over the
-    logs that record the channel (0 when either has no power there). Without the noise term, a channel whose
-    noise hides its flexural motion matched a model whose spectrum is as flat as the
-    noise's: the stiffest link tried."""
+def spectral_match(problem, j: int, predicted, band: tuple[float, float], span: float = np.inf) -> tuple[float, float]:
+    """How well the amplitude spectrum expected from `predicted` `(L, T, C)` plus the
+    channel's white noise (`problem.sigma[j]`: `A_sim = sqrt(|FFT(w y_sim)|^2 + sigma^2
+    sum(w^2))`) matches the measured one `A_meas` of channel index `j`, in `band` (Hz), each
+    log from its onset up to `span` s after it, the inner products summed over the logs
+    that record the channel. Returns `(shape, level)`:
+
+    - `shape = <A_meas, A_sim> / (|A_meas| |A_sim|)`, the cosine similarity: blind to the
+      spectrum's scale;
+    - `level = 2 <A_meas, A_sim> / (|A_meas|^2 + |A_sim|^2) = shape * 2r / (1 + r^2)`,
+      `r = |A_sim| / |A_meas|`: 1 only when shape and scale both match (a factor-2 error
+      in scale alone gives 0.8).
+
+    Both are 0 when either spectrum has no power in the band. Without the noise term, a
+    channel whose noise hides its flexural motion matched a model whose spectrum is as flat
+    as the noise's: the stiffest link tried."""
     dot = meas_sq = sim_sq = 0.0
     valid, present = np.asarray(problem.valid), np.asarray(problem.present)
     for l in range(valid.shape[0]):
@@ -127,8 +149,8 @@ def spectral_similarity(problem, j: int, predicted, band: tuple[float, float], s
         meas_sq += float(a_meas[inside] @ a_meas[inside])
         sim_sq += float(a_sim[inside] @ a_sim[inside])
     if not (meas_sq > 0 and sim_sq > 0 and np.isfinite(dot)):
-        return 0.0
-    return dot / np.sqrt(meas_sq * sim_sq)
+        return 0.0, 0.0
+    return dot / np.sqrt(meas_sq * sim_sq), 2.0 * dot / (meas_sq + sim_sq)
 
 
 def flexural_frequency(chain: fd.Chain, link: int) -> float | None:
@@ -192,27 +214,37 @@ def initialise_stiffness(
         known = [f for f in f_model if f is not None]
         span = PERIODS / min(known) if known else np.inf
         guess = thetas[:, k].copy()
+        # the spectrum's scale tells EI too (a drive below the flexural mode deflects the
+        # link by ~ load / EI), unless a free gain of the channel's sensor absorbs it
+        level = f"sensor.{channel}.gain" not in first.names
 
-        def scores_at(factors, k=k, j=j, bands=bands, guess=guess, span=span):
-            """Similarity of every problem with EI at `guess * factors` `(B,)` (-inf where
-            outside the limits, where its simulation failed or there is no band)."""
+        def scores_at(factors, k=k, j=j, bands=bands, guess=guess, span=span, level=level):
+            """`(score, shape)` `(B,)` each of every problem with EI at `guess * factors`:
+            `spectral_match`'s level (shape alone when `level` is False) and shape (-inf
+            where outside the limits, where its simulation failed or there is no band)."""
             value = guess * factors
             inside = (value >= lower[k]) & (value <= upper[k])
-            out = np.full(n_items, -np.inf)
+            score, shape = np.full(n_items, -np.inf), np.full(n_items, -np.inf)
             if not inside.any():
-                return out
+                return score, shape
             trial = thetas.copy()
             trial[:, k] = np.clip(value, lower[k], upper[k])
             outputs, ok = simulate(trial, span)
             for b in range(n_items):
                 if inside[b] and ok[b] and bands[b] is not None:
-                    out[b] = spectral_similarity(problems[b], j, outputs[b], bands[b], span)
-            return out
+                    shape[b], matched = spectral_match(problems[b], j, outputs[b], bands[b], span)
+                    score[b] = matched if level else shape[b]
+            return score, shape
 
-        scores = np.stack([scores_at(np.full(n_items, f)) for f in FACTORS], axis=1)  # (B, F)
+        tried = [scores_at(np.full(n_items, f)) for f in FACTORS]
+        scores = np.stack([score for score, _ in tried], axis=1)  # (B, F)
+        shapes = np.stack([shape for _, shape in tried], axis=1)
         best = np.argmax(scores, axis=1)
         factor = FACTORS[best].astype(float)
         similarity = scores[np.arange(n_items), best]
+        # the warning's measure: the best shape of any EI tried (a channel whose scale is
+        # off matches its best shape at another EI than its best level)
+        best_shape = np.max(shapes, axis=1)
         # the vertex of the parabola through the best factor and its neighbours (log EI)
         vertex = factor.copy()
         refine = np.zeros(n_items, bool)
@@ -225,15 +257,17 @@ def initialise_stiffness(
                     vertex[b] = factor[b] * np.exp(0.5 * h * (s_m - s_p) / curvature)
                     refine[b] = True
         if refine.any():
-            at_vertex = scores_at(vertex)
+            at_vertex, shape_at_vertex = scores_at(vertex)
             better = refine & (at_vertex > similarity)
             factor = np.where(better, vertex, factor)
             similarity = np.where(better, at_vertex, similarity)
+            best_shape = np.maximum(best_shape, np.where(refine, shape_at_vertex, -np.inf))
         at_guess = scores[:, unit]
         moved = np.isfinite(similarity) & (factor != 1.0) & (similarity >= at_guess + MIN_GAIN)
         thetas[:, k] = np.where(moved, guess * factor, guess)
         if n_items == 1:
-            _say_one(say, name, channel, bands[0], factor[0], similarity[0], at_guess[0], moved[0])
+            one = (factor[0], similarity[0], at_guess[0], moved[0], best_shape[0])
+            _say_one(say, name, channel, bands[0], *one, level)
         else:
             moved_by = factor[moved]
             say(
@@ -246,12 +280,13 @@ def initialise_stiffness(
                 )
                 + f"guess kept in {int((~moved).sum())}"
             )
-            poor = np.isfinite(similarity) & (similarity < POOR_MATCH)
+            poor = np.isfinite(best_shape) & (best_shape < POOR_MATCH)
             if poor.any():
                 say(
                     f"  frequency initialisation: WARNING: in {int(poor.sum())} log(s) no {name} tried makes the "
-                    f"model's {channel} spectrum match the log's well (best similarity {similarity[poor].min():.3f} "
-                    "at worst): little flexural motion recorded, or the model misses what shapes it"
+                    f"model's {channel} spectrum match the shape of the log's well (shape similarity "
+                    f"{best_shape[poor].min():.3f} at worst): little flexural motion recorded, or the model misses "
+                    "what shapes it"
                 )
     return thetas
 
@@ -269,26 +304,26 @@ def _flexural_frequencies(problems, thetas, link: int) -> list[float | None]:
     return out
 
 
-def _say_one(say, name, channel, band, factor, similarity, at_guess, moved):
+def _say_one(say, name, channel, band, factor, similarity, at_guess, moved, best_shape, level):
     if band is None or not np.isfinite(similarity):
         say(f"  frequency initialisation: no spectrum of {channel} to compare (failed simulations): {name} kept")
         return
-    where = f"{channel}'s spectrum ({band[0]:.3g}-{band[1]:.3g} Hz)"
-    if similarity < POOR_MATCH:
+    where = f"{channel}'s spectrum ({band[0]:.3g}-{band[1]:.3g} Hz{'' if level else ', shape only: its gain is free'})"
+    if best_shape < POOR_MATCH:
         say(
-            f"  frequency initialisation: WARNING: no {name} tried makes the model match {where} well "
-            f"(best similarity {similarity:.3f}): the channel may record little flexural motion "
+            f"  frequency initialisation: WARNING: no {name} tried makes the model match the shape of {where} well "
+            f"(best shape similarity {best_shape:.3f}): the channel may record little flexural motion "
             "(noise only? units?), or the model misses what shapes it"
         )
     if factor == 1.0:
         say(f"  frequency initialisation: {where} matches the model best at the guess of {name} ({similarity:.3f})")
     elif not moved:
         say(
-            f"  frequency initialisation: {where} does not single out {name} (similarity {similarity:.3f} at "
+            f"  frequency initialisation: {where} does not single out {name} (match {similarity:.3f} at "
             f"x{factor:.3g}, {at_guess:.3f} at the guess): guess kept"
         )
     else:
         say(
             f"  frequency initialisation: {where} matches the model's best at {name} x{factor:.3g} "
-            f"(similarity {similarity:.3f}; {at_guess:.3f} at the guess)"
+            f"(match {similarity:.3f}; {at_guess:.3f} at the guess)"
         )
