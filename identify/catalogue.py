@@ -14,11 +14,15 @@ the chain's parts), switched on at a neutral value that reproduces the baseline 
 | `actuator_lag`       | first-order lag of joint i's applied torque        | `actuator<i>.lag` (s)               |
 | `backlash`           | smoothed dead zone in elastic joint i's gear       | `joint<i>.backlash` (rad)           |
 | `base_tilt`          | a horizontal-plane rig tilted: in-plane gravity    | `gravity[0]`, `gravity[1]` (m/s^2)  |
+| `geometric_stiffening` | axial-load stiffness of flexible link i (spin, weight) | (structure; refits the baseline) |
 
 `candidates(...)` lists the entries that apply to a rig and its logs (friction on every
 joint, drag on every link, sensor effects on every recorded channel, actuator lag on
 every driven joint, backlash on elastic joints, tilt on a rig without gravity, a
-missing mode on flexible links, elasticity on driven rigid joints), with starting values
+missing mode on flexible links, elasticity on driven rigid joints, geometric stiffening on
+flexible links without it where the logs' motion or gravity would shift the first mode's
+`omega_1^2` by more than 1 % (`identify.evidence.stiffening_checks`, the model check
+that flags it), with starting values
 scaled to the rig (several per parameter: the extension fits are multi-start).
 """
 
@@ -45,6 +49,7 @@ NAMES = (
     "actuator_lag",
     "backlash",
     "base_tilt",
+    "geometric_stiffening",
 )
 
 DESCRIPTION = {
@@ -58,6 +63,7 @@ DESCRIPTION = {
     "actuator_lag": "a first-order lag between commanded and applied torque",
     "backlash": "backlash (a dead zone) in the joint's gear",
     "base_tilt": "a tilted base: gravity acts in the plane of a horizontal rig",
+    "geometric_stiffening": "geometric stiffening of the flexible link (its axial load: spin, gravity)",
 }
 
 # Entries that can be applied again to their own result: from a model that gained a mode,
@@ -170,8 +176,11 @@ def candidates(
     channel_rms: dict,
     offsets_fitted: set,
     max_frequency_hz: float,
+    stiffening_links=(),
 ) -> list[Candidate]:
-    """The catalogue entries that apply to this rig and these logs, with starting values."""
+    """The catalogue entries that apply to this rig and these logs, with starting values.
+    `stiffening_links`: the flexible links (`"link<i>"`) whose model check is flagged
+    (`identify.evidence.stiffening_checks`); `geometric_stiffening` is offered on those."""
     tau = characteristic_torque(chain, torque_rms)
     w = max(rate_rms, 1e-3)
     out = []
@@ -244,6 +253,9 @@ def candidates(
     for i, link in enumerate(chain.links):
         if link.n_modes > 0 and link.n_modes < fd.modes.MAX_MODES:
             out.append(Candidate("missing_mode", f"link{i + 1}", (), (), ((),), structural=True))
+    for i, link in enumerate(chain.links):
+        if link.n_modes > 0 and not link.geometric_stiffening and f"link{i + 1}" in stiffening_links:
+            out.append(Candidate("geometric_stiffening", f"link{i + 1}", (), (), ((),), structural=True))
     for j in driven_joints:
         if not chain.joints[j].elastic:
             out.append(
@@ -275,6 +287,12 @@ def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: floa
         )
         links = list(chain.links)
         links[i] = new
+        return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity), {}
+    if cand.name == "geometric_stiffening":
+        # the same link with its axial-load stiffness (`flexdyn.FlexibleLink`'s option);
+        # its parameters, EI included, are refitted from the baseline's values
+        links = list(chain.links)
+        links[i] = dataclasses.replace(chain.links[i], geometric_stiffening=True)
         return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity), {}
     if cand.name == "joint_elasticity":
         joint, hub = chain.joints[i], chain.hubs[i]

@@ -117,7 +117,7 @@ def _parser() -> argparse.ArgumentParser:
         metavar="NAMES",
         help="comma-separated catalogue entries to try (default: all that apply): "
         "coulomb_friction, quadratic_damping, missing_mode, joint_elasticity, sensor_delay, sensor_gain_offset, "
-        "sensor_highpass, actuator_lag, backlash, base_tilt",
+        "sensor_highpass, actuator_lag, backlash, base_tilt, geometric_stiffening",
     )
     dg.add_argument("--max-effects", type=int, default=3, metavar="N", help="effects to stack at most (default 3)")
     dg.add_argument("--quiet", action="store_true", help="print no progress, only the results")

@@ -14,7 +14,8 @@ the model, and measure the gain on held-out data.
    with it; several starting magnitudes per entry). The continuous entries share one
    model in which every extension is present at its neutral value, so they are fitted
    together in one `vmap`ped Levenberg-Marquardt call (one compilation for all of them);
-   the structural ones (`missing_mode`, `joint_elasticity`) are models of their own.
+   the structural ones (`missing_mode`, `joint_elasticity`, `geometric_stiffening`) are
+   models of their own.
 4. **Scores.** For each candidate with `k` new parameters, on the fit data (`N` weighted
    residuals, noise levels fixed at the baseline's): the Bayesian information criterion
    change `dBIC = N ln(RSS_c / RSS_0) + k ln N`, and the F-test p-value of the
@@ -82,6 +83,7 @@ from .fit import (
     _residuals_from,
     _x_from_z,
     fit,
+    fitted_outputs,
     make_problem,
 )
 from .residuals import log_blocked, log_jacobian
@@ -638,6 +640,20 @@ def diagnose_logs(
     # (95 % CI [44.46, 44.54]) at the noise floor.
     positive_modes = [f for f in modal if f > 0]
     max_f = min(0.5 / dt_sample, 2.0 * max(positive_modes)) if positive_modes else 0.5 / dt_sample
+    # geometric stiffening is offered where the model check (below, on every log) would
+    # flag it from the baseline's motion on the fit logs
+    stiffening_links = set()
+    if any(link.n_modes > 0 and not link.geometric_stiffening for link in fitted_chain.links):
+        base_outputs = fitted_outputs(base)
+        stiffening_links = {
+            check["link"]
+            for check in ev.stiffening_checks(
+                fitted_chain,
+                ev.link_spin_rates(fitted_chain, base_outputs, key="simulated"),
+                ev.link_root_accelerations(fitted_chain, base_outputs, key="simulated"),
+            )
+            if check["flagged"]
+        }
     cands = [
         c
         for c in cat.candidates(
@@ -650,6 +666,7 @@ def diagnose_logs(
             channel_rms={},
             offsets_fitted=offsets_fitted,
             max_frequency_hz=max_f,
+            stiffening_links=stiffening_links,
         )
         # (an entry whose parameters are already free in the baseline is in the model)
         if c.name in catalogue and c.label not in exclude and not set(c.params) & {p.name for p in parameters}

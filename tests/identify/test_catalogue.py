@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import pytest
 
 from identify import catalogue as cat
@@ -40,3 +41,49 @@ def test_missing_mode_keeps_the_links_geometric_stiffening():
         extended, guesses = cat.structural_model(chain, mode, max_frequency_hz=50.0)
         assert extended.links[1].n_modes == 2 and guesses == {}
         assert extended.links[1].geometric_stiffening is stiffening
+
+
+def _offered(chain, stiffening_links):
+    return [
+        c.label
+        for c in cat.candidates(
+            chain,
+            ("theta1", "tip1"),
+            [0],
+            torque_rms=0.1,
+            rate_rms=1.0,
+            sample_interval=0.005,
+            channel_rms={},
+            offsets_fitted=set(),
+            max_frequency_hz=50.0,
+            stiffening_links=stiffening_links,
+        )
+        if c.name == "geometric_stiffening"
+    ]
+
+
+def test_geometric_stiffening_is_offered_only_where_the_model_check_flags_it():
+    import flexdyn as fd
+
+    linear = fd.rigs.two_link_flexible_arm(n_modes=1, geometric_stiffening=False)
+    assert _offered(linear, ()) == []
+    assert _offered(linear, {"link2"}) == ["geometric_stiffening:link2"]
+    assert _offered(linear, {"link1", "link2"}) == ["geometric_stiffening:link1", "geometric_stiffening:link2"]
+    # a link that has it already is not offered it again
+    stiffened = fd.rigs.two_link_flexible_arm(n_modes=1, geometric_stiffening=True)
+    assert _offered(stiffened, {"link1", "link2"}) == []
+
+
+def test_geometric_stiffening_switches_the_option_on_one_link_and_keeps_its_parameters():
+    import flexdyn as fd
+
+    chain = fd.rigs.two_link_flexible_arm(n_modes=2, geometric_stiffening=False)
+    entry = _entry("geometric_stiffening", "link2", (), ((),), structural=True)
+    extended, guesses = cat.structural_model(chain, entry, max_frequency_hz=50.0)
+    assert guesses == {}
+    assert [k.geometric_stiffening for k in extended.links] == [False, True]
+    for before, after in zip(chain.links, extended.links):
+        assert after.n_modes == before.n_modes
+        for field in ("length", "rho", "EI", "damping_ratio"):
+            assert float(jnp.sum(getattr(after, field))) == float(jnp.sum(getattr(before, field)))
+    assert extended.joints == chain.joints and extended.hubs == chain.hubs
