@@ -16,6 +16,14 @@ the chain's parts), switched on at a neutral value that reproduces the baseline 
 | `base_tilt`          | a horizontal-plane rig tilted: in-plane gravity    | `gravity[0]`, `gravity[1]` (m/s^2)  |
 | `geometric_stiffening` | axial-load stiffness of flexible link i (spin, weight) | (structure; refits the baseline) |
 
+`implausible(name, values, ...)` says when a named cause's fitted values are outside what
+the component plausibly does on a working rig (a calibration error beyond 2x, a tilt of
+more than 10 deg, dry friction above the torques that move the rig, a delay or lag longer
+than a tenth of the log, an AC-coupling corner above the lowest mode): such a value is
+usually standing in for an effect the catalogue lacks, as two sensor gains of 12 and 17
+stood in for the missing geometric stiffening of a spinning link before the catalogue had
+that entry.
+
 `candidates(...)` lists the entries that apply to a rig and its logs (friction on every
 joint, drag on every link, sensor effects on every recorded channel, actuator lag on
 every driven joint, backlash on elastic joints, tilt on a rig without gravity, a
@@ -116,6 +124,56 @@ def pair(first: Candidate, first_values, second: Candidate) -> Candidate:
         tuple(first_values + tuple(s) for s in second.starts),
         members=(first, second),
     )
+
+
+# Plausible ranges (`implausible`): what a working rig's components do.
+PLAUSIBLE_GAIN = (0.5, 2.0)  # a sensor reading within 2x of its calibration
+MAX_TILT_DEG = 10.0  # a rig meant to be horizontal, levelled by eye
+MAX_DELAY_FRACTION = 0.1  # a delay or lag at most a tenth of the shortest log
+
+
+def implausible(
+    name: str, values: dict, *, torque_scale: float, log_duration: float, lowest_mode_hz: float | None
+) -> list[str]:
+    """Sentences saying which fitted values of a named cause (`values`: parameter name ->
+    SI value) are outside the plausible ranges above; empty when all are plausible.
+    `torque_scale` (N m): `characteristic_torque` of the rig and its logs;
+    `log_duration` (s): the shortest log's; `lowest_mode_hz`: the baseline's lowest
+    positive natural frequency (None if it has none)."""
+    out = []
+    for n, v in values.items():
+        v = float(v)
+        field = n.rsplit(".", 1)[-1]
+        if name == "sensor_gain_offset" and field == "gain" and not PLAUSIBLE_GAIN[0] <= v <= PLAUSIBLE_GAIN[1]:
+            out.append(
+                f"{n} = {v:.3g}: a calibration error beyond {PLAUSIBLE_GAIN[1]:g}x is unlikely on a working sensor"
+            )
+        elif name in ("sensor_delay", "actuator_lag") and v > MAX_DELAY_FRACTION * log_duration:
+            out.append(
+                f"{n} = {v:.3g} s: longer than {MAX_DELAY_FRACTION:g} of the shortest log ({log_duration:.3g} s)"
+            )
+        elif name == "coulomb_friction" and v > torque_scale:
+            out.append(
+                f"{n} = {v:.3g} N m: more than the torques that move the rig ({torque_scale:.3g} N m), "
+                "which would hold it still"
+            )
+        elif name == "sensor_highpass" and lowest_mode_hz is not None and v > lowest_mode_hz:
+            out.append(
+                f"{n} = {v:.3g} Hz: a corner above the lowest mode ({lowest_mode_hz:.3g} Hz) would remove most "
+                "of the motion the sensor was chosen to record"
+            )
+    if name == "base_tilt":
+        g = float(np.hypot(*[float(values.get(f"gravity[{i}]", 0.0)) for i in (0, 1)]))
+        if g > 9.81:
+            out.append(f"in-plane gravity {g:.3g} m/s^2: more than the whole of gravity, not a tilt")
+        elif g > 9.81 * np.sin(np.radians(MAX_TILT_DEG)):
+            out.append(
+                f"a tilt of {np.degrees(np.arcsin(g / 9.81)):.3g} deg: more than {MAX_TILT_DEG:g} deg on a rig "
+                "meant to be horizontal"
+            )
+    if out:
+        out.append("the value is probably standing in for an effect the catalogue lacks: read the model checks")
+    return out
 
 
 def _none(x):

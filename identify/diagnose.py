@@ -380,6 +380,8 @@ class Cause:
     # the other causes accepted together with this one (a pair found by the pair search;
     # `delta_bic` and `held_out_gain` are then the pair's)
     together_with: list = dataclasses.field(default_factory=list)
+    # fitted values outside what the component plausibly does (`catalogue.implausible`)
+    warnings: list = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass
@@ -447,6 +449,8 @@ class Diagnosis:
                         f"    {n} = {p['value']:.4g} {p['unit']} (SE {p['std_error']:.2g}, "
                         f"95 % CI [{p['ci95'][0]:.4g}, {p['ci95'][1]:.4g}])"
                     )
+                for w in c.warnings:
+                    lines.append(f"    IMPLAUSIBLE: {w}")
         else:
             lines.append("no catalogue entry explains the residual significantly (see the evidence and the scores)")
         for check in self.model_checks:
@@ -1150,6 +1154,13 @@ def diagnose_logs(
                 sc.delta_bic,
                 sc.held_out_gain,
                 together_with=list(info.get("with", [])),
+                warnings=cat.implausible(
+                    wc.name,
+                    {n: p["value"] for n, p in params.items()},
+                    torque_scale=cat.characteristic_torque(fitted_chain, torque_rms),
+                    log_duration=min(float(np.ptp(np.asarray(log.t, float))) for log in fit_logs),
+                    lowest_mode_hz=min(positive_modes) if positive_modes else None,
+                ),
             )
         )
     rms_base = _rms_per_channel(ho_problem, _pad_used(ho0, ho_used), sigma)

@@ -191,6 +191,8 @@ def markdown(diag, title: str = "") -> str:
                     f"  - `{n}` = {p['value']:.4g} {p['unit']} +- {p['std_error']:.2g} "
                     f"(95 % CI [{p['ci95'][0]:.4g}, {p['ci95'][1]:.4g}])"
                 )
+            for w in c.warnings:
+                lines.append(f"  - **Implausible:** {w}")
     else:
         lines.append("## No cause named")
         lines.append("")

@@ -87,3 +87,50 @@ def test_geometric_stiffening_switches_the_option_on_one_link_and_keeps_its_para
         for field in ("length", "rho", "EI", "damping_ratio"):
             assert float(jnp.sum(getattr(after, field))) == float(jnp.sum(getattr(before, field)))
     assert extended.joints == chain.joints and extended.hubs == chain.hubs
+
+
+_CONTEXT = {"torque_scale": 0.2, "log_duration": 3.0, "lowest_mode_hz": 2.9}
+
+
+@pytest.mark.parametrize(
+    "name, values, words",
+    [
+        # the spinning link's pair before the catalogue had geometric stiffening
+        ("sensor_gain_offset", {"sensor.tip1.gain": 17.0, "sensor.tip1.offset": 0.0}, "sensor.tip1.gain = 17"),
+        ("sensor_gain_offset", {"sensor.tip1.gain": 0.3}, "beyond 2x"),
+        ("sensor_delay", {"sensor.theta1.delay": 0.5}, "0.1 of the shortest log (3 s)"),
+        ("actuator_lag", {"actuator1.lag": 0.4}, "actuator1.lag = 0.4 s"),
+        ("coulomb_friction", {"joint1.coulomb": 0.5}, "hold it still"),
+        ("sensor_highpass", {"sensor.tip1.highpass": 5.0}, "above the lowest mode (2.9 Hz)"),
+        ("base_tilt", {"gravity[0]": 2.0, "gravity[1]": 1.0}, "a tilt of 13.2 deg"),
+        ("base_tilt", {"gravity[0]": 12.0, "gravity[1]": 0.0}, "not a tilt"),
+    ],
+)
+def test_implausible_values_are_named(name, values, words):
+    out = cat.implausible(name, values, **_CONTEXT)
+    assert any(words in w for w in out), out
+    assert "catalogue lacks" in out[-1]
+
+
+@pytest.mark.parametrize(
+    "name, values",
+    [
+        ("sensor_gain_offset", {"sensor.tip1.gain": 1.15, "sensor.tip1.offset": 0.3}),
+        ("sensor_delay", {"sensor.theta1.delay": 0.02}),
+        ("actuator_lag", {"actuator1.lag": 0.02}),
+        ("coulomb_friction", {"joint1.coulomb": 0.01}),
+        ("sensor_highpass", {"sensor.tip1.highpass": 0.1}),
+        # 1.5 deg, the grid's hidden tilt
+        ("base_tilt", {"gravity[0]": 0.139, "gravity[1]": 0.217}),
+        ("joint_elasticity", {"joint1.stiffness": 40.0, "joint1.rotor_inertia": 0.01}),
+    ],
+)
+def test_plausible_values_pass(name, values):
+    assert cat.implausible(name, values, **_CONTEXT) == []
+
+
+def test_highpass_is_not_judged_without_a_mode():
+    assert (
+        cat.implausible("sensor_highpass", {"sensor.theta1.highpass": 5.0}, **{**_CONTEXT, "lowest_mode_hz": None})
+        == []
+    )

@@ -111,6 +111,13 @@ def test_quadratic_damping_hidden_and_told_apart_from_dry_friction():
     ratios = {k: diag.held_out[k]["theta1"] / floor for k in ("baseline", "extended")}
     assert ratios["baseline"] > 2.0 and 0.8 < ratios["extended"] < 1.2, ratios
     assert diag.left_unexplained == [] and "floor" in diagnosis_report.markdown(diag)
+    # a true drag of 0.1-0.4 kg/m^2 is plausible (`catalogue.implausible`); a warning, had
+    # there been one, reaches the summary, the JSON and the report
+    assert diag.causes[0].warnings == []
+    warned = dataclasses.replace(diag, causes=[dataclasses.replace(diag.causes[0], warnings=["link1.drag = 9"])])
+    assert "IMPLAUSIBLE: link1.drag = 9" in warned.summary()
+    assert "**Implausible:** link1.drag = 9" in diagnosis_report.markdown(warned)
+    assert warned.to_dict()["causes"][0]["warnings"] == ["link1.drag = 9"]
 
 
 @pytest.mark.slow
