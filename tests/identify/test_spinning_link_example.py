@@ -111,8 +111,9 @@ def test_diagnose_names_geometric_stiffening(tmp_path):
     """The catalogue's `geometric_stiffening` entry (offered because the model check flags
     the link) on the linear model's experiment. Before it existed, diagnose named a pair of
     calibration errors with gains of 12 and 17 (README of the example). Measured 2026-12-03
-    (40 min on two shared cores): round 1 geometric_stiffening dBIC -75818, held-out gain
-    99.6x; from the stiffened model (cost 8041 over 8004 residuals) nothing else is named."""
+    (37 min of CPU): round 1 geometric_stiffening dBIC -75818, held-out gain 99.6x (tip
+    143x, 0.0198 mm); EI 1.000 [0.99999, 1.00001]; from the stiffened model (cost 8041 over
+    8004 residuals) nothing else is named."""
     out = tmp_path / "diagnosis"
     assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(out), "--quiet"]) == 0
     doc = json.loads((out / "diagnosis.json").read_text())
