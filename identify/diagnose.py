@@ -648,14 +648,9 @@ def diagnose_logs(
     # flag it from the baseline's motion on the fit logs
     stiffening_links = set()
     if any(link.n_modes > 0 and not link.geometric_stiffening for link in fitted_chain.links):
-        base_outputs = fitted_outputs(base)
         stiffening_links = {
             check["link"]
-            for check in ev.stiffening_checks(
-                fitted_chain,
-                ev.link_spin_rates(fitted_chain, base_outputs, key="simulated"),
-                ev.link_root_accelerations(fitted_chain, base_outputs, key="simulated"),
-            )
+            for check in ev.stiffening_checks_of(fitted_chain, fitted_outputs(base), key="simulated")
             if check["flagged"]
         }
     cands = [
@@ -1201,9 +1196,7 @@ def diagnose_logs(
             if np.any(tv != 0):
                 torques[name] = tv
     evidence = ev.evidence(outs, base.sigma, modal, torques)
-    model_checks = ev.stiffening_checks(
-        fitted_chain, ev.link_spin_rates(fitted_chain, traces), ev.link_root_accelerations(fitted_chain, traces)
-    )
+    model_checks = ev.stiffening_checks_of(fitted_chain, traces)
     diag = Diagnosis(
         split=split,
         baseline=base,

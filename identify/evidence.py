@@ -306,6 +306,14 @@ def link_root_accelerations(chain, traces: dict, key: str = "baseline") -> dict:
     return _over_logs(chain, traces, key, acceleration)
 
 
+def stiffening_checks_of(chain, traces: dict, key: str = "baseline") -> list[dict]:
+    """`stiffening_checks` with the spin rates and root accelerations of `traces`' simulated
+    angle channels under `key` (`link_spin_rates`, `link_root_accelerations`)."""
+    return stiffening_checks(
+        chain, link_spin_rates(chain, traces, key=key), link_root_accelerations(chain, traces, key=key)
+    )
+
+
 def stiffening_checks(
     chain, spin_rates: dict, root_accelerations: dict | None = None, threshold: float = STIFFENING_THRESHOLD
 ) -> list[dict]:

@@ -241,3 +241,13 @@ def test_library_defaults_match_the_command_line():
 def test_negative_max_restarts_is_a_usage_error(capsys):
     assert main(["fit", "x.toml", "--max-restarts", "-1"]) == 2
     assert "--max-restarts expects an integer >= 0, got -1" in capsys.readouterr().err
+
+
+def test_diagnose_help_lists_every_catalogue_entry():
+    from identify.catalogue import NAMES
+    from identify.cli import _parser
+
+    sub = next(a for a in _parser()._actions if isinstance(getattr(a, "choices", None), dict))
+    only = next(a for a in sub.choices["diagnose"]._actions if a.dest == "only")
+    listed = only.help.split("apply): ", 1)[1].split(", ")
+    assert listed == list(NAMES)
