@@ -440,7 +440,7 @@ def _fit_command(args) -> int:
     freqs, where = natural_frequencies(fitted_chain)
     robust = None
     if n_fit >= CLUSTER_MIN_LOGS:
-        say(f"cluster-robust intervals ({n_fit} fit logs as clusters: one more Jacobian) ...")
+        say(f"cluster-robust intervals ({n_fit} fit logs as clusters) ...")
         robust = clustered_uncertainty(result)
     val_outputs, val_report, val_nuisances = {}, {}, {}
     if exp.validation_logs:

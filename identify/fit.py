@@ -589,6 +589,10 @@ class FitResult:
     # channel -> {'residual_rms', 'noise_floor', 'ratio', 'poor'} (`identify.noise_floor`):
     # does the fitted model explain the data down to a noise floor estimated without it?
     fit_quality: dict = dataclasses.field(default_factory=dict)
+    # the weighted residuals and their Jacobian blocks at the optimum, natural coordinates
+    # (`jacobian_blocks_at`: `(r, S, U, slots, used)`), what the covariance came from; reused
+    # by `identify.clustered_uncertainty` (None: it computes them afresh)
+    jacobian_blocks: tuple | None = dataclasses.field(repr=False, default=None)
 
     @property
     def value(self) -> dict:
@@ -902,8 +906,8 @@ def fit(
     stages.extend(tried)
     say("  computing standard errors (exact Jacobian at the optimum) ...")
     x = _x_from_z(problem, z["phys"])
-    cov = _covariance_at(problem, x, z, sigma, step, *lin)
-    return _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, ms)
+    cov, blocks = _covariance_at(problem, x, z, sigma, step, *lin)
+    return _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, ms, blocks)
 
 
 #: `_distinct`: two optima of the multi-start stage are the same when their costs agree to
@@ -936,10 +940,11 @@ def _dense_covariance(problem: Problem, r, J) -> Covariance:
     return covariance.dense(problem.names, problem.log_scale, np.asarray(r)[used], np.asarray(J)[used])
 
 
-def _covariance_at(problem: Problem, x, z, sigma, step, lin=None, horizon=None) -> Covariance:
+def _covariance_at(problem: Problem, x, z, sigma, step, lin=None, horizon=None) -> tuple[Covariance, tuple]:
     """The covariance at the optimum: block by block (`identify.covariance.blocked`, no
     dense Jacobian) when the Levenberg-Marquardt steps were (`BLOCK_SOLVE_MIN_LOGS` logs
-    with nuisances), else from the dense Jacobian.
+    with nuisances), else from the dense Jacobian; and the blocks it came from
+    (`jacobian_blocks_at`, kept on the `FitResult` for `identify.clustered_uncertainty`).
 
     `lin`, `horizon`: the linearisation the last Levenberg-Marquardt solve ended with at
     `z` (`_solve`) and that solve's horizon; used when it covers every sample, else (or
@@ -949,8 +954,8 @@ def _covariance_at(problem: Problem, x, z, sigma, step, lin=None, horizon=None) 
         blocks = jacobian_blocks_at(problem, x, z, sigma, step)
     if not _blocked(problem):
         r, S, U, slots, used = blocks
-        return _dense_covariance(problem, r.reshape(-1), _dense_jacobian(problem, S, U, slots))
-    return covariance.blocked(problem.names, problem.log_scale, *blocks)
+        return _dense_covariance(problem, r.reshape(-1), _dense_jacobian(problem, S, U, slots)), blocks
+    return covariance.blocked(problem.names, problem.log_scale, *blocks), blocks
 
 
 def _dx_dz(problem: Problem, z_phys) -> np.ndarray:
@@ -1145,12 +1150,12 @@ def _floors(problem: Problem):
 
 
 def _finish(
-    problem: Problem, parameters, z, x, sigma, step, cov: Covariance, stages, wall_time, residual_ms
+    problem: Problem, parameters, z, x, sigma, step, cov: Covariance, stages, wall_time, residual_ms, blocks=None
 ) -> FitResult:
     """Host-side statistics of a converged fit: intervals, nuisances, convergence (the
     covariance and identifiability from `identify.covariance`), the goodness of fit
     against the model-free noise floor (`identify.noise_floor`; `residual_ms`:
-    `_residual_ms` at `z`)."""
+    `_residual_ms` at `z`; `blocks`: the Jacobian blocks the covariance came from)."""
     se_nat = cov.std_errors
     p = len(problem.names)
     xs = np.asarray(x)
@@ -1199,6 +1204,7 @@ def _finish(
         problem=problem,
         z=z,
         step=step,
+        jacobian_blocks=blocks,
     )
 
 
@@ -1375,10 +1381,10 @@ def fit_independent(
                 stages[k], ms[k] = stages[k] + stages2[k], ms2[k]
     say("  computing standard errors (exact Jacobians at the optima) ...")
     x = jnp.stack([_x_from_z(singles[k], z["phys"][k]) for k in range(L)])
-    covs, failed = [], []
+    cov_blocks, failed = [], []
     for k in range(L):
         try:
-            covs.append(
+            cov_blocks.append(
                 _covariance_at(
                     singles[k],
                     x[k],
@@ -1405,10 +1411,11 @@ def fit_independent(
             x[k],
             sigma,
             step[k],
-            covs[k],
+            cov_blocks[k][0],
             stages[k],
             wall,
             ms[k],
+            cov_blocks[k][1],
         )
         for k in range(L)
     ]

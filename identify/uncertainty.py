@@ -97,8 +97,9 @@ class ClusteredUncertainty:
 
 def clustered_uncertainty(result: FitResult, level: float = 0.95) -> ClusteredUncertainty:
     """Cluster-robust standard errors and intervals of `result`'s shared parameters, each
-    log a cluster (module docstring). Recomputes the Jacobian at the optimum (one
-    forward-mode solve per log). Raises `ValueError` with fewer than 2 logs or a `level`
+    log a cluster (module docstring). Uses the Jacobian the fit's covariance came from
+    (`FitResult.jacobian_blocks`), else recomputes it at the optimum (one forward-mode
+    solve per log). Raises `ValueError` with fewer than 2 logs or a `level`
     outside (0, 1)."""
     if not 0.0 < level < 1.0:
         raise ValueError(f"clustered_uncertainty: level expected a probability in (0, 1), got {level!r}")
@@ -110,8 +111,10 @@ def clustered_uncertainty(result: FitResult, level: float = 0.95) -> ClusteredUn
             f"{n_logs}. Cut a long log into segments, or use the FitResult's white-noise intervals"
         )
     x = np.array([np.log(v) if lg else v for v, lg in zip(result.values, problem.log_scale)], float)
-    sigma = jnp.asarray([result.sigma[c] for c in problem.channels], dtype=float)
-    blocks = jacobian_blocks_at(problem, jnp.asarray(x), result.z, sigma, result.step)
+    blocks = result.jacobian_blocks
+    if blocks is None:
+        sigma = jnp.asarray([result.sigma[c] for c in problem.channels], dtype=float)
+        blocks = jacobian_blocks_at(problem, jnp.asarray(x), result.z, sigma, result.step)
     cov = covariance.clustered(*blocks)
     se_nat = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     q = scipy.stats.t.ppf(0.5 + level / 2, n_logs - 1)

@@ -157,7 +157,7 @@ def test_recovery_accuracy_and_ci(arm):
             # and the fallback without that linearisation (block Jacobian computed afresh)
             x = fit_module._x_from_z(result.problem, result.z["phys"])
             sigma = np.asarray([result.sigma[c] for c in result.problem.channels])
-            fallback = fit_module._covariance_at(result.problem, x, result.z, sigma, result.step)
+            fallback, _ = fit_module._covariance_at(result.problem, x, result.z, sigma, result.step)
             np.testing.assert_allclose(fallback.std_errors, fresh.std_errors, rtol=1e-8)
         assert result.converged, result.summary()
         for n, e in rel_errors(result).items():

@@ -97,3 +97,15 @@ def test_needs_two_logs_and_a_valid_level(varying_damping):
     one_log = dataclasses.replace(res, problem=eqx.tree_at(lambda p: p.t, res.problem, res.problem.t[:1]))
     with pytest.raises(ValueError, match="at least 2 logs"):
         identify.clustered_uncertainty(one_log)
+
+
+def test_reuses_the_fits_jacobian_and_agrees_with_a_fresh_one(varying_damping):
+    """The intervals come from the Jacobian the fit's covariance came from (the
+    Levenberg-Marquardt linearisation w.r.t. the unconstrained coordinates, mapped to the
+    natural ones): no second Jacobian program. Oracle: a fresh forward-mode Jacobian in the
+    natural coordinates (`jacobian_blocks_at`), computed independently at the optimum."""
+    _, res, cu = varying_damping
+    assert res.jacobian_blocks is not None
+    fresh = identify.clustered_uncertainty(dataclasses.replace(res, jacobian_blocks=None))
+    np.testing.assert_allclose(cu.covariance, fresh.covariance, rtol=1e-6)
+    np.testing.assert_allclose(cu.std_errors, fresh.std_errors, rtol=1e-6)
