@@ -237,12 +237,31 @@ def _unsaturated(j: _Joint, zb):
 
 MAX_REFINEMENTS = 8
 
+#: `_refine` and `reconverge` continue one or a few fits of a round. Padded to the round's
+#: batch size they reuse its compiled program, but every padded copy costs as much as a
+#: fit (on CPU a vmapped member is a fit of its own). When the round's batch call took longer
+#: than this (seconds: compiling plus running), they run at the smallest batch size that holds
+#: them instead (`_few_size`), paying one compilation (10-60 s on 2 cores) to save the copies.
+#: Seen on the spinning link (`identify/examples/spinning_link`): 3 rounds of 1 unconverged
+#: fit padded to 6 took 225 s each, the round's call 339 s. Below it (the pendulum examples:
+#: calls of 5-20 s, mostly compilation), a second program would cost more than the copies.
+FEW_SIZE_AFTER_S = 60.0
+
+
+def _few_size(n: int, size: int, call_s: float) -> int:
+    """The batch size for continuing `n` fits of a round whose batch size was `size` and
+    whose batch call took `call_s` seconds (`FEW_SIZE_AFTER_S`)."""
+    if call_s <= FEW_SIZE_AFTER_S:
+        return size
+    return min(size, next(b for b in (1, 3, 6, 12, 24, size) if b >= n))
+
 
 def _refine(joint, vs, costs, steps, best, owners, idx, logf, sigma, step, max_steps, size, cost_cur, N, say):
     """Continue the fits of the candidates that improve on the current model (dBIC < 0)
     but ran out of Levenberg-Marquardt steps, `max_steps` at a time (the same compiled
     program), until each converges or its dBIC moves by less than 0.1 per round (at most
-    `MAX_REFINEMENTS` rounds). A winner's scores and 95 % intervals must be those of its
+    `MAX_REFINEMENTS` rounds; `size`: the round's `(batch size, seconds its call took)`,
+    `_few_size`). A winner's scores and 95 % intervals must be those of its
     optimum: seen, a sensor-gain candidate whose fit moved the pendulum's hub inertia 5.3
     in log from its bound needed 40 steps, and at 25 its held-out prediction was 2.6x
     worse than the baseline's. Candidates drifting to their neutral value (dBIC > 0, a
@@ -259,12 +278,11 @@ def _refine(joint, vs, costs, steps, best, owners, idx, logf, sigma, step, max_s
         more = [b for b in best.values() if steps[b] >= max_steps and dbic[b] < 0 and dbic[b] <= 0.5 * lowest]
         if not more:
             break
-        say(f"  continuing {len(more)} unconverged fit(s) for {max_steps} more steps ...")
+        n = _few_size(len(more), *size)
+        say(f"  continuing {len(more)} unconverged fit(s) for {max_steps} more steps (batch of {n}) ...")
         sel = np.asarray(more, dtype=int)
         v0 = {k: v[sel] for k, v in vs.items()}
-        out, c2, s2 = _fit_batch(
-            joint, _pad(v0, size), _pad(idx[sel], size), _pad(logf[sel], size), sigma, step, max_steps
-        )
+        out, c2, s2 = _fit_batch(joint, _pad(v0, n), _pad(idx[sel], n), _pad(logf[sel], n), sigma, step, max_steps)
         c2, s2 = np.asarray(c2, dtype=float), np.asarray(s2)
         moved = False
         for i, b in enumerate(more):
@@ -835,9 +853,12 @@ def diagnose_logs(
             }
             say(f"round {rnd + 1}: fitting {len(remaining)} candidates ({B} starts) in one vmapped call ...")
             size = next(b for b in (3, 6, 12, 24, 10**9) if b >= B) if B <= 24 else B
+            t_call = time.perf_counter()
             vs, costs, steps = _fit_batch(
                 joint, _pad(v0, size), _pad(idx, size), _pad(logf, size), sigma_j, step, max_steps
             )
+            costs = np.asarray(costs, dtype=float)  # waits for the call
+            size = (size, time.perf_counter() - t_call)
             vs = {k: v[:B] for k, v in vs.items()}
             costs = np.asarray(costs, dtype=float)[:B].copy()
             steps = np.asarray(steps)[:B].copy()
@@ -920,7 +941,7 @@ def diagnose_logs(
             )
         return scores, fits
 
-    def reconverge(cur, size):
+    def reconverge(cur, sized):
         """The accepted model refitted alone (no new parameter), from its baseline
         parameters pulled off their bounds (`_unsaturated`, as every candidate of the next
         round starts), until its cost stops falling: the reference the next round's
@@ -932,6 +953,7 @@ def diagnose_logs(
         v["zb"] = _unsaturated(joint, v["zb"][0])[None]
         idx_c, logf_c = jnp.asarray(cur["idx"])[None], jnp.asarray(cur["logf"])[None]
         cost, moved = cur["cost"], False
+        size = _few_size(1, *sized)
         for _ in range(MAX_REFINEMENTS):
             out, c2, s2 = _fit_batch(
                 joint, _pad(v, size), _pad(idx_c, size), _pad(logf_c, size), sigma_j, step, max_steps
