@@ -43,7 +43,10 @@ the model, and measure the gain on held-out data.
    gained one is offered the next), and the remaining rounds; the two searches are then
    reported as one (`_stacked`). A structural candidate is refitted in a later round only if the cost it
    took off the model of its last round would pass the BIC test against the current one
-   (`_promising`): each is a model of its own, the expensive part.
+   (`_promising`): each is a model of its own, the expensive part. None is refitted when
+   the current model's held-out residual is already at its own noise floor
+   (`held_out_headroom`): no candidate could then reach the held-out gain `min_gain`
+   (`Diagnosis.notes` says so).
 
 The result (`Diagnosis`) holds the baseline fit, the evidence, every candidate's scores,
 the accepted causes with their parameters and 95 % intervals (from the exact Jacobian
@@ -433,6 +436,8 @@ class Diagnosis:
     # what the baseline model assumes that the logs may break (`evidence.stiffening_checks`:
     # a flexible link spinning or hanging enough to need geometric stiffening)
     model_checks: list = dataclasses.field(default_factory=list)
+    # what the search decided not to try, and why (candidates not refitted in a later round)
+    notes: list = dataclasses.field(default_factory=list)
 
     @property
     def named(self) -> list[str]:
@@ -495,6 +500,7 @@ class Diagnosis:
             f"total dBIC {self.delta_bic_total:.1f}; fraction of the held-out residual explained "
             f"{self.fraction_explained:.3f} (of its excess over the noise: {self.excess_explained_text})"
         )
+        lines.extend(f"note: {n}" for n in self.notes)
         for r, scores in enumerate(self.rounds, start=1):
             lines.append("")
             lines.append(f"round {r}: candidates (best first)")
@@ -527,6 +533,7 @@ class Diagnosis:
             "extended_intervals": self.extended_intervals,
             "costs": self.costs,
             "model_checks": self.model_checks,
+            "notes": self.notes,
             "modal_frequencies_hz": self.modal_frequencies_hz,
             "wall_time_s": self.wall_time,
         }
@@ -979,6 +986,7 @@ def diagnose_logs(
     causes_scores = []
     screen_size: dict = {}
     struct_promising: set = set()
+    notes: list = []  # `Diagnosis.notes`
     struct_drop: dict = {}  # structural label -> (cost drop when last fitted, k)
     struct_models: dict = {}  # structural label -> its fitted model (this round's)
     stack_on = None  # a structural winner with rounds left: the search goes on from its model
@@ -1098,7 +1106,14 @@ def diagnose_logs(
             # A structural winner changes the model's coordinates: the joint model of this
             # search cannot hold it. The search goes on from its model as a new baseline
             # (below, `_stacked`).
-            stack_on = (struct_models[wc.label], rnd + 1, _promising(struct_drop, w.cost, N, bic_threshold))
+            model = struct_models[wc.label]
+            again = _promising(struct_drop, w.cost, N, bic_threshold) - {wc.label}
+            if wc.name in cat.REPEATABLE:
+                again |= {wc.label}
+            again = _with_headroom(
+                again, model["held_out_problem"], model["held_out_residual"], min_gain, f"round {rnd + 2}", notes, say
+            )
+            stack_on = (model, rnd + 1, again)
             break
         b = f["best"][w.label]
         current = {
@@ -1113,6 +1128,9 @@ def diagnose_logs(
         if rnd + 1 < max_effects:
             current = reconverge(current, f["size"])
         struct_promising = _promising(struct_drop, current["cost"], N, bic_threshold)
+        struct_promising = _with_headroom(
+            struct_promising, ho_problem, current["ho"], min_gain, f"round {rnd + 2}", notes, say
+        )
 
     # the extended model: parameters, intervals, gain
     causes = []
@@ -1238,6 +1256,7 @@ def diagnose_logs(
         extended_intervals=ext_intervals,
         costs=costs,
         model_checks=model_checks,
+        notes=notes,
     )
     if stack_on is not None:
         # A structural change was accepted: the search goes on from its model, a new
@@ -1250,10 +1269,10 @@ def diagnose_logs(
         struct_chain = model["chain"]
         inner_params = list(model["parameters"]) + [Parameter(n, val) for n, val, _ in current["layout"]]
         # accepted entries are not tried again, but for one that can be applied again to
-        # its own result (`catalogue.REPEATABLE`: one more mode on the link that gained one)
-        winner = accepted[-1][0]
+        # its own result (`catalogue.REPEATABLE`: one more mode on the link that gained one;
+        # in `promising` unless the model is at the noise)
         skip = set(exclude) | {a.label for a, _ in accepted if a.name not in cat.REPEATABLE}
-        skip |= {c.label for c in cands if c.structural and c.label not in promising and c.label != winner.label}
+        skip |= {c.label for c in cands if c.structural and c.label not in promising}
         inner = diagnose_logs(
             struct_chain,
             inner_params,
@@ -1286,6 +1305,21 @@ def diagnose_logs(
     return _with_totals(diag, time.perf_counter() - start)
 
 
+def _with_headroom(labels: set, problem: Problem, r_used, min_gain: float, where: str, notes: list, say) -> set:
+    """`labels`, the structural candidates to refit in the next round, or none when the
+    current model's held-out residual `r_used` leaves no room for `min_gain`
+    (`_no_headroom`; the decision goes to `notes`)."""
+    if not labels:
+        return labels
+    full, why = _no_headroom(problem, r_used, min_gain)
+    if not full:
+        return labels
+    note = f"{where}: {', '.join(sorted(labels))} not refitted: the model of the previous round is at the noise; {why}"
+    say("  " + note)
+    notes.append(note)
+    return set()
+
+
 def _promising(drops: dict, cost: float, n: int, bic_threshold: float) -> set:
     """The structural candidates whose cost drop `drops[label] = (drop, k)`, taken off a
     model of the previous round, would pass the BIC test against a model of cost `cost`:
@@ -1293,6 +1327,99 @@ def _promising(drops: dict, cost: float, n: int, bic_threshold: float) -> set:
     return {
         label for label, (drop, k) in drops.items() if drop > cost * -math.expm1(-(bic_threshold + k * math.log(n)) / n)
     }
+
+
+#: `held_out_headroom`: the relative standard error of the order-4 noise floor of `n` white
+#: samples is `FLOOR_SE / sqrt(n)` (`held_out_headroom`'s docstring)
+FLOOR_SE = 1.146
+#: `held_out_headroom`: the lags (samples) of the residual's autocorrelation checked
+WHITE_LAGS = 4
+
+
+@dataclasses.dataclass(frozen=True)
+class Headroom:
+    """`held_out_headroom`: a held-out residual against its own noise floor."""
+
+    ratio: float  # its RMS over its model-free noise floor
+    floor_se: float  # the floor's relative standard error
+    autocorrelation: tuple  # at lags 1..WHITE_LAGS samples, pooled over logs and channels
+    n: int  # the samples behind the autocorrelation
+
+    def at_the_noise(self, min_gain: float, margin_se: float) -> bool:
+        """Whether no model can take `min_gain` off this residual's RMS: the ratio below
+        `min_gain` less `margin_se` standard errors of the floor, and the residual white
+        (every autocorrelation within `margin_se + 1` of its white-noise standard error
+        `1 / sqrt(n)`)."""
+        white = all(abs(a) * math.sqrt(self.n) < margin_se + 1.0 for a in self.autocorrelation)
+        return white and self.ratio < min_gain * (1.0 - margin_se * self.floor_se)
+
+
+def held_out_headroom(problem: Problem, r_used: np.ndarray) -> Headroom:
+    """How far a model's held-out weighted residual `r_used` (the residuals of `problem`'s
+    logs that count, `_used`) is above the noise: the ratio of its RMS to its own
+    model-free noise floor (`identify.noise_floor`, the floor of the residual traces,
+    pooled over logs and channels by their samples), that floor's relative standard
+    error, and the residual's autocorrelation at the first `WHITE_LAGS` lags.
+
+    A better model's held-out RMS cannot fall below the noise, so when the ratio is below
+    `min_gain` (less a margin for the floor's error) no candidate can reach the held-out
+    gain `min_gain`. The floor is taken of the residual, not of the measured traces: the
+    measured floor carries the signal's leakage (`A (2 sin(pi f dt))^4 / sqrt(140)` for a
+    sine, 8e-4 A at 20 samples per period, which on the spinning link's tip is 40 % of
+    the noise), the residual's only the misfit's. A slow misfit leaks next to nothing, but
+    one near the Nyquist frequency passes the 4th difference almost whole (above a third
+    of the sampling rate, more than its RMS): the floor cannot tell it from noise, its
+    autocorrelation can (a misfit of a fraction `w` of the residual's variance at
+    frequency `f` adds `w cos(2 pi f k dt)` at lag `k`, and no `f` is small at all four
+    lags). Noise that is not white gives a smaller floor and a non-zero autocorrelation:
+    refits are then kept.
+
+    Standard error: the normalised 4th differences of white noise have the lag
+    correlations `(-1)^m C(8, 4 + m) / C(8, 4)` (-0.8, 0.4, -0.114, 0.014), so the mean of
+    their squares has variance `(2 / n) (1 + 2 sum rho^2) = 5.25 / n` relative to
+    `sigma^4`, and the floor a relative error of `1.146 / sqrt(n)` (`FLOOR_SE`; `n` the
+    differences, `ORDER` fewer than the samples per log and channel)."""
+    L, T, C = problem.measured.shape
+    used = _used(problem)
+    r = _pad_used(np.asarray(r_used, float), used).reshape(L, T, C)
+    floor, count = nf.channel_floors(problem.t, r, problem.valid, problem.present)
+    n = float(np.sum(count))
+    n_pseudo = float(np.sum(np.clip(count - nf.ORDER, 0, None)))  # the floor's differences
+    if n_pseudo == 0:
+        return Headroom(float("inf"), float("inf"), (), 0)
+    f2 = float(np.sum(count * np.square(floor)) / n)
+    ms = float(np.mean(np.square(r_used)))
+    ratio = math.sqrt(ms / f2) if f2 > 0 else float("inf")
+    # autocorrelation of each log's channel over its valid samples, pooled
+    lagged, total = np.zeros(WHITE_LAGS), 0.0
+    valid, present = np.asarray(problem.valid, bool), np.asarray(problem.present, bool)
+    for l in range(L):
+        for c in range(C):
+            if present[l, c]:
+                x = r[l, valid[l], c]
+                total += float(x @ x)
+                lagged += [float(x[:-k] @ x[k:]) if x.size > k else 0.0 for k in range(1, WHITE_LAGS + 1)]
+    auto = tuple(float(v) for v in lagged / total) if total > 0 else (0.0,) * WHITE_LAGS
+    return Headroom(ratio, FLOOR_SE / math.sqrt(n_pseudo), auto, int(n))
+
+
+#: `held_out_headroom`: the margin, in standard errors, by which a held-out residual must be
+#: below `min_gain` floors (and its autocorrelations near 0) before later rounds stop
+#: refitting candidates
+FLOOR_MARGIN_SE = 3.0
+
+
+def _no_headroom(problem: Problem, r_used, min_gain: float) -> tuple[bool, str]:
+    """Whether a model's held-out residual `r_used` leaves no room for a held-out gain of
+    `min_gain` (`held_out_headroom`), and the reason in words."""
+    h = held_out_headroom(problem, r_used)
+    limit = min_gain * (1.0 - FLOOR_MARGIN_SE * h.floor_se)
+    text = (
+        f"its held-out residual is {h.ratio:.3f} times its own noise floor (SE {100 * h.floor_se:.1f} %), "
+        f"below {limit:.3f}, and white (autocorrelation at most {max(map(abs, h.autocorrelation), default=0):.3f} "
+        f"at lags 1-{WHITE_LAGS}): no candidate can reach the held-out gain of {min_gain:g}"
+    )
+    return h.at_the_noise(min_gain, FLOOR_MARGIN_SE), text
 
 
 def _held_out_summary(rms_base: dict, rms_ext: dict, cost_base: float, cost_ext: float, floor: dict) -> dict:
@@ -1364,6 +1491,7 @@ def _stacked(outer: Diagnosis, inner: Diagnosis) -> Diagnosis:
         outer,
         rounds=outer.rounds + inner.rounds,
         causes=causes + inner.causes,
+        notes=outer.notes + inner.notes,
         held_out=_held_out_summary(
             outer.held_out["baseline"],
             inner.held_out["extended"],
@@ -1546,6 +1674,8 @@ def _structural_score(
         "parameters": fitted_params,
         "fit": res,
         "held_out_cost": float(np.sum(r_ho[used] ** 2)),
+        "held_out_problem": ho_problem,
+        "held_out_residual": r_ho[used],
     }
     return score, model
 

@@ -271,6 +271,9 @@ def markdown(diag, title: str = "") -> str:
             gain = "" if s.screened else f"{s.held_out_gain:.3f}x"
             p = "" if s.screened else f"{s.p_value:.2g}"
             lines.append(f"| {s.label} | {params} | {s.delta_bic:.1f} | {p} | {gain} | {'yes' if s.accepted else ''} |")
+    if diag.notes:
+        lines.append("")
+        lines.extend(f"- {n}" for n in diag.notes)
     lines.append("")
     lines.append("## Baseline fit")
     lines.append("")

@@ -122,10 +122,18 @@ def test_quadratic_damping_hidden_and_told_apart_from_dry_friction(monkeypatch):
     # a true drag of 0.1-0.4 kg/m^2 is plausible (`catalogue.implausible`); a warning, had
     # there been one, reaches the summary, the JSON and the report
     assert diag.causes[0].warnings == []
-    warned = dataclasses.replace(diag, causes=[dataclasses.replace(diag.causes[0], warnings=["link1.drag = 9"])])
+    warned = dataclasses.replace(
+        diag,
+        causes=[dataclasses.replace(diag.causes[0], warnings=["link1.drag = 9"])],
+        notes=["round 2: x:joint1 not refitted"],
+    )
     assert "IMPLAUSIBLE: link1.drag = 9" in warned.summary()
     assert "**Implausible:** link1.drag = 9" in diagnosis_report.markdown(warned)
     assert warned.to_dict()["causes"][0]["warnings"] == ["link1.drag = 9"]
+    # so do the search's notes (candidates not refitted in a later round, and why)
+    assert "note: round 2: x:joint1 not refitted" in warned.summary()
+    assert "- round 2: x:joint1 not refitted" in diagnosis_report.markdown(warned)
+    assert warned.to_dict()["notes"] == ["round 2: x:joint1 not refitted"]
 
 
 @pytest.mark.slow
@@ -236,3 +244,75 @@ def test_a_structural_candidate_is_refitted_when_its_cost_drop_would_pass_the_bi
             dbic = n * math.log((cost - drop) / cost) + k * math.log(n)
             assert (dbic < -thr) == expect
             assert (D._promising({"x": (drop, k)}, cost, n, thr) == {"x"}) == expect
+
+
+def _traces(r):
+    """A problem-like holder of residual traces `r` `(L, T, C)` on a 200 Hz grid (what
+    `held_out_headroom` reads)."""
+    import types
+
+    L, T, C = r.shape
+    return types.SimpleNamespace(
+        measured=r,
+        t=np.tile(np.arange(T) / 200.0, (L, 1)),
+        valid=np.ones((L, T), bool),
+        present=np.ones((L, C), bool),
+    )
+
+
+def test_held_out_headroom_of_white_noise_and_its_standard_error():
+    """Oracle: Monte Carlo. White residuals sit at their own floor (ratio 1); the floor
+    scatters as the closed form `FLOOR_SE / sqrt(n)` says (lag correlations of 4th
+    differences), and the ratio (what the decision reads) less, its RMS and floor coming
+    from the same noise; a misfit as large as the noise (a slow sine) shows as ratio
+    sqrt(2) (the floor of the residual does not see a smooth misfit)."""
+    rng = np.random.default_rng(3)
+    shape = (2, 400, 2)
+    n = 2 * 2 * (400 - 4)  # the floor's pseudo-residuals
+    ratios, floors = [], []
+    for _ in range(400):
+        r = 0.7 * rng.standard_normal(shape)
+        h = D.held_out_headroom(_traces(r), r.reshape(-1))
+        ratio, se = h.ratio, h.floor_se
+        ratios.append(ratio)
+        floors.append(np.sqrt(np.mean(r**2)) / ratio / 0.7)
+    assert se == pytest.approx(D.FLOOR_SE / math.sqrt(n))
+    assert abs(np.mean(ratios) - 1.0) < 0.005 and abs(np.mean(floors) - 1.0) < 0.005
+    assert np.std(floors) == pytest.approx(se, rel=0.1)  # 400 replicas: 3.5 % scatter
+    assert np.std(ratios) < np.std(floors)
+    t = np.arange(400) / 200.0
+    misfit = math.sqrt(2) * np.sin(2 * np.pi * 0.7 * t)[None, :, None]  # RMS 1 over whole periods ~
+    r = rng.standard_normal(shape) + misfit
+    assert D.held_out_headroom(_traces(r), r.reshape(-1)).ratio == pytest.approx(math.sqrt(2), rel=0.05)
+
+
+def test_no_headroom_stops_refits_only_at_the_noise():
+    rng = np.random.default_rng(4)
+    white = rng.standard_normal((1, 2000, 1))
+    full, why = D._no_headroom(_traces(white), white.reshape(-1), 1.1)
+    assert full and "held-out gain of 1.1" in why
+    t = np.arange(2000) / 200.0
+    # a slow misfit of 0.5 the noise's RMS: a perfect model would gain 1.12x, so refits go on
+    r = white + 0.5 * math.sqrt(2) * np.sin(2 * np.pi * 0.5 * t)[None, :, None]
+    assert not D._no_headroom(_traces(r), r.reshape(-1), 1.1)[0]
+    # A misfit near the Nyquist frequency (88 Hz sampled at 200 Hz: a link's third mode)
+    # passes the 4th difference whole, so the floor takes it for noise (ratio about 1)...
+    r = white + 0.8 * math.sqrt(2) * np.sin(2 * np.pi * 88.0 * t)[None, :, None]
+    h = D.held_out_headroom(_traces(r), r.reshape(-1))
+    assert h.ratio < 1.05
+    # ... but the residual is not white (lag 1: w cos(2 pi 0.44) = -0.39 x 0.93), so refits go on
+    assert h.autocorrelation[0] == pytest.approx(0.39 * math.cos(2 * np.pi * 0.44), abs=0.05)
+    assert not D._no_headroom(_traces(r), r.reshape(-1), 1.1)[0]
+    # with few samples the margin (3 SE of the floor) keeps refits going near the limit
+    few = rng.standard_normal((1, 40, 1))
+    h = D.held_out_headroom(_traces(few), few.reshape(-1))
+    assert D._no_headroom(_traces(few), few.reshape(-1), 1.1)[0] == h.at_the_noise(1.1, 3.0)
+    assert h.at_the_noise(1.1, 3.0) == (
+        h.ratio < 1.1 * (1 - 3 * h.floor_se) and max(map(abs, h.autocorrelation)) < 4 / math.sqrt(40)
+    )
+    notes = []
+    assert (
+        D._with_headroom({"missing_mode:link1"}, _traces(white), white.reshape(-1), 1.1, "round 2", notes, print)
+        == set()
+    )
+    assert notes and notes[0].startswith("round 2: missing_mode:link1 not refitted")
