@@ -436,7 +436,8 @@ class Diagnosis:
     # what the baseline model assumes that the logs may break (`evidence.stiffening_checks`:
     # a flexible link spinning or hanging enough to need geometric stiffening)
     model_checks: list = dataclasses.field(default_factory=list)
-    # what the search decided not to try, and why (candidates not refitted in a later round)
+    # what the search decided not to try, and why: `{'round': n, 'text': ...}` (candidates
+    # not refitted in round n, counted over the whole search)
     notes: list = dataclasses.field(default_factory=list)
 
     @property
@@ -500,7 +501,7 @@ class Diagnosis:
             f"total dBIC {self.delta_bic_total:.1f}; fraction of the held-out residual explained "
             f"{self.fraction_explained:.3f} (of its excess over the noise: {self.excess_explained_text})"
         )
-        lines.extend(f"note: {n}" for n in self.notes)
+        lines.extend(f"note: round {n['round']}: {n['text']}" for n in self.notes)
         for r, scores in enumerate(self.rounds, start=1):
             lines.append("")
             lines.append(f"round {r}: candidates (best first)")
@@ -1111,7 +1112,7 @@ def diagnose_logs(
             if wc.name in cat.REPEATABLE:
                 again |= {wc.label}
             again = _with_headroom(
-                again, model["held_out_problem"], model["held_out_residual"], min_gain, f"round {rnd + 2}", notes, say
+                again, model["held_out_problem"], model["held_out_residual"], min_gain, rnd + 2, notes, say
             )
             stack_on = (model, rnd + 1, again)
             break
@@ -1128,9 +1129,7 @@ def diagnose_logs(
         if rnd + 1 < max_effects:
             current = reconverge(current, f["size"])
         struct_promising = _promising(struct_drop, current["cost"], N, bic_threshold)
-        struct_promising = _with_headroom(
-            struct_promising, ho_problem, current["ho"], min_gain, f"round {rnd + 2}", notes, say
-        )
+        struct_promising = _with_headroom(struct_promising, ho_problem, current["ho"], min_gain, rnd + 2, notes, say)
 
     # the extended model: parameters, intervals, gain
     causes = []
@@ -1305,18 +1304,18 @@ def diagnose_logs(
     return _with_totals(diag, time.perf_counter() - start)
 
 
-def _with_headroom(labels: set, problem: Problem, r_used, min_gain: float, where: str, notes: list, say) -> set:
-    """`labels`, the structural candidates to refit in the next round, or none when the
-    current model's held-out residual `r_used` leaves no room for `min_gain`
+def _with_headroom(labels: set, problem: Problem, r_used, min_gain: float, rnd: int, notes: list, say) -> set:
+    """`labels`, the structural candidates to refit in round `rnd` (from 1), or none when
+    the current model's held-out residual `r_used` leaves no room for `min_gain`
     (`_no_headroom`; the decision goes to `notes`)."""
     if not labels:
         return labels
     full, why = _no_headroom(problem, r_used, min_gain)
     if not full:
         return labels
-    note = f"{where}: {', '.join(sorted(labels))} not refitted: the model of the previous round is at the noise; {why}"
-    say("  " + note)
-    notes.append(note)
+    text = f"{', '.join(sorted(labels))} not refitted: the model of the previous round is at the noise; {why}"
+    say(f"  round {rnd}: {text}")
+    notes.append({"round": rnd, "text": text})
     return set()
 
 
@@ -1491,7 +1490,8 @@ def _stacked(outer: Diagnosis, inner: Diagnosis) -> Diagnosis:
         outer,
         rounds=outer.rounds + inner.rounds,
         causes=causes + inner.causes,
-        notes=outer.notes + inner.notes,
+        # the inner search's rounds continue the outer's count
+        notes=outer.notes + [{**n, "round": n["round"] + len(outer.rounds)} for n in inner.notes],
         held_out=_held_out_summary(
             outer.held_out["baseline"],
             inner.held_out["extended"],

@@ -273,7 +273,7 @@ def markdown(diag, title: str = "") -> str:
             lines.append(f"| {s.label} | {params} | {s.delta_bic:.1f} | {p} | {gain} | {'yes' if s.accepted else ''} |")
     if diag.notes:
         lines.append("")
-        lines.extend(f"- {n}" for n in diag.notes)
+        lines.extend(f"- Round {n['round']}: {n['text']}" for n in diag.notes)
     lines.append("")
     lines.append("## Baseline fit")
     lines.append("")

@@ -125,15 +125,15 @@ def test_quadratic_damping_hidden_and_told_apart_from_dry_friction(monkeypatch):
     warned = dataclasses.replace(
         diag,
         causes=[dataclasses.replace(diag.causes[0], warnings=["link1.drag = 9"])],
-        notes=["round 2: x:joint1 not refitted"],
+        notes=[{"round": 2, "text": "x:joint1 not refitted"}],
     )
     assert "IMPLAUSIBLE: link1.drag = 9" in warned.summary()
     assert "**Implausible:** link1.drag = 9" in diagnosis_report.markdown(warned)
     assert warned.to_dict()["causes"][0]["warnings"] == ["link1.drag = 9"]
     # so do the search's notes (candidates not refitted in a later round, and why)
     assert "note: round 2: x:joint1 not refitted" in warned.summary()
-    assert "- round 2: x:joint1 not refitted" in diagnosis_report.markdown(warned)
-    assert warned.to_dict()["notes"] == ["round 2: x:joint1 not refitted"]
+    assert "- Round 2: x:joint1 not refitted" in diagnosis_report.markdown(warned)
+    assert warned.to_dict()["notes"] == [{"round": 2, "text": "x:joint1 not refitted"}]
 
 
 @pytest.mark.slow
@@ -311,8 +311,5 @@ def test_no_headroom_stops_refits_only_at_the_noise():
         h.ratio < 1.1 * (1 - 3 * h.floor_se) and max(map(abs, h.autocorrelation)) < 4 / math.sqrt(40)
     )
     notes = []
-    assert (
-        D._with_headroom({"missing_mode:link1"}, _traces(white), white.reshape(-1), 1.1, "round 2", notes, print)
-        == set()
-    )
-    assert notes and notes[0].startswith("round 2: missing_mode:link1 not refitted")
+    assert D._with_headroom({"missing_mode:link1"}, _traces(white), white.reshape(-1), 1.1, 2, notes, print) == set()
+    assert notes[0]["round"] == 2 and notes[0]["text"].startswith("missing_mode:link1 not refitted")

@@ -127,15 +127,18 @@ def test_two_missing_modes_are_found_one_after_the_other():
     1/m) sees the third mode (the second changes the root curvature by ~40x the noise, the
     third by 0.3-0.6x on the fitted logs, the fourth by a quarter of that). The second mode
     wins round 1 (a structural change); from the two-mode model the search offers one more
-    mode on the same link, which wins round 2; from three modes the fourth is rejected.
+    mode on the same link, which wins round 2; the three-mode model (the truth) is at the
+    noise on the held-out logs, so a fourth is not tried (`diagnose.held_out_headroom`).
     Measured 2026-11-25 (seed 1, 5 min): round 2 missing_mode dBIC -2375, held-out gain
-    1.46x; round 3 missing_mode dBIC +240; total held-out gain 11.4x (curvature 15.6x)."""
+    1.46x; round 3 (tried then) missing_mode dBIC +240; total held-out gain 11.4x
+    (curvature 15.6x)."""
     noise = {"curvature1": 5e-5}
     logs = arm_logs(arm(n_modes=3), 1, channels=("theta1", "curvature1"), noise=noise)
     diag = diagnose_arm(logs, noise=noise)
     assert diag.named == ["missing_mode", "missing_mode"], diag.summary()
     assert diag.extended_chain.links[0].n_modes == 3
-    # the fourth mode was tried from the three-mode model and rejected
-    last = {s.label: s for s in diag.rounds[-1]}
-    assert "missing_mode:link1" in last and not last["missing_mode:link1"].accepted
+    # from the three-mode model the fourth is not tried: its held-out residual is white at
+    # its noise floor, and the notes say so (before, it was tried and rejected: dBIC +240)
+    assert "missing_mode:link1" not in {s.label for s in diag.rounds[-1]}
+    assert [(n["round"], n["text"].split(" not refitted")[0]) for n in diag.notes] == [(3, "missing_mode:link1")]
     assert diag.held_out["gain"]["curvature1"] >= 2.0, diag.summary()
