@@ -78,6 +78,15 @@ DESCRIPTION = {
 # the next search offers one more mode on the same link (a link may miss several).
 REPEATABLE = ("missing_mode",)
 
+# Structural entries whose model contains the model they extend as a limit, with what that
+# limit is. Their fit can always get as close to the extended model's cost as it likes, so
+# one that ends well above it stopped in a local minimum (its rejection is no evidence
+# against the effect). `missing_mode` and `geometric_stiffening` have no such limit: the
+# extra mode, or the axial-load stiffness, cannot be switched off by a parameter.
+NESTED_LIMIT = {
+    "joint_elasticity": "an infinitely stiff spring, the rotor's inertia added to the hub's",
+}
+
 
 @dataclasses.dataclass(frozen=True)
 class Candidate:

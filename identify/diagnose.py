@@ -46,7 +46,10 @@ the model, and measure the gain on held-out data.
    (`_promising`): each is a model of its own, the expensive part. None is refitted when
    the current model's held-out residual is already at its own noise floor
    (`held_out_headroom`): no candidate could then reach the held-out gain `min_gain`
-   (`Diagnosis.notes` says so).
+   (`Diagnosis.notes` says so). A structural candidate whose model holds the current one
+   as a limit (`catalogue.NESTED_LIMIT`: an elastic joint stiff enough is the rigid one)
+   but whose fit ends above it stopped in a local minimum; the notes say so, since its
+   rejection is then no evidence against the effect (`_stuck_above_nested`).
 
 The result (`Diagnosis`) holds the baseline fit, the evidence, every candidate's scores,
 the accepted causes with their parameters and 95 % intervals (from the exact Jacobian
@@ -1030,6 +1033,10 @@ def diagnose_logs(
             if s is not None:
                 scores.append(s[0])
                 struct_models[c.label] = s[1]
+                stuck = _stuck_above_nested(c, s[0].cost, current["cost"], bic_threshold)
+                if stuck:
+                    say(f"  round {rnd + 1}: {stuck}")
+                    notes.append({"round": rnd + 1, "text": stuck})
         # Pair search. When no single entry is accepted but the best continuous one fits
         # the data far better (dBIC < -bic_threshold) and still fails on the held-out data,
         # the cause may be two effects that only work together. Seen on the real single
@@ -1317,6 +1324,21 @@ def _with_headroom(labels: set, problem: Problem, r_used, min_gain: float, rnd: 
     say(f"  round {rnd}: {text}")
     notes.append({"round": rnd, "text": text})
     return set()
+
+
+def _stuck_above_nested(c, cost: float, cost_current: float, bic_threshold: float) -> str:
+    """A note when structural candidate `c`, whose model holds the current one as a limit
+    (`catalogue.NESTED_LIMIT`), ended its fit with a cost (chi-square units, fit data) more
+    than `bic_threshold` above the current model's: its fit stopped in a local minimum,
+    and its dBIC is no evidence against the effect. Else ''."""
+    limit = cat.NESTED_LIMIT.get(c.name)
+    if limit is None or not cost > cost_current + bic_threshold:
+        return ""
+    return (
+        f"{c.label}: its fit ended above the model it extends (cost {cost:.1f} against "
+        f"{cost_current:.1f}), which it holds as a limit ({limit}): a local minimum, not "
+        "evidence against the effect"
+    )
 
 
 def _promising(drops: dict, cost: float, n: int, bic_threshold: float) -> set:

@@ -134,3 +134,52 @@ def test_highpass_is_not_judged_without_a_mode():
         cat.implausible("sensor_highpass", {"sensor.theta1.highpass": 5.0}, **{**_CONTEXT, "lowest_mode_hz": None})
         == []
     )
+
+
+def test_joint_elasticity_holds_the_rigid_joint_as_its_stiff_limit():
+    """`catalogue.NESTED_LIMIT`'s claim, against the rigid model it extends: with the rotor
+    at its first guess (the inertia taken off the hub), the elastic joint's hub angle and
+    tip deflection approach the rigid joint's as 1/k (spring deflection = torque / k)."""
+    import sys
+
+    import numpy as np
+
+    import flexdyn as fd
+
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parents[1]))
+    from diagnose_cases import arm
+
+    rigid = arm()
+    cand = _entry("joint_elasticity", "joint1", ("joint1.stiffness", "joint1.rotor_inertia"), ((),), structural=True)
+    elastic, guesses = cat.structural_model(rigid, cand, max_frequency_hz=20.0)
+    assert "joint_elasticity" in cat.NESTED_LIMIT
+    ts = np.linspace(0.0, 0.6, 61)
+    torque = fd.BangBang(0.2, 0.15)
+    ref = fd.simulate(rigid, fd.initial_state(rigid, [0.0]), ts, torque, dt=1e-4)
+    errors = []
+    for k in (1e3, 1e4):
+        chain = fd.with_parameters(
+            elastic, {"joint1.stiffness": k, "joint1.rotor_inertia": guesses["joint1.rotor_inertia"]}
+        )
+        tr = fd.simulate(chain, fd.initial_state(chain, [0.0]), ts, torque, dt=1e-4)
+        rel = [
+            float(np.max(np.abs(tr.coordinate(n) - ref.coordinate(n))) / np.max(np.abs(ref.coordinate(n))))
+            for n in ("theta1", "q1_1")
+        ]
+        errors.append(max(rel))
+    # relative error ~ 1/k: small, and 10x smaller for a 10x stiffer spring
+    assert errors[1] < 2e-3, errors
+    assert 5.0 < errors[0] / errors[1] < 20.0, errors
+
+
+def test_a_nested_structural_fit_that_ends_above_its_limit_is_noted():
+    from identify.diagnose import _stuck_above_nested
+
+    joint = _entry("joint_elasticity", "joint1", ("joint1.stiffness", "joint1.rotor_inertia"), ((),), structural=True)
+    mode = _entry("missing_mode", "link1", (), ((),), structural=True)
+    text = _stuck_above_nested(joint, 5000.0, 1500.0, 10.0)
+    assert "joint_elasticity:joint1" in text and "local minimum" in text and "5000.0" in text
+    assert _stuck_above_nested(joint, 1505.0, 1500.0, 10.0) == ""  # within the BIC threshold
+    assert _stuck_above_nested(joint, 1200.0, 1500.0, 10.0) == ""
+    # a missing mode cannot be switched off by a parameter: ending above is the data's answer
+    assert _stuck_above_nested(mode, 5000.0, 1500.0, 10.0) == ""
