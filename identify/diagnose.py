@@ -43,10 +43,10 @@ the model, and measure the gain on held-out data.
    gained one is offered the next), and the remaining rounds; the two searches are then
    reported as one (`_stacked`). A structural candidate is refitted in a later round only if the cost it
    took off the model of its last round would pass the BIC test against the current one
-   (`_promising`): each is a model of its own, the expensive part. None is refitted when
-   the current model's held-out residual is already at its own noise floor
-   (`held_out_headroom`): no candidate could then reach the held-out gain `min_gain`
-   (`Diagnosis.notes` says so). A structural candidate whose model holds the current one
+   (`_promising`): each is a model of its own, the expensive part. None is fitted when
+   the current model's held-out residual (the baseline's in the first round) is already
+   at its own noise floor (`held_out_headroom`): no candidate could then reach the
+   held-out gain `min_gain` (`Diagnosis.notes` says so). A structural candidate whose model holds the current one
    as a limit (`catalogue.NESTED_LIMIT`: an elastic joint stiff enough is the rigid one)
    but whose fit ends above it stopped in a local minimum; the notes say so, since its
    rejection is then no evidence against the effect (`_stuck_above_nested`).
@@ -1001,12 +1001,24 @@ def diagnose_logs(
             break
         scores, fits = score_continuous(remaining, current["v"])
         rms_cur = float(np.sqrt(np.mean(current["ho"] ** 2)))
-        # structural candidates of this round: all of them from the baseline; in later
-        # rounds only those that improved significantly on the model of the previous round
-        # (each is a model of its own, compiled and fitted separately: the expensive part)
-        for c in [
-            x for x in cands if x.structural and x.label not in done and (rnd == 0 or x.label in struct_promising)
-        ]:
+        if rnd == 0:
+            # a baseline already at the noise leaves no candidate the held-out gain: the
+            # continuous ones cost one vmapped call and fill the report's table, but each
+            # structural one is a model of its own to compile and fit
+            struct_promising = _with_headroom(
+                {x.label for x in cands if x.structural and x.label not in done},
+                ho_problem,
+                current["ho"],
+                min_gain,
+                1,
+                notes,
+                say,
+            )
+        # structural candidates of this round: all of them from the baseline (unless it is
+        # at the noise); in later rounds only those that improved significantly on the
+        # model of the previous round (each is a model of its own, compiled and fitted
+        # separately: the expensive part)
+        for c in [x for x in cands if x.structural and x.label not in done and x.label in struct_promising]:
             s = _structural_score(
                 rtol,
                 c,
@@ -1312,15 +1324,19 @@ def diagnose_logs(
 
 
 def _with_headroom(labels: set, problem: Problem, r_used, min_gain: float, rnd: int, notes: list, say) -> set:
-    """`labels`, the structural candidates to refit in round `rnd` (from 1), or none when
-    the current model's held-out residual `r_used` leaves no room for `min_gain`
-    (`_no_headroom`; the decision goes to `notes`)."""
+    """`labels`, the structural candidates to fit in round `rnd` (from 1; in round 1 all
+    of them, from the baseline), or none when the current model's held-out residual
+    `r_used` leaves no room for `min_gain` (`_no_headroom`; the decision goes to
+    `notes`)."""
     if not labels:
         return labels
     full, why = _no_headroom(problem, r_used, min_gain)
     if not full:
         return labels
-    text = f"{', '.join(sorted(labels))} not refitted: the model of the previous round is at the noise; {why}"
+    if rnd == 1:
+        text = f"{', '.join(sorted(labels))} not fitted: the baseline is at the noise; {why}"
+    else:
+        text = f"{', '.join(sorted(labels))} not refitted: the model of the previous round is at the noise; {why}"
     say(f"  round {rnd}: {text}")
     notes.append({"round": rnd, "text": text})
     return set()

@@ -313,3 +313,9 @@ def test_no_headroom_stops_refits_only_at_the_noise():
     notes = []
     assert D._with_headroom({"missing_mode:link1"}, _traces(white), white.reshape(-1), 1.1, 2, notes, print) == set()
     assert notes[0]["round"] == 2 and notes[0]["text"].startswith("missing_mode:link1 not refitted")
+    # in the first round the model at the noise is the baseline: nothing structural is fitted
+    labels = {"missing_mode:link1", "joint_elasticity:joint1"}
+    assert D._with_headroom(labels, _traces(white), white.reshape(-1), 1.1, 1, notes, print) == set()
+    assert notes[1]["round"] == 1
+    assert notes[1]["text"].startswith("joint_elasticity:joint1, missing_mode:link1 not fitted: the baseline")
+    assert D._with_headroom(labels, _traces(r), r.reshape(-1), 1.1, 1, notes, print) == labels and len(notes) == 2
