@@ -731,6 +731,7 @@ def fit(
     restart_poor_fit: bool = True,
     frequency_init: bool = True,
     first_damping: float = 1e-3,
+    extra_starts: Sequence[dict] = (),
     progress=None,
 ) -> FitResult:
     """Fit the free parameters (and per-log nuisances) of `problem`.
@@ -758,6 +759,11 @@ def fit(
       see `_starts`), and the best continues. Measured on the
       4-parameter flexible-arm benchmark: from guesses -50 %/+100 % off, single-start
       growing horizon converged in 20 of 24 trials, all failures starting at 2x EI.
+    - `extra_starts`: more points for the multi-start stage, each a dict of parameter
+      values (SI, by name; the others at their guesses), after the `n_starts` of the
+      design: points a caller knows matter (a vendor's value, an earlier rig's fit, the
+      limit in which a model extension reproduces the model it extends). Each runs the
+      first stage like the design's points, and the best of all continues.
     - `max_restarts`: if the fit ends with a parameter on a bound, or (`restart_poor_fit`)
       with a channel's residual RMS above `identify.noise_floor.POOR_FIT` (2) times its
       noise floor estimated from the data alone (both signs of a wrong basin), the growing
@@ -793,6 +799,7 @@ def fit(
     """
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps, early_max_steps=early_max_steps)
+    extra = _extra_starts(problem, parameters, extra_starts)
     fd.ensure_mapping_headroom()  # a fit compiles ~10-50 programs (flexdyn.program_cache)
     start = time.perf_counter()
     say = progress or (lambda msg: None)
@@ -815,14 +822,14 @@ def fit(
     # one compiled Levenberg-Marquardt program for every stage and start: the iteration
     # budget is traced (`_BudgetedLM`), the loop bound `cap` static
     cap = max(max_steps, early_max_steps)
-    if n_starts > 1 and problem.names:
+    if (n_starts > 1 or len(extra)) and problem.names:
         # Multi-start on the shortest horizon: a few cheap short fits from a design around
         # the guess, one after another with the stages' compiled program (a vmapped call
         # would be a second program, ~18 s more compilation on 2 cores, and on the CPU it
         # is not faster); the best ones seed the growing horizon.
         h = horizons[0]
         step = _stage_step(problem, z, h, grid_safety)
-        xs = _starts(problem, x0, n_starts, start_spread)
+        xs = list(_starts(problem, x0, n_starts, start_spread)) + extra
         runs = [
             _solve(
                 problem,
@@ -848,12 +855,12 @@ def fit(
                 "iterations": max(int(r[2]) for r in runs),
                 "cost": float(costs[best]),
                 "result": _result_name(runs[best][1]),
-                "starts": n_starts,
+                "starts": len(xs),
                 "start_costs": [float(c) for c in costs],
             }
         )
         say(
-            f"  horizon {h:8.3f} s: {n_starts} starts, best cost {float(costs[best]):.6g} "
+            f"  horizon {h:8.3f} s: {len(xs)} starts, best cost {float(costs[best]):.6g} "
             f"(start {best}; others {', '.join(f'{float(c):.4g}' for c in costs)})"
         )
     # Grow the horizon from the best start; if that ends on a bound of a parameter or with
@@ -1497,6 +1504,26 @@ def _frequency_initialise_independent(problem: Problem, singles, stacked, z, x0,
     theta = np.asarray(_theta_from_x(problem, jnp.asarray(x0)))
     thetas = initialise_stiffness(singles, np.tile(theta, (n_logs, 1)), limits, simulate, say)
     return {**z, "phys": batch_phys(thetas)}
+
+
+def _extra_starts(problem: Problem, parameters, extra_starts) -> list:
+    """`fit`'s `extra_starts` in natural coordinates (the guesses where a start names no
+    value), each checked: known parameter names, finite values inside the bounds."""
+    out = []
+    guess = {p.name: p.guess for p in parameters}
+    for k, start in enumerate(extra_starts):
+        unknown = sorted(set(start) - set(problem.names))
+        if unknown:
+            raise ValueError(
+                f"fit: extra_starts[{k}] names {unknown}, which are not free parameters (free: {list(problem.names)})"
+            )
+        theta = [float(start.get(n, guess[n])) for n in problem.names]
+        for n, v, lo, hi, lg in zip(problem.names, theta, problem.lower, problem.upper, problem.log_scale):
+            x = math.log(v) if lg and v > 0 else v
+            if not (np.isfinite(v) and (v > 0 or not lg) and lo <= x <= hi):
+                raise ValueError(f"fit: extra_starts[{k}]: {n} = {v!r} is not a finite value inside its bounds")
+        out.append(_x_from_theta(problem, theta))
+    return out
 
 
 def _starts(problem: Problem, x0: np.ndarray, n_starts: int, spread: float) -> np.ndarray:

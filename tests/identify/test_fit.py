@@ -203,6 +203,14 @@ def test_one_start_growing_horizon_needs_the_scaled_first_damping(arm):
     print(describe(classical, seconds, "optimistix's first damping:"))
     assert not within_bars(classical)
     assert classical.value["joint1.damping"] < 0.05 * TRUTH["joint1.damping"]
+    # the same start plus a caller's point 20-30 % off the truth (`extra_starts`): the
+    # short first stage runs from both, and the better one, the caller's, continues
+    near = {"link1.EI": 1.3, "joint1.damping": 0.0065, "hub1.inertia": 0.016, "payload.mass": 0.06}
+    helped, seconds = arm.fit(3008, factors, first_damping=0.0, extra_starts=[near], **options)
+    print(describe(helped, seconds, "with a start near the truth:"))
+    first = helped.stages[0]
+    assert first["starts"] == 2 and first["start_costs"][1] < first["start_costs"][0], first
+    assert helped.converged and within_bars(helped), helped.summary()
 
 
 # ---------------------------------------------------------------------------
@@ -682,6 +690,20 @@ def test_fit_rejects_a_bad_first_damping(value):
         identify.fit(problem, params, first_damping=value)
     with pytest.raises(ValueError, match="first_damping must be a finite number >= 0"):
         identify.fit_independent(problem, params, first_damping=value)
+
+
+@pytest.mark.parametrize(
+    ("start", "message"),
+    [
+        ({"joint1.stiffness": 10.0}, r"extra_starts\[0\] names \['joint1.stiffness'\], which are not free"),
+        ({"joint1.damping": -1e-3}, r"extra_starts\[0\]: joint1.damping = -0.001 is not a finite value inside"),
+        ({"joint1.damping": float("nan")}, r"extra_starts\[0\]: joint1.damping = nan is not a finite value"),
+    ],
+)
+def test_fit_rejects_a_bad_extra_start_by_name(start, message):
+    problem, params = _tiny_problem()
+    with pytest.raises(ValueError, match=message):
+        identify.fit(problem, params, extra_starts=[start])
 
 
 def test_dx_dz_is_the_derivative_of_the_bound_transform():
