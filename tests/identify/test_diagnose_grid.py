@@ -140,5 +140,10 @@ def test_two_missing_modes_are_found_one_after_the_other():
     # from the three-mode model the fourth is not tried: its held-out residual is white at
     # its noise floor, and the notes say so (before, it was tried and rejected: dBIC +240)
     assert "missing_mode:link1" not in {s.label for s in diag.rounds[-1]}
-    assert [(n["round"], n["text"].split(" not refitted")[0]) for n in diag.notes] == [(3, "missing_mode:link1")]
+    assert [(n["round"], n["text"].split(" not refitted")[0]) for n in diag.notes[1:]] == [(3, "missing_mode:link1")]
+    # round 1's elastic joint, fitted to an arm whose joint is rigid, ends far above the
+    # rigid model it holds as a limit (measured: cost 767443 against 520802): a local
+    # minimum, and the first note says so (`diagnose._stuck_above_nested`)
+    first = diag.notes[0]
+    assert first["round"] == 1 and first["text"].startswith("joint_elasticity:joint1: its fit ended above"), first
     assert diag.held_out["gain"]["curvature1"] >= 2.0, diag.summary()
