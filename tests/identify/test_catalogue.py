@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 import pytest
+from diagnose_cases import arm  # tests/ is on sys.path
 
+import flexdyn as fd
 from identify import catalogue as cat
 
 
@@ -33,8 +36,6 @@ def test_pair_of_a_structural_entry_is_refused_by_name():
 
 
 def test_missing_mode_keeps_the_links_geometric_stiffening():
-    import flexdyn as fd
-
     for stiffening in (True, False):
         chain = fd.rigs.two_link_flexible_arm(n_modes=1, geometric_stiffening=stiffening)
         mode = _entry("missing_mode", "link2", (), ((),), structural=True)
@@ -63,8 +64,6 @@ def _offered(chain, stiffening_links):
 
 
 def test_geometric_stiffening_is_offered_only_where_the_model_check_flags_it():
-    import flexdyn as fd
-
     linear = fd.rigs.two_link_flexible_arm(n_modes=1, geometric_stiffening=False)
     assert _offered(linear, ()) == []
     assert _offered(linear, {"link2"}) == ["geometric_stiffening:link2"]
@@ -75,8 +74,6 @@ def test_geometric_stiffening_is_offered_only_where_the_model_check_flags_it():
 
 
 def test_geometric_stiffening_switches_the_option_on_one_link_and_keeps_its_parameters():
-    import flexdyn as fd
-
     chain = fd.rigs.two_link_flexible_arm(n_modes=2, geometric_stiffening=False)
     entry = _entry("geometric_stiffening", "link2", (), ((),), structural=True)
     extended, guesses = cat.structural_model(chain, entry, max_frequency_hz=50.0)
@@ -140,15 +137,6 @@ def test_joint_elasticity_holds_the_rigid_joint_as_its_stiff_limit():
     """`catalogue.NESTED_LIMIT`'s claim, against the rigid model it extends: with the rotor
     at its first guess (the inertia taken off the hub), the elastic joint's hub angle and
     tip deflection approach the rigid joint's as 1/k (spring deflection = torque / k)."""
-    import sys
-
-    import numpy as np
-
-    import flexdyn as fd
-
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parents[1]))
-    from diagnose_cases import arm
-
     rigid = arm()
     cand = _entry("joint_elasticity", "joint1", ("joint1.stiffness", "joint1.rotor_inertia"), ((),), structural=True)
     elastic, guesses = cat.structural_model(rigid, cand, max_frequency_hz=20.0)
