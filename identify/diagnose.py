@@ -1316,6 +1316,7 @@ def diagnose_logs(
                 "max_restarts": 0,
                 "frequency_init": False,
                 "first_damping": 0.0,  # a warm start (the accepted model's values)
+                "extra_starts": (),
             },
             progress=(lambda msg: say("  " + msg)) if progress else None,
         )
@@ -1737,8 +1738,12 @@ def _with_extra_state(logs, chain):
 
 
 def diagnose(experiment, *, progress=None, **options) -> Diagnosis:
-    """Diagnose an `Experiment` (see the module docstring); `options` go to `diagnose_logs`."""
+    """Diagnose an `Experiment` (see the module docstring); `options` go to `diagnose_logs`.
+    The baseline fit starts from the experiment's `[[starts]]` too (`fit_options`'
+    `extra_starts`, unless the caller gives them)."""
     from .run import log_data, parameters
+
+    options["fit_options"] = {"extra_starts": experiment.starts, **(options.get("fit_options") or {})}
 
     n = experiment.chain.n_links
     fit_logs = [log_data(s, n) for s in experiment.fit_logs]

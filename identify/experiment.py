@@ -46,7 +46,7 @@ RIGS = {
 LINK_TYPES = {"rigid": fd.RigidLink, "flexible": fd.FlexibleLink}
 JOINT_TYPES = {"rigid": fd.RigidJoint, "elastic": fd.ElasticJoint}
 
-_TOP_KEYS = ("experiment", "rig", "parameters", "noise", "logs", "sensors", "actuators")
+_TOP_KEYS = ("experiment", "rig", "parameters", "starts", "noise", "logs", "sensors", "actuators")
 _EXPERIMENT_KEYS = ("name", "description", "strict", "min_samples")
 _RIG_KEYS = ("base", "options", "set", "gravity", "links", "joints", "hubs", "payload")
 _LOG_KEYS = ("file", "name", "role", "columns", "calibration", "initial", "fit_initial", "offsets", "strict")
@@ -124,6 +124,9 @@ class Experiment:
       (`identify.measurement.Measurement`, from `[sensors.<channel>]` and
       `[actuators.joint<i>]`; a measurement parameter that is free but not given there is
       present at its neutral value).
+    - `starts`: `[[starts]]`, extra points for the fit's multi-start stage, each a dict of
+      free parameter -> SI value (the others start at their guesses): `identify.fit`'s
+      `extra_starts`.
     """
 
     path: Path
@@ -134,6 +137,7 @@ class Experiment:
     noise: dict[str, float | None]
     logs: tuple[LogSpec, ...]
     measurement: meas.Measurement = dataclasses.field(default_factory=meas.Measurement)
+    starts: tuple[dict[str, float], ...] = ()
 
     @property
     def fit_logs(self) -> tuple[LogSpec, ...]:
@@ -165,6 +169,8 @@ class Experiment:
         for p in self.free:
             scale = "log" if p.log_scale else "linear"
             lines.append(f"  free {p.name} = {p.guess:g} in [{p.lower}, {p.upper}] {p.unit} ({scale})")
+        for k, start in enumerate(self.starts, start=1):
+            lines.append(f"  start {k}: " + ", ".join(f"{n} = {v:g}" for n, v in start.items()))
         for c, s in self.noise.items():
             lines.append(f"  noise {c}: {'estimate' if s is None else f'{s:g}'}")
         for n in meas.parameter_names(self.measurement):
@@ -214,8 +220,10 @@ def _key_lines(text: str) -> dict[tuple, int]:
             continue
         m = _ASSIGN_RE.match(stripped)
         if m:
-            key = table + tuple(_split_key(m[1]))
-            lines.setdefault(key, no)
+            dotted = tuple(_split_key(m[1]))
+            for n in range(1, len(dotted) + 1):  # a bare dotted key `a.b = 1` also makes table `a`
+                lines.setdefault(table + dotted[:n], no)
+            key = table + dotted
             rest = stripped[m.end() :]
             for inner in _INLINE_KEY_RE.finditer(rest):
                 lines.setdefault(key + tuple(_split_key(inner[1])), no)
@@ -347,6 +355,7 @@ def load_experiment(path) -> Experiment:
     free, measurement = _free_parameters(
         r, chain, measurement, logs, r.table(doc.get("parameters", {}), ("parameters",))
     )
+    starts = _starts(r, free, doc.get("starts", []))
     return Experiment(
         path=path,
         name=name,
@@ -356,6 +365,7 @@ def load_experiment(path) -> Experiment:
         noise=noise,
         logs=tuple(logs),
         measurement=measurement,
+        starts=starts,
     )
 
 
@@ -560,6 +570,48 @@ def _free_parameters(
             )
         free.append(FreeParameter(name, guess, lower, upper, unit, log_scale))
     return free, measurement
+
+
+def _starts(r: _Reader, free: list[FreeParameter], entries) -> tuple[dict[str, float], ...]:
+    """The `[[starts]]` tables: each names free parameters (quoted, as in `[parameters]`)
+    and gives each a value in SI units inside its bounds (> 0 for a parameter fitted in log
+    space)."""
+    if not isinstance(entries, list):
+        raise r.error(("starts",), f'expected [[starts]] tables ("link1.EI" = 2.0, ...), got {_show(entries)}')
+    if entries and not free:
+        raise r.error(("starts",), "there are no free parameters ([parameters]) for a start to set")
+    by_name = {p.name: p for p in free}
+    out = []
+    for k, entry in enumerate(entries, start=1):
+        key = ("starts", k)
+        entry = r.table(entry, key)
+        if not entry:
+            raise r.error(key, 'empty start; expected free parameters and their values, e.g. "link1.EI" = 2.0')
+        start = {}
+        for name, value in entry.items():
+            if name not in by_name:
+                if isinstance(value, Mapping) and any(f"{name}.{sub}" in by_name for sub in value):
+                    sub = next(sub for sub in value if f"{name}.{sub}" in by_name)
+                    raise r.error(
+                        key + (name,), f'a bare dotted key makes a table in TOML; quote the name: "{name}.{sub}" = ...'
+                    )
+                raise r.error(
+                    key + (name,),
+                    f"not a free parameter; a start sets those listed under [parameters] ({', '.join(by_name)})",
+                )
+            p = by_name[name]
+            v = r.number(value, key + (name,))
+            if p.log_scale and v <= 0:
+                raise r.error(key + (name,), f"{name} is fitted in log space; expected a value > 0, got {v:g}")
+            if (p.lower is not None and v < p.lower) or (p.upper is not None and v > p.upper):
+                raise r.error(
+                    key + (name,),
+                    f"{v:g} is outside [{_bound(p.lower)}, {_bound(p.upper)}] {p.unit}; expected a value inside "
+                    "the parameter's bounds",
+                )
+            start[name] = v
+        out.append(start)
+    return tuple(out)
 
 
 def _measurement_parameter(r: _Reader, chain, measurement, logs, name: str, key: tuple) -> meas.Measurement:

@@ -37,9 +37,11 @@ def problem_from_experiment(exp: Experiment, logs=None, **solver) -> Problem:
 
 
 def fit_experiment(exp: Experiment, *, progress=None, **options) -> FitResult:
-    """Fit the experiment's free parameters to its fit logs. `options` go to `identify.fit`."""
+    """Fit the experiment's free parameters to its fit logs. `options` go to `identify.fit`;
+    its `extra_starts` default to the experiment's `[[starts]]`."""
     problem = problem_from_experiment(exp)
     estimate = [c for c in problem.channels if exp.noise.get(c) is None]
+    options.setdefault("extra_starts", exp.starts)
     return fit(problem, parameters(exp), estimate_noise=estimate or False, progress=progress, **options)
 
 

@@ -356,6 +356,77 @@ def test_bad_bounds(tmp_path, entry, expected):
         load_experiment(path)
 
 
+STARTS_PARAMETERS = """
+[parameters]
+"link1.EI" = { guess = 2.0, lower = 0.5, upper = 20.0 }
+"joint1.damping" = { guess = 1e-3 }
+"gravity[1]" = { guess = -9.81 }
+"""
+
+
+def test_starts_are_read_in_si_and_reach_the_fit(tmp_path, monkeypatch):
+    """`[[starts]]`: extra points for the multi-start stage (`identify.fit`'s
+    `extra_starts`), each naming some free parameters; `fit_experiment` passes them on
+    unless the caller gives its own."""
+    import importlib
+
+    import identify.run as run
+
+    diagnose_module = importlib.import_module("identify.diagnose")  # `identify.diagnose` is also the function
+
+    body = (
+        RIG
+        + STARTS_PARAMETERS
+        + '[[starts]]\n"link1.EI" = 8.0\n\n[[starts]]\n"joint1.damping" = 0.02\n"gravity[1]" = -9.7\n'
+    )
+    exp = load_experiment(experiment(tmp_path, body + LOG))
+    assert exp.starts == ({"link1.EI": 8.0}, {"joint1.damping": 0.02, "gravity[1]": -9.7})
+    assert "start 2: joint1.damping = 0.02, gravity[1] = -9.7" in exp.summary()
+    seen = {}
+    monkeypatch.setattr(run, "fit", lambda problem, params, **kw: seen.update(kw))
+    run.fit_experiment(exp)
+    assert seen["extra_starts"] == exp.starts
+    run.fit_experiment(exp, extra_starts=())
+    assert seen["extra_starts"] == ()
+    # and `identify diagnose`'s baseline fit
+    monkeypatch.setattr(diagnose_module, "diagnose_logs", lambda *a, **kw: kw["fit_options"])
+    assert diagnose_module.diagnose(exp) == {"extra_starts": exp.starts}
+    assert diagnose_module.diagnose(exp, fit_options={"n_starts": 2}) == {"extra_starts": exp.starts, "n_starts": 2}
+    assert load_experiment(experiment(tmp_path, RIG + STARTS_PARAMETERS + LOG, name="none.toml")).starts == ()
+
+
+@pytest.mark.parametrize(
+    "start, expected",
+    [
+        (
+            '"link1.EI" = 30.0',
+            ('starts[2]."link1.EI"', "30 is outside [0.5, 20] N m^2", "inside the parameter's bounds"),
+        ),
+        ('"joint1.damping" = -1e-3', ('starts[2]."joint1.damping"', "log space", "expected a value > 0, got -0.001")),
+        ('"payload.mass" = 0.1', ('starts[2]."payload.mass"', "not a free parameter", "link1.EI, joint1.damping")),
+        ("link1.EI = 3.0", ("starts[2].link1", "quote the name", '"link1.EI" = ...')),
+        ('"link1.EI" = "3"', ('starts[2]."link1.EI"', "expected a number (SI units)", "'3'")),
+    ],
+)
+def test_bad_starts_name_the_line_and_parameter(tmp_path, start, expected):
+    body = RIG + STARTS_PARAMETERS + '[[starts]]\n"link1.EI" = 4.0\n\n[[starts]]\n' + start + "\n"
+    path = experiment(tmp_path, body + LOG)
+    with pytest.raises(ExperimentError, match=msg(f"exp.toml, line {line_of(path, start)}", *expected)):
+        load_experiment(path)
+
+
+def test_starts_need_tables_and_free_parameters(tmp_path):
+    path = experiment(tmp_path, "starts = 3\n" + RIG + LOG)
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 1: starts", "expected [[starts]] tables")):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + '[[starts]]\n"link1.EI" = 4.0\n' + LOG)
+    with pytest.raises(ExperimentError, match=msg("starts", "no free parameters")):
+        load_experiment(path)
+    path = experiment(tmp_path, RIG + STARTS_PARAMETERS + "[[starts]]\n" + LOG)
+    with pytest.raises(ExperimentError, match=msg("starts[1]", "empty start")):
+        load_experiment(path)
+
+
 def test_guess_from_rig_outside_bounds(tmp_path):
     path = experiment(tmp_path, RIG + '[parameters]\n"link1.EI" = { lower = 10.0, upper = 20.0 }\n' + LOG)
     with pytest.raises(
