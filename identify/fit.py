@@ -643,7 +643,9 @@ class FitResult:
             lines.append(
                 f"warning: the residual of {c} (RMS {q['residual_rms']:.3g}) is {q['ratio']:.3g} times its noise "
                 f"floor ({q['noise_floor']:.3g}, estimated from the data alone): the fit ended in a wrong basin "
-                "or the model misses an effect (try other guesses, or `identify diagnose`)"
+                "or the model misses an effect (try other guesses, or `identify diagnose`), unless the sensor's "
+                "noise is low-pass filtered (a first-order filter at a twentieth of the sampling rate makes the "
+                "floor 0.42 of the noise: identify.noise_floor)"
             )
         if self.poor_fit:
             lines.append(

@@ -29,7 +29,13 @@ encoder noise 4e-5 rad) has a floor of 5e-4 rad at order 2 (the swing's curvatur
 at order 3 and 4.2e-5 at orders 4 and 6. Noise that is not white (a sensor's low-pass
 filter correlating neighbouring samples) makes the floor smaller than the noise: a
 first-order filter at a tenth of the sampling rate by a factor 0.59, at a twentieth by
-0.42 (order 4; `tests/identify/test_noise_floor.py` has the closed form).
+0.42 (order 4; `tests/identify/test_noise_floor.py` has the closed form). The trace alone
+cannot tell such noise from white noise plus signal leakage, so no correction is made: the
+lag-1 correlation of the normalised 4th differences is -0.8 for white noise and moves only
+to -0.75 for first-order filtered noise of any bandwidth (AR(1) coefficient 0 to 0.95,
+closed form as in the test), while a smooth signal leaking 5 % of the noise's variance
+moves it to -0.71; differences at a wider spacing decorrelate the noise but multiply the
+leakage by the spacing to the 4th power. A fit's `poor_fit` warning says so.
 
 **Ratio**: for each channel, the RMS of the fit's residuals over the floor (both pooled
 over the logs, each log's floor from its own samples). A model that explains the data to

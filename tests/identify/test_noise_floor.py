@@ -76,6 +76,35 @@ def test_filtered_noise_makes_the_floor_smaller_by_its_closed_form(a):
     assert factor == pytest.approx({0.53: 0.59, 0.73: 0.42}[a], abs=0.01)
 
 
+@pytest.mark.parametrize("a", [0.0, 0.53, 0.95])
+def test_filtered_noise_barely_moves_the_differences_lag_one_correlation(a):
+    """Why the floor is not corrected for coloured noise (module docstring): the lag-1
+    correlation of the normalised 4th differences of AR(1) noise is
+    `sum_ij b_i b_j a^|i-j+1| / sum_ij b_i b_j a^|i-j|`, -0.8 for white noise and within
+    0.05 of it for any `a`, against -0.71 for white noise plus a slow sine of 5 % of its
+    variance."""
+    import scipy.signal
+
+    rng = np.random.default_rng(5)
+    n = 400_000
+    e = scipy.signal.lfilter([1.0], [1.0, -a], rng.standard_normal(n))[1000:]
+    t = np.arange(e.size) * 1e-3
+    b = _binomial(nf.ORDER)
+    i = np.arange(nf.ORDER + 1)
+    lag = i[:, None] - i[None, :]
+    closed = (b @ (a ** np.abs(lag + 1)) @ b) / (b @ (a ** np.abs(lag)) @ b) if a else -0.8
+    d = nf.pseudo_residuals(t, e)
+    assert np.corrcoef(d[:-1], d[1:])[0, 1] == pytest.approx(closed, abs=0.01)
+    assert -0.8 <= closed <= -0.75
+    # white noise plus a sine whose leakage through the 4th difference has 5 % of the
+    # noise's variance (leakage RMS A (2 sin(pi f dt))^4 / sqrt(140); A = 1000, f = 36 Hz)
+    amp, dt = 1000.0, 1e-3
+    f = np.arcsin((np.sqrt(0.05 * 2 * comb(8, 4)) / amp) ** 0.25 / 2) / (np.pi * dt)
+    t = np.arange(n) * dt
+    d = nf.pseudo_residuals(t, rng.standard_normal(n) + amp * np.sin(2 * np.pi * f * t))
+    assert np.corrcoef(d[:-1], d[1:])[0, 1] == pytest.approx((-0.8 + 0.05) / 1.05, abs=0.01)
+
+
 def test_goodness_pools_logs_by_their_samples_and_flags_a_poor_channel():
     """Two logs, two channels (log 1 records only the first): the pooled RMS and floor are
     the sample-weighted root mean squares; a channel whose residual is 4 floors is poor,
