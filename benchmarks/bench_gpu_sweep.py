@@ -186,7 +186,7 @@ def fused_rhs_operations() -> int:
     flat, asm = fz._assembled_scalars(chains)
     columns = fz._columns(flat)
     torque = as_input(TORQUE, BASE.n_links)
-    plan = fz._plan(asm, torque, 0.0, T_END, DT, Y0, columns)
+    plan = fz._plan(asm, torque, 0.0, T_END, DT, Y0, columns, "rsqrt")
     rows = [jnp.zeros(4) for _ in range(plan.n_rows)]
     y = [jnp.zeros(4) for _ in range(plan.n_state)]
     jaxpr = jax.make_jaxpr(lambda r, t, y: plan.rhs(r, t, y))(rows, jnp.asarray(0.1), y)

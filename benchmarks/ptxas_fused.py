@@ -90,7 +90,7 @@ def triton_ir(case: str, block: int, warps: int) -> tuple[str, int]:
     chains, y0, torque = batch(case)
     flat, asm = fused._assembled_scalars(chains)
     columns = fused._columns(flat)
-    plan = fused._plan(asm, torque, 0.0, T_END, DT, y0, columns)
+    plan = fused._plan(asm, torque, 0.0, T_END, DT, y0, columns, "rsqrt")
     original = pl.pallas_call
     pl.pallas_call = functools.partial(original, debug=True)
     try:

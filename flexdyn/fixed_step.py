@@ -21,8 +21,9 @@ torque at `min(t, b^-)` (the last float before `b`), so no stage sees the far si
 jump and the method stays fourth-order across a bang-bang switch, as `simulate` does by
 clipping its steps onto the jumps.
 
-The mass-matrix solve is `flexdyn.smallsolve.spd_solve` (`solve="unrolled"`, default) or
-`cho_factor`/`cho_solve` (`solve="cho"`).
+The mass-matrix solve is `flexdyn.smallsolve.spd_solve` (`solve="unrolled"`, default),
+its form without divisions or square roots `spd_solve_rsqrt` (`solve="rsqrt"`, what the GPU
+kernel of `flexdyn.fused` uses), or `cho_factor`/`cho_solve` (`solve="cho"`).
 """
 
 from __future__ import annotations
@@ -48,10 +49,11 @@ from .chain import (
 )
 from .inputs import AbstractInput
 from .simulate import Trajectory, _check_torque_shape, as_initial_state, as_input
-from .smallsolve import spd_solve
+from .smallsolve import spd_solve, spd_solve_rsqrt
 
 _SOLVES = {
     "unrolled": spd_solve,
+    "rsqrt": spd_solve_rsqrt,
     "cho": lambda M, b: jsl.cho_solve(jsl.cho_factor(M), b),
 }
 
@@ -129,8 +131,8 @@ def rk4_final(
     most `dt` (s) laid out between the input's jumps (module docstring).
 
     **Arguments:** `t0`, `t1`, `dt`: Python floats (they fix the loop lengths); `torque`:
-    an input (`flexdyn.inputs`) or anything `simulate` accepts; `solve`: `"unrolled"` or
-    `"cho"`; `unroll`: RK4 steps per loop iteration (`lax.scan(unroll=...)`).
+    an input (`flexdyn.inputs`) or anything `simulate` accepts; `solve`: `"unrolled"`,
+    `"rsqrt"` or `"cho"`; `unroll`: RK4 steps per loop iteration (`lax.scan(unroll=...)`).
 
     Raises (inside `jit` too) if the state becomes non-finite: with a fixed step that means
     `dt` is above the stability limit of the stiffest mode or joint.

@@ -20,28 +20,59 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+from jax import lax
 from jaxtyping import Array, Float
 
 UNROLL_MAX_DOF = 12
 
 
-def cholesky_unrolled(M: Float[Array, "n n"]) -> list[list]:
-    """Lower Cholesky factor of `M` as a nested list of scalars, `L[i][j]` for j <= i."""
+def cholesky_unrolled(M: Float[Array, "n n"], rsqrt: bool = False) -> tuple[list[list], list]:
+    """Lower Cholesky factor of `M` as a nested list of scalars, `L[i][j]` for j <= i, and
+    the reciprocals of its diagonal, `1 / L[j][j]`. `rsqrt`: each pivot's reciprocal from
+    `lax.rsqrt` and `refine_rsqrt`, and `L_jj = s / sqrt(s)` as `s` times it (no division or
+    square root: `spd_solve_rsqrt`); else `L_jj = sqrt(s)` and its reciprocal by division."""
     n = M.shape[0]
     L = [[None] * (i + 1) for i in range(n)]
+    inv = [None] * n
     for j in range(n):
         s = M[j, j]
         for k in range(j):
             s = s - L[j][k] * L[j][k]
-        ljj = jnp.sqrt(s)
-        L[j][j] = ljj
-        inv = 1.0 / ljj
+        if rsqrt:
+            inv[j] = refine_rsqrt(s, lax.rsqrt(s))
+            L[j][j] = s * inv[j]
+        else:
+            L[j][j] = jnp.sqrt(s)
+            inv[j] = 1.0 / L[j][j]
         for i in range(j + 1, n):
             s = M[i, j]
             for k in range(j):
                 s = s - L[i][k] * L[j][k]
-            L[i][j] = s * inv
-    return L
+            L[i][j] = s * inv[j]
+    return L, inv
+
+
+def _unrolled_solve(M, b, rsqrt: bool):
+    """`M x = b` by `cholesky_unrolled`, then forward and back substitution, dividing by the
+    diagonal (or, with `rsqrt`, multiplying by its reciprocal)."""
+    n = M.shape[0]
+    if n > UNROLL_MAX_DOF:
+        return jsl.cho_solve(jsl.cho_factor(M), b)
+    L, inv = cholesky_unrolled(M, rsqrt)
+    pivot = (lambda s, i: s * inv[i]) if rsqrt else (lambda s, i: s / L[i][i])
+    z = []
+    for i in range(n):  # L z = b
+        s = b[i]
+        for k in range(i):
+            s = s - L[i][k] * z[k]
+        z.append(pivot(s, i))
+    x = [None] * n
+    for i in reversed(range(n)):  # L^T x = z
+        s = z[i]
+        for k in range(i + 1, n):
+            s = s - L[k][i] * x[k]
+        x[i] = pivot(s, i)
+    return jnp.stack(x)
 
 
 def spd_solve(M: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
@@ -50,20 +81,27 @@ def spd_solve(M: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n
     A non-positive-definite `M` gives NaN (the square root of a negative pivot), as
     `cho_factor` does; callers check the result (e.g. `simulate` raises on a non-finite state).
     """
-    n = M.shape[0]
-    if n > UNROLL_MAX_DOF:
-        return jsl.cho_solve(jsl.cho_factor(M), b)
-    L = cholesky_unrolled(M)
-    z = []
-    for i in range(n):  # L z = b
-        s = b[i]
-        for k in range(i):
-            s = s - L[i][k] * z[k]
-        z.append(s / L[i][i])
-    x = [None] * n
-    for i in reversed(range(n)):  # L^T x = z
-        s = z[i]
-        for k in range(i + 1, n):
-            s = s - L[k][i] * x[k]
-        x[i] = s / L[i][i]
-    return jnp.stack(x)
+    return _unrolled_solve(M, b, rsqrt=False)
+
+
+def refine_rsqrt(s, y):
+    """`y`, an approximation of `1 / sqrt(s)` with relative error `e`, improved by one step
+    of the third-order Householder iteration for `y^-2 = s`: with `r = 1 - s y^2`,
+    `y (1 + r/2 + 3 r^2/8)`, whose relative error is `~(5/16) e^3` (rounding aside): from
+    `e = 2^-22` to a few units in the last place of a float64."""
+    r = 1.0 - (s * y) * y
+    return y + y * (r * (0.5 + 0.375 * r))
+
+
+def spd_solve_rsqrt(M: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
+    """`spd_solve` without a division or a square root: each pivot's reciprocal square root
+    `1 / L_jj` comes from `lax.rsqrt` refined by `refine_rsqrt`, `L_jj = s / sqrt(s)` is
+    `s` times it, and the substitutions multiply by it. For the GPU kernel of
+    `flexdyn.fused`: there a float64 division or square root is a Newton sequence with a
+    call into a slow-path subroutine, while `lax.rsqrt` lowers to `rsqrt.approx.f64`
+    (Triton's libdevice `__nv_rsqrt`, with no refinement of its own), a special-function
+    instruction. Compiled for an H200 offline (`benchmarks/ptxas_fused.py`, paper 004's
+    arm): 4,184 instructions instead of 5,552, 30 calls instead of 81. On the CPU the
+    divisions are faster (paper 004's arm, RK4 for 5 s: ~10 % slower this way, measured
+    2026-12-03), so `spd_solve` keeps them. A non-positive-definite `M` gives NaN or inf."""
+    return _unrolled_solve(M, b, rsqrt=True)

@@ -16,17 +16,33 @@ from adjoint_cases import PENDULUM, PENDULUM_PARAMS, PENDULUM_Y0, pd_tracking  #
 
 import flexdyn as fd
 from flexdyn import fixed_step
-from flexdyn.smallsolve import UNROLL_MAX_DOF, spd_solve
+from flexdyn.smallsolve import UNROLL_MAX_DOF, refine_rsqrt, spd_solve, spd_solve_rsqrt
 
 
+@pytest.mark.parametrize("solve", [spd_solve, spd_solve_rsqrt])
 @pytest.mark.parametrize("n", [1, 2, 5, 8, UNROLL_MAX_DOF, UNROLL_MAX_DOF + 3])
-def test_spd_solve_matches_lu(n):
+def test_spd_solve_matches_lu(n, solve):
     rng = np.random.default_rng(n)
     A = rng.normal(size=(n, n))
     M = A @ A.T + n * np.eye(n) * 10.0 ** rng.uniform(-3, 1)  # SPD, condition numbers up to ~1e4
     b = rng.normal(size=n)
-    x = np.asarray(jax.jit(spd_solve)(jnp.asarray(M), jnp.asarray(b)))
+    x = np.asarray(jax.jit(solve)(jnp.asarray(M), jnp.asarray(b)))
     np.testing.assert_allclose(x, np.linalg.solve(M, b), rtol=1e-10, atol=1e-12)
+
+
+def test_one_refinement_step_takes_an_approximate_rsqrt_to_float64():
+    """`refine_rsqrt` from starts off by up to 2^-22 (relative), across 600 decades: the
+    error ends within 2 units of the last place of the exact `1 / sqrt(s)`, as the
+    iteration's cubic error `(5/16) e^3 ~ 2^-68` promises (the GPU's `rsqrt.approx.f64` is
+    the start in `spd_solve_rsqrt`; on the CPU `lax.rsqrt` is exact and the step keeps it)."""
+    s = np.logspace(-300, 300, 20_001)
+    exact = 1.0 / np.sqrt(s)
+    for e in (2.0**-22, -(2.0**-22), 2.0**-30):
+        start = exact * (1.0 + e * np.cos(np.arange(s.size)))
+        got = np.asarray(refine_rsqrt(jnp.asarray(s), jnp.asarray(start)))
+        assert np.max(np.abs(got - exact) / exact) < 2 * np.finfo(float).eps
+    got = np.asarray(refine_rsqrt(jnp.asarray(s), jax.lax.rsqrt(jnp.asarray(s))))
+    assert np.max(np.abs(got - exact) / exact) < 2 * np.finfo(float).eps
 
 
 def test_spd_solve_vmapped_and_not_positive_definite():
@@ -38,6 +54,8 @@ def test_spd_solve_vmapped_and_not_positive_definite():
     np.testing.assert_allclose(x, np.linalg.solve(Ms, bs[..., None])[..., 0], rtol=1e-10)
     # An indefinite matrix yields NaN (as cho_factor does), for the caller's finiteness check.
     assert np.isnan(np.asarray(spd_solve(jnp.diag(jnp.array([1.0, -1.0])), jnp.ones(2)))).any()
+    assert np.isnan(np.asarray(spd_solve_rsqrt(jnp.diag(jnp.array([1.0, -1.0])), jnp.ones(2)))).any()
+    assert not np.isfinite(np.asarray(spd_solve_rsqrt(jnp.diag(jnp.array([1.0, 0.0])), jnp.ones(2)))).all()
 
 
 ARM = fd.rigs.two_link_flexible_arm(payload_mass=0.05, n_modes=1)
