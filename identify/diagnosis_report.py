@@ -56,45 +56,43 @@ def _fig(n, title):
     return fig, axes[:, 0]
 
 
-def plot_traces(diag, folder: Path) -> Path:
+def _time_panels(diag, folder: Path, title: str, file: str, draw) -> Path:
+    """One panel per log and channel against time: `draw(ax, t, series, scale)` plots the
+    panel's curves, `series(name)` being the log's `name` trace (`measured`, `baseline`,
+    `extended`; None when absent) of the panel's channel; returns the written file."""
     rows = _panels(diag)
-    fig, axes = _fig(len(rows), "measured vs baseline vs extended model")
+    fig, axes = _fig(len(rows), title)
     for ax, (log, c, e) in zip(axes, rows):
         s, unit = display_unit(c)
-        t = e["t"]
-        ax.plot(t, s * e["measured"][c], ".", ms=2, color="0.4", label="measured")
-        ax.plot(t, s * e["baseline"][c], "-", lw=1, color="tab:red", label="baseline")
-        if "extended" in e:
-            ax.plot(t, s * e["extended"][c], "-", lw=1, color="tab:blue", label="extended")
+        draw(ax, e["t"], lambda name, e=e, c=c: e[name][c] if name in e else None, s)
         ax.set_ylabel(f"{c} [{unit}]")
         ax.set_title(f"{log} ({e['role']})", fontsize=9)
         ax.legend(fontsize=7, loc="upper right")
     axes[-1].set_xlabel("t [s]")
     fig.tight_layout()
-    path = folder / PLOT_FILES[0]
+    path = folder / file
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_traces(diag, folder: Path) -> Path:
+    def draw(ax, t, series, s):
+        ax.plot(t, s * series("measured"), ".", ms=2, color="0.4", label="measured")
+        ax.plot(t, s * series("baseline"), "-", lw=1, color="tab:red", label="baseline")
+        if series("extended") is not None:
+            ax.plot(t, s * series("extended"), "-", lw=1, color="tab:blue", label="extended")
+
+    return _time_panels(diag, folder, "measured vs baseline vs extended model", PLOT_FILES[0], draw)
 
 
 def plot_residuals(diag, folder: Path) -> Path:
-    rows = _panels(diag)
-    fig, axes = _fig(len(rows), "residuals (model - measured)")
-    for ax, (log, c, e) in zip(axes, rows):
-        s, unit = display_unit(c)
-        t = e["t"]
-        ax.plot(t, s * (e["baseline"][c] - e["measured"][c]), lw=0.8, color="tab:red", label="baseline")
-        if "extended" in e:
-            ax.plot(t, s * (e["extended"][c] - e["measured"][c]), lw=0.8, color="tab:blue", label="extended")
-        ax.set_ylabel(f"{c} [{unit}]")
-        ax.set_title(f"{log} ({e['role']})", fontsize=9)
-        ax.legend(fontsize=7, loc="upper right")
-    axes[-1].set_xlabel("t [s]")
-    fig.tight_layout()
-    path = folder / PLOT_FILES[1]
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    def draw(ax, t, series, s):
+        for name, color in (("baseline", "tab:red"), ("extended", "tab:blue")):
+            if series(name) is not None:
+                ax.plot(t, s * (series(name) - series("measured")), lw=0.8, color=color, label=name)
+
+    return _time_panels(diag, folder, "residuals (model - measured)", PLOT_FILES[1], draw)
 
 
 def plot_spectra(diag, folder: Path) -> Path:
