@@ -343,6 +343,23 @@ def _nuisance_lines(result, validation_nuisances: dict) -> list[str]:
 CLUSTER_MIN_LOGS = 5
 
 
+def _experiment_and_folder(args, suffix: str):
+    """The experiment of `args.experiment`, its input files, and the output folder
+    (`--out`, default `<experiment stem>-<suffix>` here), checked (`check_output_folder`);
+    raises `_Refused` with the message for the user."""
+    from .experiment import ExperimentError, load_experiment
+    from .logs import LogError
+
+    try:
+        exp = load_experiment(args.experiment)
+    except (ExperimentError, LogError) as e:
+        raise _Refused(str(e)) from None
+    inputs = [Path(exp.path)] + [Path(spec.file) for spec in exp.logs]
+    out = args.out if args.out is not None else Path.cwd() / f"{Path(exp.path).stem}-{suffix}"
+    check_output_folder(out, inputs, args.force)
+    return exp, inputs, out
+
+
 def _compile_estimate(exp) -> float:
     """A rough guess of the first call's compilation time (s) on a laptop: about 30 s for a
     rigid pendulum, growing with the number of coordinates and channels."""
@@ -372,18 +389,8 @@ def _fit_command(args) -> int:
     if args.max_restarts < 0:
         return error(f"--max-restarts expects an integer >= 0, got {args.max_restarts}")
 
-    from .experiment import ExperimentError, load_experiment
-    from .logs import LogError
-
     try:
-        exp = load_experiment(args.experiment)
-    except (ExperimentError, LogError) as e:
-        return error(str(e))
-
-    inputs = [Path(exp.path)] + [Path(spec.file) for spec in exp.logs]
-    out = args.out if args.out is not None else Path.cwd() / f"{Path(exp.path).stem}-fit"
-    try:
-        check_output_folder(out, inputs, args.force)
+        exp, inputs, out = _experiment_and_folder(args, "fit")
     except _Refused as e:
         return error(str(e))
 
@@ -550,8 +557,6 @@ def _diagnose_command(args) -> int:
         return 2
 
     from .catalogue import NAMES
-    from .experiment import ExperimentError, load_experiment
-    from .logs import LogError
 
     catalogue = NAMES
     if args.only:
@@ -562,13 +567,7 @@ def _diagnose_command(args) -> int:
     if args.max_effects < 1:
         return error(f"--max-effects expects an integer >= 1, got {args.max_effects}")
     try:
-        exp = load_experiment(args.experiment)
-    except (ExperimentError, LogError) as e:
-        return error(str(e))
-    inputs = [Path(exp.path)] + [Path(spec.file) for spec in exp.logs]
-    out = args.out if args.out is not None else Path.cwd() / f"{Path(exp.path).stem}-diagnosis"
-    try:
-        check_output_folder(out, inputs, args.force)
+        exp, inputs, out = _experiment_and_folder(args, "diagnosis")
     except _Refused as e:
         return error(str(e))
 

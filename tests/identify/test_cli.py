@@ -193,6 +193,23 @@ def test_help_and_usage_errors(capsys):
     assert "--stages" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", ["fit", "diagnose"])
+def test_a_bad_experiment_file_is_a_usage_error_naming_file_and_line(tmp_path, capsys, command):
+    """A mistake in the experiment file (here a start outside its parameter's bounds) stops
+    either command before anything is compiled or written: exit 2, the message names the
+    file, line and key, and no output folder appears."""
+    exp = _copy_example(tmp_path / "example")
+    text = exp.read_text()
+    name = next(line.split("=")[0].strip() for line in text.splitlines() if line.startswith('"') and "{" in line)
+    exp.write_text(text + f"\n[[starts]]\n{name} = -1e9\n")
+    out = tmp_path / "out"
+    assert main([command, str(exp), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    line = len(exp.read_text().splitlines())
+    assert f"identify {command}: " in err and f"{exp}, line {line}: starts[1].{name}" in err, err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize(
     "flag, expected",
     [
