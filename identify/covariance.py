@@ -44,6 +44,7 @@ eliminated block's (`P` of them), not the whole `J`'s.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -198,3 +199,20 @@ def clustered(r: np.ndarray, S: np.ndarray, U: np.ndarray, slots: np.ndarray, us
     _, ss, Vts = _pinv_parts(projected.reshape(L * n, P))
     bread = (Vts.T / ss**2) @ Vts
     return L / (L - 1) * bread @ (scores.T @ scores) @ bread
+
+
+def digits(value: float, spread: float) -> int:
+    """Significant digits that show a change of `spread` in `value` (a standard error, an
+    interval's width): two beyond the first digit the spread touches, at least 4 and at most
+    12; 4 where either is zero or not finite."""
+    value, spread = abs(float(value)), abs(float(spread))
+    if not (value > 0 and spread > 0 and np.isfinite(value) and np.isfinite(spread)):
+        return 4
+    return int(min(12, max(4, math.floor(math.log10(value / spread)) + 2)))
+
+
+def interval_text(lo: float, hi: float) -> str:
+    """`[lo, hi]` with the digits that tell its ends apart (`digits` of each end against
+    the width): `[11.995, 12.001]`, not `[12, 12]`."""
+    d = max(digits(lo, hi - lo), digits(hi, hi - lo))
+    return f"[{lo:.{d}g}, {hi:.{d}g}]"

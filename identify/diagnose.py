@@ -77,7 +77,7 @@ from scipy import stats
 
 import flexdyn as fd
 
-from . import catalogue as cat, evidence as ev, measurement as meas, noise_floor as nf
+from . import catalogue as cat, covariance, evidence as ev, measurement as meas, noise_floor as nf
 from .fit import (
     Z95,
     FitResult,
@@ -473,8 +473,8 @@ class Diagnosis:
                 )
                 for n, p in c.parameters.items():
                     lines.append(
-                        f"    {n} = {p['value']:.4g} {p['unit']} (SE {p['std_error']:.2g}, "
-                        f"95 % CI [{p['ci95'][0]:.4g}, {p['ci95'][1]:.4g}])"
+                        f"    {n} = {p['value']:.{covariance.digits(p['value'], p['std_error'])}g} {p['unit']} "
+                        f"(SE {p['std_error']:.2g}, 95 % CI {covariance.interval_text(*p['ci95'])})"
                     )
                 for w in c.warnings:
                     lines.append(f"    IMPLAUSIBLE: {w}")

@@ -13,7 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from . import evidence as ev  # noqa: E402
+from . import covariance, evidence as ev  # noqa: E402
 from .report import display_unit  # noqa: E402
 
 JSON_FILE = "diagnosis.json"
@@ -186,8 +186,8 @@ def markdown(diag, title: str = "") -> str:
             )
             for n, p in c.parameters.items():
                 lines.append(
-                    f"  - `{n}` = {p['value']:.4g} {p['unit']} +- {p['std_error']:.2g} "
-                    f"(95 % CI [{p['ci95'][0]:.4g}, {p['ci95'][1]:.4g}])"
+                    f"  - `{n}` = {p['value']:.{covariance.digits(p['value'], p['std_error'])}g} {p['unit']} "
+                    f"+- {p['std_error']:.2g} (95 % CI {covariance.interval_text(*p['ci95'])})"
                 )
             for w in c.warnings:
                 lines.append(f"  - **Implausible:** {w}")

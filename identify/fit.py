@@ -620,9 +620,10 @@ class FitResult:
         ]
         for i, n in enumerate(self.names):
             change = (self.values[i] - self.guesses[i]) / abs(self.guesses[i]) if self.guesses[i] else float("nan")
-            ci = f"[{self.ci_low[i]:.4g}, {self.ci_high[i]:.4g}]"
+            ci = covariance.interval_text(self.ci_low[i], self.ci_high[i])
+            d = max(5, covariance.digits(self.values[i], self.std_errors[i]))
             lines.append(
-                f"{n:<28} {self.values[i]:>12.5g} {self.std_errors[i]:>10.3g} {ci:>25} "
+                f"{n:<28} {self.values[i]:>12.{d}g} {self.std_errors[i]:>10.3g} {ci:>25} "
                 f"{self.guesses[i]:>12.4g} {100 * change:>7.1f}%"
             )
         its = sum(s["iterations"] for s in self.stages)

@@ -73,8 +73,9 @@ class ClusteredUncertainty:
             f"{'parameter':<28} {'value':>12} {'std err':>10} {pct + ' CI':>25}",
         ]
         for i, n in enumerate(self.names):
-            ci = f"[{self.ci_low[i]:.4g}, {self.ci_high[i]:.4g}]"
-            lines.append(f"{n:<28} {self.values[i]:>12.5g} {self.std_errors[i]:>10.3g} {ci:>25}")
+            ci = covariance.interval_text(self.ci_low[i], self.ci_high[i])
+            d = max(5, covariance.digits(self.values[i], self.std_errors[i]))
+            lines.append(f"{n:<28} {self.values[i]:>12.{d}g} {self.std_errors[i]:>10.3g} {ci:>25}")
         return "\n".join(lines)
 
     def to_dict(self) -> dict:

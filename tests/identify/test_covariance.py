@@ -169,3 +169,27 @@ def test_clustered_covariance_needs_two_logs():
     r, S, U, slots, used = _blocks(0, L=1)
     with pytest.raises(ValueError, match="at least 2 logs"):
         covariance.clustered(r, S, U, slots, used)
+
+
+@pytest.mark.parametrize(
+    ("lo", "hi", "text"),
+    [
+        (11.99513, 12.00087, "[11.995, 12.001]"),  # a tight interval: its ends differ
+        (0.04999918, 0.05000082, "[0.0499992, 0.0500008]"),
+        (0.8, 1.4, "[0.8, 1.4]"),  # a wide one keeps the usual 4 digits
+        (-3.2e-3, 4.1e-3, "[-0.0032, 0.0041]"),  # across zero
+        (2.5, 2.5, "[2.5, 2.5]"),  # a zero width (a parameter the data fix exactly): 4 digits
+        (float("nan"), float("nan"), "[nan, nan]"),
+    ],
+)
+def test_an_interval_prints_with_the_digits_that_tell_its_ends_apart(lo, hi, text):
+    assert covariance.interval_text(lo, hi) == text
+    if np.isfinite(lo) and hi > lo:
+        a, b = (float(x) for x in text.strip("[]").split(", "))
+        assert a < b and abs(a - lo) < (hi - lo) / 10 and abs(b - hi) < (hi - lo) / 10
+
+
+def test_digits_show_a_change_of_the_spread():
+    assert covariance.digits(11.998, 0.00146) == 5  # 11.998, where 4 digits print 12
+    assert covariance.digits(1.0, 1e-15) == 12  # capped
+    assert covariance.digits(0.0, 1.0) == covariance.digits(1.0, 0.0) == covariance.digits(1.0, np.inf) == 4
