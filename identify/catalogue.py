@@ -347,6 +347,40 @@ def candidates(
     return out
 
 
+def not_applicable(chain: fd.Chain, driven_joints, stiffening_links=()) -> dict:
+    """Why `candidates` offers a catalogue entry nowhere on this rig and these logs: entry
+    name -> reason, for the entries it leaves out (the same conditions as `candidates`)."""
+    elastic = [j for j in chain.joints if j.elastic]
+    flexible = [link for link in chain.links if link.n_modes > 0]
+    why = {}
+    if not driven_joints:
+        why["actuator_lag"] = "no joint is driven (no torque in the fit logs)"
+    if not elastic:
+        why["backlash"] = "no elastic joint (backlash is a dead band in an elastic joint's spring)"
+    if float(np.linalg.norm(np.asarray(chain.gravity))) != 0.0:
+        why["base_tilt"] = "the rig moves under gravity, whose direction the model sets (offered for horizontal rigs)"
+    if not any(0 < link.n_modes < fd.modes.MAX_MODES for link in chain.links):
+        why["missing_mode"] = (
+            f"no flexible link with fewer than {fd.modes.MAX_MODES} modes" if flexible else "no flexible link"
+        )
+    if not any(
+        link.n_modes > 0 and not link.geometric_stiffening and f"link{i + 1}" in stiffening_links
+        for i, link in enumerate(chain.links)
+    ):
+        why["geometric_stiffening"] = (
+            "no flexible link spins or hangs enough for the model check to flag it (evidence.stiffening_checks)"
+            if flexible
+            else "no flexible link"
+        )
+    if not any(not chain.joints[j].elastic for j in driven_joints):
+        why["joint_elasticity"] = (
+            "every driven joint is elastic in the model already"
+            if driven_joints
+            else "no joint is driven (an elastic joint is offered where a torque drives it)"
+        )
+    return why
+
+
 def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: float) -> tuple[fd.Chain, dict]:
     """The chain of a structural candidate and the guesses of its new parameters."""
     index = int(cand.where.lstrip("linkjoint"))

@@ -416,7 +416,7 @@ def _fit_command(args) -> int:
     )
     say(
         f"compiling the simulation and Levenberg-Marquardt (first call, ~{_compile_estimate(exp):.0f} s in all: the "
-        "first stage's time includes it, and the standard errors compile one more program after the last stage) ..."
+        "frequency initialisation's and the first stage's times include it) ..."
     )
 
     last = [time.perf_counter()]

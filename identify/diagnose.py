@@ -442,6 +442,9 @@ class Diagnosis:
     # what the search decided not to try, and why: `{'round': n, 'text': ...}` (candidates
     # not refitted in round n, counted over the whole search)
     notes: list = dataclasses.field(default_factory=list)
+    # the catalogue entries not tried at all, and why: name -> reason (an entry that does
+    # not apply to the rig or the logs, one the caller excluded, one already in the model)
+    not_tried: dict = dataclasses.field(default_factory=dict)
 
     @property
     def named(self) -> list[str]:
@@ -505,6 +508,9 @@ class Diagnosis:
             f"{self.fraction_explained:.3f} (of its excess over the noise: {self.excess_explained_text})"
         )
         lines.extend(f"note: round {n['round']}: {n['text']}" for n in self.notes)
+        if self.not_tried:
+            lines.append("not tried:")
+            lines.extend(f"  {n}: {why}" for n, why in self.not_tried.items())
         for r, scores in enumerate(self.rounds, start=1):
             lines.append("")
             lines.append(f"round {r}: candidates (best first)")
@@ -538,6 +544,7 @@ class Diagnosis:
             "costs": self.costs,
             "model_checks": self.model_checks,
             "notes": self.notes,
+            "not_tried": self.not_tried,
             "modal_frequencies_hz": self.modal_frequencies_hz,
             "wall_time_s": self.wall_time,
         }
@@ -682,23 +689,24 @@ def diagnose_logs(
             for check in ev.stiffening_checks_of(fitted_chain, fitted_outputs(base), key="simulated")
             if check["flagged"]
         }
-    cands = [
-        c
-        for c in cat.candidates(
-            fitted_chain,
-            channels,
-            driven,
-            torque_rms=torque_rms,
-            rate_rms=rate_rms,
-            sample_interval=dt_sample,
-            channel_rms={},
-            offsets_fitted=offsets_fitted,
-            max_frequency_hz=max_f,
-            stiffening_links=stiffening_links,
-        )
-        # (an entry whose parameters are already free in the baseline is in the model)
-        if c.name in catalogue and c.label not in exclude and not set(c.params) & {p.name for p in parameters}
-    ]
+    offered = cat.candidates(
+        fitted_chain,
+        channels,
+        driven,
+        torque_rms=torque_rms,
+        rate_rms=rate_rms,
+        sample_interval=dt_sample,
+        channel_rms={},
+        offsets_fitted=offsets_fitted,
+        max_frequency_hz=max_f,
+        stiffening_links=stiffening_links,
+    )
+    free = {p.name for p in parameters}
+    # (an entry whose parameters are already free in the baseline is in the model)
+    cands = [c for c in offered if c.name in catalogue and c.label not in exclude and not set(c.params) & free]
+    not_tried = _not_tried(
+        catalogue, offered, cands, exclude, cat.not_applicable(fitted_chain, driven, stiffening_links)
+    )
     sup_chain, sup_meas = cat.superset(chain, measurement, channels, driven)
     ext_names = []
     for c in cands:
@@ -1275,6 +1283,7 @@ def diagnose_logs(
         costs=costs,
         model_checks=model_checks,
         notes=notes,
+        not_tried=not_tried,
     )
     if stack_on is not None:
         # A structural change was accepted: the search goes on from its model, a new
@@ -1322,6 +1331,24 @@ def diagnose_logs(
         )
         diag = _stacked(diag, inner)
     return _with_totals(diag, time.perf_counter() - start)
+
+
+def _not_tried(catalogue, offered, cands, exclude, inapplicable: dict) -> dict:
+    """`Diagnosis.not_tried`: each entry of `catalogue` with no candidate in `cands`, and
+    why (`catalogue.not_applicable`, excluded by the caller, or its parameters already free
+    in the baseline), in catalogue order."""
+    out = {}
+    for name in catalogue:
+        if any(c.name == name for c in cands):
+            continue
+        mine = [c for c in offered if c.name == name]
+        if not mine:
+            out[name] = inapplicable.get(name, "not offered on this rig and these logs")
+        elif all(c.label in exclude for c in mine):
+            out[name] = f"excluded by the caller ({', '.join(c.label for c in mine)})"
+        else:
+            out[name] = "its parameters are free in the baseline already (it is part of the model)"
+    return out
 
 
 def _with_headroom(labels: set, problem: Problem, r_used, min_gain: float, rnd: int, notes: list, say) -> set:
@@ -1531,6 +1558,8 @@ def _stacked(outer: Diagnosis, inner: Diagnosis) -> Diagnosis:
         causes=causes + inner.causes,
         # the inner search's rounds continue the outer's count
         notes=outer.notes + [{**n, "round": n["round"] + len(outer.rounds)} for n in inner.notes],
+        # not tried by either search (the inner one may try what the outer could not)
+        not_tried={n: why for n, why in outer.not_tried.items() if n in inner.not_tried},
         held_out=_held_out_summary(
             outer.held_out["baseline"],
             inner.held_out["extended"],

@@ -272,6 +272,11 @@ def markdown(diag, title: str = "") -> str:
     if diag.notes:
         lines.append("")
         lines.extend(f"- Round {n['round']}: {n['text']}" for n in diag.notes)
+    if diag.not_tried:
+        lines.append("")
+        lines.append("Not tried:")
+        lines.append("")
+        lines.extend(f"- `{n}`: {why}" for n, why in diag.not_tried.items())
     lines.append("")
     lines.append("## Baseline fit")
     lines.append("")

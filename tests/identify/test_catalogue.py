@@ -73,6 +73,54 @@ def test_geometric_stiffening_is_offered_only_where_the_model_check_flags_it():
     assert _offered(stiffened, {"link1", "link2"}) == []
 
 
+@pytest.mark.parametrize(
+    ("rig", "driven", "stiffening", "absent"),
+    [
+        # paper 000's rigid pendulum released from rest (the Quickstart example)
+        (
+            fd.rigs.rigid_pendulum(),
+            [],
+            (),
+            {"actuator_lag", "backlash", "base_tilt", "missing_mode", "geometric_stiffening", "joint_elasticity"},
+        ),
+        # paper 004's arm, driven, horizontal: every joint elastic already
+        (fd.rigs.flexible_link_joint_arm(), [0, 1], (), {"geometric_stiffening", "joint_elasticity"}),
+        (fd.rigs.flexible_link_joint_arm(), [0, 1], {"link1"}, {"joint_elasticity"}),
+        # paper 002's arm driven at its first joint only: the second joint's elasticity is not offered
+        (fd.rigs.two_link_flexible_arm(n_modes=1), [0], (), {"backlash", "geometric_stiffening"}),
+        (
+            fd.rigs.two_link_flexible_arm(n_modes=fd.modes.MAX_MODES),
+            [0, 1],
+            (),
+            {"backlash", "geometric_stiffening", "missing_mode"},
+        ),
+    ],
+)
+def test_not_applicable_names_exactly_the_entries_candidates_leaves_out(rig, driven, stiffening, absent):
+    """`not_applicable` against `candidates` itself: every catalogue entry is either offered
+    somewhere on the rig or given a reason, never both, and the left-out ones are those the
+    rig's structure rules out (no elastic joint for backlash, gravity for a base tilt, ...)."""
+    offered = {
+        c.name
+        for c in cat.candidates(
+            rig,
+            ("theta1",),
+            driven,
+            torque_rms=0.1,
+            rate_rms=1.0,
+            sample_interval=0.005,
+            channel_rms={},
+            offsets_fitted=set(),
+            max_frequency_hz=50.0,
+            stiffening_links=stiffening,
+        )
+    }
+    why = cat.not_applicable(rig, driven, stiffening)
+    assert set(why) == absent
+    assert offered | set(why) == set(cat.NAMES) and not offered & set(why)
+    assert all(isinstance(text, str) and text for text in why.values())
+
+
 def test_geometric_stiffening_switches_the_option_on_one_link_and_keeps_its_parameters():
     chain = fd.rigs.two_link_flexible_arm(n_modes=2, geometric_stiffening=False)
     entry = _entry("geometric_stiffening", "link2", (), ((),), structural=True)

@@ -72,9 +72,19 @@ def test_main_job_diagnose_names_the_hidden_friction_of_the_example(tmp_path):
     lo, hi = cause["parameters"]["joint1.coulomb"]["ci95"]
     assert lo <= 1.0e-3 <= hi  # make_logs.py's hidden value
     assert doc["held_out"]["gain"]["theta1"] >= 2.0
+    # what the rig rules out is said, not silently skipped: a rigid pendulum released from rest
+    assert set(doc["not_tried"]) == {
+        "actuator_lag",
+        "backlash",
+        "base_tilt",
+        "missing_mode",
+        "geometric_stiffening",
+        "joint_elasticity",
+    }
     for name in ("report.md", *diagnosis_report.PLOT_FILES):
         assert (out / name).stat().st_size > 0
     assert "coulomb_friction" in (out / "report.md").read_text()
+    assert "Not tried:" in (out / "report.md").read_text()
     # a second run into the same folder is allowed (ours), into the example's folder is not
     assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(EXAMPLE / "logs"), "--quiet"]) == 2
 
