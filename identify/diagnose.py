@@ -9,8 +9,8 @@ the model, and measure the gain on held-out data.
 2. **Evidence** (`identify.evidence`): residual RMS per channel and time window, residual
    spectrum peaks against the model's modes, decay envelope law, frequency drift,
    whiteness, correlation of the residual with features of the motion.
-3. **Candidates** (`identify.catalogue`): every applicable catalogue entry is fitted
-   starting from the baseline optimum (the baseline's parameters and nuisances refitted
+3. **Candidates** (`identify.catalogue`): every applicable catalogue entry (the others are
+   listed with the reason in `Diagnosis.not_tried`) is fitted starting from the baseline optimum (the baseline's parameters and nuisances refitted
    with it; several starting magnitudes per entry). The continuous entries share one
    model in which every extension is present at its neutral value, so they are fitted
    together in one `vmap`ped Levenberg-Marquardt call (one compilation for all of them);
@@ -57,7 +57,7 @@ of the final extended fit), and the gain per channel, next to each channel's noi
 on the held-out logs, estimated from their samples without any model
 (`identify.noise_floor`): what a model that explains the data reaches. A channel whose
 extended model's held-out residual is still above `noise_floor.POOR_FIT` (2) floors is
-reported as left unexplained (`Diagnosis.left_unexplained`). `identify.report_diagnosis`
+reported as left unexplained (`Diagnosis.left_unexplained`). `identify.write_report`
 writes the JSON and Markdown report with plots.
 """
 
