@@ -10,8 +10,9 @@ the model, and measure the gain on held-out data.
    spectrum peaks against the model's modes, decay envelope law, frequency drift,
    whiteness, correlation of the residual with features of the motion.
 3. **Candidates** (`identify.catalogue`): every applicable catalogue entry (the others are
-   listed with the reason in `Diagnosis.not_tried`) is fitted starting from the baseline optimum (the baseline's parameters and nuisances refitted
-   with it; several starting magnitudes per entry). The continuous entries share one
+   listed with the reason in `Diagnosis.not_tried`) is fitted starting from the baseline
+   optimum (the baseline's parameters and nuisances refitted with it; several starting
+   magnitudes per entry). The continuous entries share one
    model in which every extension is present at its neutral value, so they are fitted
    together in one `vmap`ped Levenberg-Marquardt call (one compilation for all of them);
    the structural ones (`missing_mode`, `joint_elasticity`, `geometric_stiffening`) are
