@@ -104,6 +104,7 @@ def fused(
     num_warps: int | None = None,
     t_end: float = T_END,
     interpret: bool = False,
+    solve: str = "auto",
 ):
     """The batch in one call of `flexdyn.fused.rk4_sweep_final` (whole trajectories per
     kernel): timed from the parameter grid, chains built and assembled included."""
@@ -120,6 +121,7 @@ def fused(
             block=block,
             num_warps=num_warps,
             interpret=interpret,
+            solve=solve,
         )
         return y[:, :N]
 
@@ -135,7 +137,7 @@ def assembly(params):
     return jax.tree.leaves(eqx.filter(_assemble_batch(params), eqx.is_array))
 
 
-def fused_assembled(block: int, warps: int | None, interpret: bool = False):
+def fused_assembled(block: int, warps: int | None, interpret: bool = False, solve: str = "auto"):
     """`fused(...)` on chains assembled beforehand (once per batch size, in the first,
     cold call): the kernel's own time, with the flattening of the assembled scalars."""
     done = {}
@@ -155,6 +157,7 @@ def fused_assembled(block: int, warps: int | None, interpret: bool = False):
             block=block,
             num_warps=warps,
             interpret=interpret,
+            solve=solve,
         )
         return y[:, :N]
 
@@ -347,8 +350,9 @@ def main(argv=None):
     )
     parser.add_argument(
         "--fused-configs",
-        default="32x1,32x1r,64x1,64x2",
-        help="fused kernel: BLOCKxWARPS, comma-separated",
+        default="32x1,32x1:unrolled,64x1,64x2",
+        help="fused kernel: BLOCKxWARPS[:SOLVE], comma-separated (SOLVE: rk4_sweep_final's solve; default auto, "
+        "rsqrt in the kernel: the mass-matrix solve without divisions; unrolled: with them)",
     )
     parser.add_argument("--tsit5-sizes", default=None, help="sizes of the adaptive runs (default: --sizes)")
     parser.add_argument("--interpret", action="store_true", help="fused kernel in Pallas's interpreter (smoke test)")
@@ -439,17 +443,19 @@ def main(argv=None):
     if "fused" in runs:
         fused_rows = []
         for cfg in args.fused_configs.split(","):
+            cfg, _, solve = cfg.partition(":")
             block, warps = (int(x) for x in cfg.split("x"))
-            name = f"fused RK4 1 ms, pallas, block {block} x {warps} warps"
-            fn = fused("pallas", block, warps, interpret=args.interpret)
+            solve = solve or "auto"
+            name = f"fused RK4 1 ms, pallas, block {block} x {warps} warps, solve {solve}"
+            fn = fused("pallas", block, warps, interpret=args.interpret, solve=solve)
             row = bench(name, fn, M, dev, n_fixed, "fused", batched=True)
             if row is not None:
-                fused_rows.append((row, block, warps))
+                fused_rows.append((row, block, warps, solve))
         if fused_rows:
-            row, block, warps = min(fused_rows, key=lambda r: r[0]["warm_s"])
+            row, block, warps, solve = min(fused_rows, key=lambda r: r[0]["warm_s"])
             short = bench(
                 f"{row['run']}, 1 s horizon",
-                fused("pallas", block, warps, 1.0, interpret=args.interpret),
+                fused("pallas", block, warps, 1.0, interpret=args.interpret, solve=solve),
                 M,
                 dev,
                 1000,
@@ -471,7 +477,7 @@ def main(argv=None):
             )
             bench(
                 f"{row['run']}, chains assembled beforehand (kernel + flattening)",
-                fused_assembled(block, warps, interpret=args.interpret),
+                fused_assembled(block, warps, interpret=args.interpret, solve=solve),
                 M,
                 dev,
                 n_fixed,
@@ -480,7 +486,7 @@ def main(argv=None):
             )
             for size in sizes:
                 if size != M:
-                    fn = fused("pallas", block, warps, interpret=args.interpret)
+                    fn = fused("pallas", block, warps, interpret=args.interpret, solve=solve)
                     bench(row["run"], fn, size, dev, n_fixed, "fused", batched=True)
     if "fused-rigid" in runs:  # the same kernel on a small chain: what it reaches without register pressure
         bench(

@@ -84,6 +84,7 @@ from .simulate import _check_torque_shape, as_input
 __all__ = ["rk4_sweep_final"]
 
 _BACKENDS = ("auto", "pallas", "xla")
+_SOLVES = ("auto", "unrolled", "rsqrt")
 _CACHE_SIZE = 16
 _cache: collections.OrderedDict = collections.OrderedDict()
 
@@ -310,6 +311,7 @@ def rk4_sweep_final(
     block: int = 32,
     num_warps: int | None = 1,
     interpret: bool = False,
+    solve: str = "auto",
 ) -> Float[Array, "B 2n"]:
     """Final states `[Q, Q_dot]` (B, 2n) at `t1` (s) of a batch of chains from `y0` at
     `t0`, by classical RK4 with steps of at most `dt` (s) between the input's jumps (module
@@ -326,6 +328,10 @@ def rk4_sweep_final(
     - `block`: trajectories per GPU program (a power of 2); `num_warps`: Triton warps per
       program (`None`: Triton's default). The defaults, one warp of 32 threads with one
       trajectory each, are the configuration measured (module docstring).
+    - `solve`: the mass-matrix solve of the scalar program, `"unrolled"`
+      (`smallsolve.spd_solve`), `"rsqrt"` (`smallsolve.spd_solve_rsqrt`: no division or
+      square root) or `"auto"` (rsqrt in the Pallas kernel, unrolled on XLA: each the
+      faster where measured, `benchmarks/README.md`).
 
     Raises `NotImplementedError` naming the operation when the chain's or the input's
     right-hand side uses one that `flexdyn.scalarize` does not write out (e.g. the
@@ -338,11 +344,15 @@ def rk4_sweep_final(
         raise ValueError(f"rk4_sweep_final: expected t1 > t0, got t0={t0!r}, t1={t1!r}")
     if backend not in _BACKENDS:
         raise ValueError(f"rk4_sweep_final: backend expected one of {_BACKENDS}, got {backend!r}")
+    if solve not in _SOLVES:
+        raise ValueError(f"rk4_sweep_final: solve expected one of {_SOLVES}, got {solve!r}")
     block = int(block)
     if block < 1 or block & (block - 1):
         raise ValueError(f"rk4_sweep_final: block expected a power of 2, got {block!r}")
     if backend == "auto":
         backend = "pallas" if jax.default_backend() == "gpu" else "xla"
+    if solve == "auto":
+        solve = "unrolled" if backend == "xla" else "rsqrt"
     leaves = [leaf for leaf in jax.tree_util.tree_leaves(eqx.filter(chains, eqx.is_array))]
     if not leaves or any(leaf.ndim == 0 for leaf in leaves):
         raise ValueError(
@@ -368,8 +378,8 @@ def rk4_sweep_final(
     columns = _columns(flat)
     key = _structure_key(asm, torque, t0, t1, dt, n_state, columns)
     run = _runner(
-        key,
-        lambda: _plan(asm, torque, t0, t1, dt, y0[0], columns, "unrolled" if backend == "xla" else "rsqrt"),
+        None if key is None else (key, solve),
+        lambda: _plan(asm, torque, t0, t1, dt, y0[0], columns, solve),
         backend,
         block,
         num_warps,

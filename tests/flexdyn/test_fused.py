@@ -110,6 +110,8 @@ def test_errors():
         fused.rk4_sweep_final(chains, Y0, 0.1, 0.1, TORQUE, dt=1e-3)
     with pytest.raises(ValueError, match="backend expected one of"):
         fused.rk4_sweep_final(chains, Y0, 0.0, 0.1, TORQUE, dt=1e-3, backend="cuda")
+    with pytest.raises(ValueError, match="solve expected one of"):
+        fused.rk4_sweep_final(chains, Y0, 0.0, 0.1, TORQUE, dt=1e-3, solve="cho")
     with pytest.raises(ValueError, match=r"y0 expected shape \(8,\) or \(2, 8\)"):
         fused.rk4_sweep_final(chains, Y0[:4], 0.0, 0.1, TORQUE, dt=1e-3)
     # An input whose evaluation has no scalar form (a SampledTorque's interpolation searches).
