@@ -90,6 +90,10 @@ def test_a_calibration_error_is_found_after_a_structural_change():
     assert diag.causes[1].where == "tip1"
     # found from the structural model: the elastic joint is not a candidate there
     assert all(s.label != "joint_elasticity:joint1" for scores in diag.rounds[1:] for s in scores)
+    # backlash needs an elastic joint: not applicable to the rigid baseline, tried on the
+    # elastic model, so not among the entries the stacked search never tried
+    assert any(s.name == "backlash" for scores in diag.rounds[1:] for s in scores)
+    assert "backlash" not in diag.not_tried and "joint_elasticity" not in diag.not_tried, diag.not_tried
     for cause, name, truth in (
         (0, "joint1.stiffness", 40.0),
         (0, "joint1.rotor_inertia", 0.01),
