@@ -361,10 +361,13 @@ def _experiment_and_folder(args, suffix: str):
 
 
 def _compile_estimate(exp) -> float:
-    """A rough guess of the first call's compilation time (s) on a laptop: about 30 s for a
-    rigid pendulum, growing with the number of coordinates and channels."""
+    """A rough guess of the first fit's time (s), compilation included, on a 2-core
+    machine, growing with the number of coordinates and channels. Measured 2026-12-03 (2-core
+    Intel Xeon): 10.6 s for `examples/pendulum_drops` (1 coordinate, 1 channel), 49.5 s for
+    a flexible link on an elastic joint (4 coordinates, 3 channels, frequency
+    initialisation included); the guess is ~1.15x those."""
     n = exp.chain.n_dof
-    return 25.0 * (1.0 + 0.5 * (n - 1)) * (1.0 + 0.2 * (len(exp.output_channels) - 1))
+    return 12.0 * (1.0 + 0.8 * (n - 1)) * (1.0 + 0.2 * (len(exp.output_channels) - 1))
 
 
 # ---------------------------------------------------------------------------
