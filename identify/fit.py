@@ -862,9 +862,11 @@ def fit(
                 "start_costs": [float(c) for c in costs],
             }
         )
+        n_design = len(xs) - len(extra)
+        which = f"start {best + 1}" if best < n_design else f"extra start {best - n_design + 1}"
         say(
-            f"  horizon {h:8.3f} s: {len(xs)} starts, best cost {float(costs[best]):.6g} "
-            f"(start {best}; others {', '.join(f'{float(c):.4g}' for c in costs)})"
+            f"  horizon {h:8.3f} s: {len(xs)} starts, best cost {float(costs[best]):.6g} from {which} "
+            f"(costs in order, the guess first: {', '.join(f'{float(c):.4g}' for c in costs)})"
         )
     # Grow the horizon from the best start; if that ends on a bound of a parameter or with
     # a residual far above the model-free noise floor (a wrong basin: `restart_poor_fit`),
