@@ -35,6 +35,8 @@ import jax.extend as jex
 import jax.numpy as jnp
 import numpy as np
 
+from .smallsolve import refine_rsqrt
+
 __all__ = ["eval_elementwise", "is_constant", "object_array"]
 
 _CONSTANT_TYPES = (bool, int, float, np.bool_, np.integer, np.floating)
@@ -203,6 +205,14 @@ def _sign(a):
     return jnp.sign(a)
 
 
+def _rsqrt(a):
+    """`lax.rsqrt` to float64 precision anywhere: in a Pallas kernel on a GPU it is the bare
+    `rsqrt.approx.f64` (~2^-22: `smallsolve.spd_solve_rsqrt`), so it is refined by one
+    Householder step (`smallsolve.refine_rsqrt`; on the CPU, where it is exact, the step
+    changes nothing)."""
+    return refine_rsqrt(a, jax.lax.rsqrt(a))
+
+
 _ELEMENTWISE: dict[str, Callable] = {
     "add": _add,
     "add_any": _add,
@@ -221,7 +231,7 @@ _ELEMENTWISE: dict[str, Callable] = {
     "exp": _unary(_numpy(np.exp), jnp.exp),
     "log": _unary(_numpy(np.log), jnp.log),
     "sqrt": _unary(_numpy(np.sqrt), jnp.sqrt),
-    "rsqrt": _unary(_numpy(lambda a: 1.0 / np.sqrt(a)), jax.lax.rsqrt),
+    "rsqrt": _unary(_numpy(lambda a: 1.0 / np.sqrt(a)), _rsqrt),
     "abs": _unary(abs, jnp.abs),
     "sign": _unary(_numpy(np.sign), _sign),
     "square": lambda a: _mul(a, a),

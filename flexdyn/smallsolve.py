@@ -29,8 +29,8 @@ UNROLL_MAX_DOF = 12
 def cholesky_unrolled(M: Float[Array, "n n"], rsqrt: bool = False) -> tuple[list[list], list]:
     """Lower Cholesky factor of `M` as a nested list of scalars, `L[i][j]` for j <= i, and
     the reciprocals of its diagonal, `1 / L[j][j]`. `rsqrt`: each pivot's reciprocal from
-    `lax.rsqrt` and `refine_rsqrt`, and `L_jj = s / sqrt(s)` as `s` times it (no division or
-    square root: `spd_solve_rsqrt`); else `L_jj = sqrt(s)` and its reciprocal by division."""
+    `lax.rsqrt`, and `L_jj = s / sqrt(s)` as `s` times it (no division or square root:
+    `spd_solve_rsqrt`); else `L_jj = sqrt(s)` and its reciprocal by division."""
     n = M.shape[0]
     L = [[None] * (i + 1) for i in range(n)]
     inv = [None] * n
@@ -39,7 +39,7 @@ def cholesky_unrolled(M: Float[Array, "n n"], rsqrt: bool = False) -> tuple[list
         for k in range(j):
             s = s - L[j][k] * L[j][k]
         if rsqrt:
-            inv[j] = refine_rsqrt(s, lax.rsqrt(s))
+            inv[j] = lax.rsqrt(s)
             L[j][j] = s * inv[j]
         else:
             L[j][j] = jnp.sqrt(s)
@@ -88,20 +88,23 @@ def refine_rsqrt(s, y):
     """`y`, an approximation of `1 / sqrt(s)` with relative error `e`, improved by one step
     of the third-order Householder iteration for `y^-2 = s`: with `r = 1 - s y^2`,
     `y (1 + r/2 + 3 r^2/8)`, whose relative error is `~(5/16) e^3` (rounding aside): from
-    `e = 2^-22` to a few units in the last place of a float64."""
+    `e = 2^-22` to a few units in the last place of a float64. `flexdyn.scalarize` applies it
+    to every `lax.rsqrt` of a scalar program (`spd_solve_rsqrt`)."""
     r = 1.0 - (s * y) * y
     return y + y * (r * (0.5 + 0.375 * r))
 
 
 def spd_solve_rsqrt(M: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
     """`spd_solve` without a division or a square root: each pivot's reciprocal square root
-    `1 / L_jj` comes from `lax.rsqrt` refined by `refine_rsqrt`, `L_jj = s / sqrt(s)` is
-    `s` times it, and the substitutions multiply by it. For the GPU kernel of
-    `flexdyn.fused`: there a float64 division or square root is a Newton sequence with a
-    call into a slow-path subroutine, while `lax.rsqrt` lowers to `rsqrt.approx.f64`
-    (Triton's libdevice `__nv_rsqrt`, with no refinement of its own), a special-function
-    instruction. Compiled for an H200 offline (`benchmarks/ptxas_fused.py`, paper 004's
-    arm): 4,184 instructions instead of 5,552, 30 calls instead of 81. On the CPU the
-    divisions are faster (paper 004's arm, RK4 for 5 s: ~10 % slower this way, measured
-    2026-12-03), so `spd_solve` keeps them. A non-positive-definite `M` gives NaN or inf."""
+    `1 / L_jj` comes from `lax.rsqrt`, `L_jj = s / sqrt(s)` is `s` times it, and the
+    substitutions multiply by it. For the GPU kernel of `flexdyn.fused`: there a float64
+    division or square root is a Newton sequence with a call into a slow-path subroutine,
+    while `lax.rsqrt` lowers to `rsqrt.approx.f64` (Triton's libdevice `__nv_rsqrt`; in SASS
+    one hardware approximation, `MUFU.RSQ64H`, with no refinement), which `flexdyn.scalarize`
+    refines there (`refine_rsqrt`). Elsewhere `lax.rsqrt` is accurate as it stands (exact on
+    the CPU; within 1 ulp in XLA on a GPU). Compiled for an H200 offline
+    (`benchmarks/ptxas_fused.py`, paper 004's arm): 4,184 instructions instead of 5,552, 30
+    calls instead of 81. On the CPU the divisions are faster (paper 004's arm, RK4 for 5 s:
+    ~10 % slower this way, measured 2026-12-03), so `spd_solve` keeps them. A
+    non-positive-definite `M` gives NaN or inf."""
     return _unrolled_solve(M, b, rsqrt=True)

@@ -33,8 +33,8 @@ def test_spd_solve_matches_lu(n, solve):
 def test_one_refinement_step_takes_an_approximate_rsqrt_to_float64():
     """`refine_rsqrt` from starts off by up to 2^-22 (relative), across 600 decades: the
     error ends within 2 units of the last place of the exact `1 / sqrt(s)`, as the
-    iteration's cubic error `(5/16) e^3 ~ 2^-68` promises (the GPU's `rsqrt.approx.f64` is
-    the start in `spd_solve_rsqrt`; on the CPU `lax.rsqrt` is exact and the step keeps it)."""
+    iteration's cubic error `(5/16) e^3 ~ 2^-68` promises (`flexdyn.scalarize` refines the
+    GPU kernel's `rsqrt.approx.f64` so; on the CPU `lax.rsqrt` is exact and the step keeps it)."""
     s = np.logspace(-300, 300, 20_001)
     exact = 1.0 / np.sqrt(s)
     for e in (2.0**-22, -(2.0**-22), 2.0**-30):

@@ -184,3 +184,20 @@ def test_argument_shape_checked():
 def test_is_constant():
     assert is_constant(1.0) and is_constant(2) and is_constant(True) and is_constant(np.float64(1.0))
     assert not is_constant(jnp.ones(B))
+
+
+def test_a_reciprocal_square_root_is_refined_to_float64(monkeypatch):
+    """In a Pallas kernel on a GPU, a float64 `lax.rsqrt` is a bare hardware approximation
+    (`flexdyn.smallsolve.spd_solve_rsqrt`); the scalar program refines every one by a
+    Householder step. Here `lax.rsqrt` is made 2^-22 wrong (relative) during the scalar
+    evaluation: the program's result is still `1 / sqrt(x)` to 2 ulp (unrefined it would be
+    off by ~2.4e-7)."""
+    import flexdyn.scalarize as sc
+
+    x = np.logspace(-200, 200, 41)
+    jaxpr = jax.make_jaxpr(lambda v: lax.rsqrt(v))(np.ones(()))
+    exact = jax.lax.rsqrt
+    monkeypatch.setattr(sc.jax.lax, "rsqrt", lambda a: exact(a) * (1.0 + 2.0**-22))
+    (out,) = eval_elementwise(jaxpr, object_array([jnp.asarray(x)], ()))
+    got = np.asarray(out.item())
+    np.testing.assert_allclose(got, 1.0 / np.sqrt(x), rtol=2 * np.finfo(float).eps, atol=0.0)
