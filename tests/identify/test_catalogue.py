@@ -44,23 +44,24 @@ def test_missing_mode_keeps_the_links_geometric_stiffening():
         assert extended.links[1].geometric_stiffening is stiffening
 
 
+def _candidates(chain, stiffening_links, channels=("theta1", "tip1"), driven=(0,)):
+    """`catalogue.candidates` of `chain` with fixed, typical log statistics."""
+    return cat.candidates(
+        chain,
+        channels,
+        list(driven),
+        torque_rms=0.1,
+        rate_rms=1.0,
+        sample_interval=0.005,
+        channel_rms={},
+        offsets_fitted=set(),
+        max_frequency_hz=50.0,
+        stiffening_links=stiffening_links,
+    )
+
+
 def _offered(chain, stiffening_links):
-    return [
-        c.label
-        for c in cat.candidates(
-            chain,
-            ("theta1", "tip1"),
-            [0],
-            torque_rms=0.1,
-            rate_rms=1.0,
-            sample_interval=0.005,
-            channel_rms={},
-            offsets_fitted=set(),
-            max_frequency_hz=50.0,
-            stiffening_links=stiffening_links,
-        )
-        if c.name == "geometric_stiffening"
-    ]
+    return [c.label for c in _candidates(chain, stiffening_links) if c.name == "geometric_stiffening"]
 
 
 def test_geometric_stiffening_is_offered_only_where_the_model_check_flags_it():
@@ -100,21 +101,7 @@ def test_not_applicable_names_exactly_the_entries_candidates_leaves_out(rig, dri
     """`not_applicable` against `candidates` itself: every catalogue entry is either offered
     somewhere on the rig or given a reason, never both, and the left-out ones are those the
     rig's structure rules out (no elastic joint for backlash, gravity for a base tilt, ...)."""
-    offered = {
-        c.name
-        for c in cat.candidates(
-            rig,
-            ("theta1",),
-            driven,
-            torque_rms=0.1,
-            rate_rms=1.0,
-            sample_interval=0.005,
-            channel_rms={},
-            offsets_fitted=set(),
-            max_frequency_hz=50.0,
-            stiffening_links=stiffening,
-        )
-    }
+    offered = {c.name for c in _candidates(rig, stiffening, channels=("theta1",), driven=driven)}
     why = cat.not_applicable(rig, driven, stiffening)
     assert set(why) == absent
     assert offered | set(why) == set(cat.NAMES) and not offered & set(why)
