@@ -105,6 +105,7 @@ def spd_solve_rsqrt(M: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Arra
     the CPU; within 1 ulp in XLA on a GPU). Compiled for an H200 offline
     (`benchmarks/ptxas_fused.py`, paper 004's arm): 4,184 instructions instead of 5,552, 30
     calls instead of 81. On the CPU the divisions are faster (paper 004's arm, RK4 for 5 s:
-    ~10 % slower this way, measured 2026-12-03), so `spd_solve` keeps them. A
+    this form 1.06x the time, `benchmarks/bench_solve_forms.py`, 2026-12-03), so
+    `spd_solve` keeps them. A
     non-positive-definite `M` gives NaN or inf."""
     return _unrolled_solve(M, b, rsqrt=True)
