@@ -14,8 +14,8 @@ computes `vmap(rk4_final)` differently:
   8 x 8 matrices. So the right-hand side of one trajectory is traced once and evaluated
   element by element: the mass matrix, velocity terms and forces, and the unrolled
   Cholesky solve of `flexdyn.smallsolve` (in the kernel, `spd_solve_rsqrt`: no float64
-  division or square root, each a call into a slow-path subroutine on a GPU). Its array operations become scalar
-  multiply-adds over the batch.
+  division or square root, each a call into a slow-path subroutine on a GPU). Its array
+  operations become scalar multiply-adds over the batch.
   - The assembled scalars of the chain that are the same in every entry are folded in
     as numbers, with every `0 * x` and `1 * x`. These are the `AssembledChain`'s modal
     integrals, masses and stiffnesses.

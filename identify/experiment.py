@@ -501,10 +501,18 @@ def _parts(chain: fd.Chain):
 def _unknown_parameter(r: _Reader, chain: fd.Chain, key: tuple, value) -> ExperimentError:
     valid = fd.parameter_names(chain)
     name = key[-1]
+    return _dotted_key_error(r, key, name, value, valid) or r.error(
+        key, f"unknown parameter; this rig has: {', '.join(valid)}"
+    )
+
+
+def _dotted_key_error(r: _Reader, key: tuple, name: str, value, valid) -> ExperimentError | None:
+    """The error for `name.sub = ...` written bare (TOML makes a table `name` of it) where
+    `"name.sub"` is one of `valid`; None otherwise."""
     if isinstance(value, Mapping) and any(f"{name}.{k}" in valid for k in value):
         sub = next(k for k in value if f"{name}.{k}" in valid)
         return r.error(key, f'a bare dotted key makes a table in TOML; quote the name: "{name}.{sub}" = ...')
-    return r.error(key, f"unknown parameter; this rig has: {', '.join(valid)}")
+    return None
 
 
 def _apply_set(r: _Reader, chain: fd.Chain, overrides: Mapping) -> fd.Chain:
@@ -590,12 +598,7 @@ def _starts(r: _Reader, free: list[FreeParameter], entries) -> tuple[dict[str, f
         start = {}
         for name, value in entry.items():
             if name not in by_name:
-                if isinstance(value, Mapping) and any(f"{name}.{sub}" in by_name for sub in value):
-                    sub = next(sub for sub in value if f"{name}.{sub}" in by_name)
-                    raise r.error(
-                        key + (name,), f'a bare dotted key makes a table in TOML; quote the name: "{name}.{sub}" = ...'
-                    )
-                raise r.error(
+                raise _dotted_key_error(r, key + (name,), name, value, by_name) or r.error(
                     key + (name,),
                     f"not a free parameter; a start sets those listed under [parameters] ({', '.join(by_name)})",
                 )
