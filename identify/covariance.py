@@ -34,6 +34,14 @@ correlated in any way, but independent of the other logs', the sandwich estimato
 `L - 1` degrees of freedom; intervals use Student's t with `L - 1`), and it is not
 scaled by `s^2`: the spread of the per-log scores sets it.
 
+**Undetermined variables.** The pseudo-inverse is taken of the column-normalised `J`
+(`_Svd`: the rank decision does not depend on the parameters' units). Where `J` has a
+null space (a combination of parameters the data do not see at all, e.g. a pendulum's
+centre of mass and inertia about it when only `m g c / (I + m c^2)` shows), the
+pseudo-inverse's variance of a parameter in that combination is the variance of its
+projection on the determined directions: finite, small and wrong. Such parameters (and a
+nuisance that moves with them) get an infinite standard error and no interval instead.
+
 Identifiability: the right singular vectors of the column-normalised `J` with a singular
 value below `threshold` times the largest. `blocked` looks at the shared parameters after
 eliminating the nuisances (the column-normalised `(I - P_l) S_l` stacked): a weak
@@ -63,14 +71,73 @@ class Covariance:
     identifiability: list
 
 
-def _pinv_parts(A: np.ndarray):
-    """SVD of `A` truncated at `s_max max(A.shape) eps`: `(W, s, Vt)`."""
-    W, s, Vt = np.linalg.svd(A, full_matrices=False)
-    if s.size == 0:
-        return W, s, Vt
-    tol = s[0] * max(A.shape) * np.finfo(float).eps
-    keep = s > tol
-    return W[:, keep], s[keep], Vt[keep]
+# A variable whose unit vector has more than this fraction of its length in the null space
+# of the column-normalised Jacobian is not determined by the data (roundoff in an
+# orthonormal basis leaves ~1e-8 here; a real null direction loads its variables O(0.1-1)).
+NULL_LOADING = 1e-6
+
+
+@dataclasses.dataclass(frozen=True)
+class _Svd:
+    """The SVD `W diag(s) Vt` of the column-normalised `A D^-1` (`D`: the column norms, 1 for
+    a zero column), with `keep`: singular values above `s_max max(A.shape) eps` (numpy's
+    `matrix_rank` rule, here on a scale-free matrix: the rank does not depend on the
+    parameters' units)."""
+
+    W: np.ndarray
+    s: np.ndarray
+    Vt: np.ndarray
+    norms: np.ndarray
+    keep: np.ndarray
+
+    @staticmethod
+    def of(A: np.ndarray) -> _Svd:
+        norms = np.linalg.norm(A, axis=0)
+        norms = np.where(norms > 0, norms, 1.0)
+        W, s, Vt = np.linalg.svd(A / norms, full_matrices=False)
+        keep = s > (s[0] * max(A.shape) * np.finfo(float).eps if s.size else 0.0)
+        return _Svd(W, s, Vt, norms, keep)
+
+    @property
+    def range_basis(self) -> np.ndarray:
+        """Orthonormal columns spanning `A`'s range."""
+        return self.W[:, self.keep]
+
+    def pinv(self) -> np.ndarray:
+        """`A^+ = D^-1 V_k diag(1/s_k) W_k^T` (`P x m`)."""
+        return ((self.Vt[self.keep].T / self.s[self.keep]) @ self.W[:, self.keep].T) / self.norms[:, None]
+
+    def normal_pinv(self) -> np.ndarray:
+        """`(A^T A)^+ = D^-1 V_k diag(s_k^-2) V_k^T D^-1` (`P x P`)."""
+        V = self.Vt[self.keep]
+        return ((V.T / self.s[self.keep] ** 2) @ V) / np.outer(self.norms, self.norms)
+
+    def undetermined(self) -> np.ndarray:
+        """Per column: variable `i` has a component in `A`'s null space (more than
+        `NULL_LOADING` of its unit vector). Moving along a null direction changes it without
+        changing the fit, so its variance is infinite, not the finite number the
+        pseudo-inverse gives (the variance of its projection on the determined directions)."""
+        V = self.Vt[self.keep]
+        return np.sqrt(np.clip(1.0 - np.sum(V**2, axis=0), 0.0, None)) > NULL_LOADING
+
+    def sees_null_space(self, G: np.ndarray) -> np.ndarray:
+        """Per row of `G` (`k x P`): `g . n != 0` for a null vector `n` of `A` (more than
+        `NULL_LOADING` of the row, in the normalised coordinates). A nuisance
+        `x_l = U_l^+ (r_l - S_l theta)` moves with `theta` along `n` when its row of
+        `G = U_l^+ S_l` does, so it is not determined either."""
+        V = self.Vt[self.keep]
+        Gn = G / self.norms  # theta = D^-1 theta_n
+        size = np.linalg.norm(Gn, axis=1)
+        null_part = np.linalg.norm(Gn - (Gn @ V.T) @ V, axis=1)
+        return null_part > NULL_LOADING * np.where(size > 0, size, np.inf)
+
+
+def _correlation(cov: np.ndarray, undetermined: np.ndarray) -> np.ndarray:
+    """The correlation matrix of `cov`, NaN off the diagonal for undetermined variables."""
+    d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / np.outer(d, d)
+    bad = undetermined[:, None] | undetermined[None, :]
+    return np.where(bad & ~np.eye(len(d), dtype=bool), np.nan, corr)
 
 
 def _weak_directions(names, log_scale, Vt, S, threshold, p):
@@ -96,18 +163,13 @@ def dense(names, log_scale, r: np.ndarray, J: np.ndarray, threshold: float = 1e-
     n_res, n_par = J.shape
     rss = float(r @ r)
     s2 = rss / max(n_res - n_par, 1)
-    U, S, Vt = np.linalg.svd(J, full_matrices=False)
-    tol = S[0] * max(J.shape) * np.finfo(float).eps if S.size else 0.0
-    Sinv2 = np.where(S > tol, 1.0 / np.where(S > tol, S, 1.0) ** 2, 0.0)
-    cov = s2 * (Vt.T * Sinv2) @ Vt
-    se = np.sqrt(np.clip(np.diag(cov), 0, None))
-    d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    corr = (cov / np.outer(d, d))[:p, :p]
-    norms = np.linalg.norm(J, axis=0)
-    norms = np.where(norms > 0, norms, 1.0)
-    _, Sn, Vtn = np.linalg.svd(J / norms, full_matrices=False)
-    ident = _weak_directions(names, log_scale, Vtn, Sn, threshold, p)
-    return Covariance(rss, n_res, s2, se, corr, Sn, ident)
+    svd = _Svd.of(J)
+    cov = s2 * svd.normal_pinv()
+    undetermined = svd.undetermined()
+    se = np.where(undetermined, np.inf, np.sqrt(np.clip(np.diag(cov), 0, None)))
+    corr = _correlation(cov, undetermined)[:p, :p]
+    ident = _weak_directions(names, log_scale, svd.Vt, svd.s, threshold, p)
+    return Covariance(rss, n_res, s2, se, corr, svd.s, ident)
 
 
 def blocked(
@@ -138,7 +200,8 @@ def blocked(
     s2 = rss / max(n_res - n_par, 1)
 
     projected = np.empty_like(S)
-    G, Uinv = [], []  # per log: U_l^+ S_l (k_l x P), U_l^+ (k_l x n)
+    se = np.zeros(P + n_nuis)
+    G, Uinv, nuis_undetermined = [], [], []  # per log: U_l^+ S_l (k_l x P), U_l^+ (k_l x n)
     for l in range(L):
         cols = slots[l] >= 0
         Ul = U[l][:, cols]
@@ -146,28 +209,35 @@ def blocked(
             projected[l] = S[l]
             G.append(np.zeros((0, P)))
             Uinv.append(np.zeros((0, n)))
+            nuis_undetermined.append(np.zeros(0, bool))
             continue
-        W, s, Vt = _pinv_parts(Ul)
-        projected[l] = S[l] - W @ (W.T @ S[l])
-        pinv = (Vt.T / s) @ W.T  # k_l x n
+        svd_l = _Svd.of(Ul)
+        Wl = svd_l.range_basis
+        projected[l] = S[l] - Wl @ (Wl.T @ S[l])
+        pinv = svd_l.pinv()  # k_l x n
         Uinv.append(pinv)
         G.append(pinv @ S[l])
+        nuis_undetermined.append(svd_l.undetermined())
 
     stacked = projected.reshape(L * n, P)
-    _, ss, Vts = _pinv_parts(stacked) if P else (None, np.zeros(0), np.zeros((0, 0)))
-    cov_ss = s2 * (Vts.T / ss**2) @ Vts if P else np.zeros((0, 0))
-
-    se = np.zeros(P + n_nuis)
-    se[:P] = np.sqrt(np.clip(np.diag(cov_ss), 0, None))
+    if P:
+        svd = _Svd.of(stacked)
+        cov_ss = s2 * svd.normal_pinv()
+        shared_undetermined = svd.undetermined()
+    else:
+        svd, cov_ss, shared_undetermined = None, np.zeros((0, 0)), np.zeros(0, bool)
+    se[:P] = np.where(shared_undetermined, np.inf, np.sqrt(np.clip(np.diag(cov_ss), 0, None)))
     for l in range(L):
         cols = np.flatnonzero(slots[l] >= 0)
         if cols.size == 0:
             continue
         var = s2 * np.sum(Uinv[l] ** 2, axis=1) + np.einsum("ip,pq,iq->i", G[l], cov_ss, G[l])
-        se[P + slots[l, cols]] = np.sqrt(np.clip(var, 0, None))
+        bad = nuis_undetermined[l] | (svd.sees_null_space(G[l]) if P else False)
+        se[P + slots[l, cols]] = np.where(bad, np.inf, np.sqrt(np.clip(var, 0, None)))
 
-    d = np.sqrt(np.clip(np.diag(cov_ss), 1e-300, None))
-    corr = cov_ss / np.outer(d, d) if P else np.zeros((0, 0))
+    corr = _correlation(cov_ss, shared_undetermined)
+    # the identifiability warnings: the stacked blocks normalised by the columns of S (not
+    # of the projection: a parameter the nuisances absorb shows a small singular value)
     norms = np.sqrt(np.sum(S**2, axis=(0, 1)))
     norms = np.where(norms > 0, norms, 1.0)
     if P:
@@ -191,14 +261,17 @@ def clustered(r: np.ndarray, S: np.ndarray, U: np.ndarray, slots: np.ndarray, us
     for l in range(L):
         Ul = U[l][:, slots[l] >= 0]
         if Ul.shape[1]:
-            W, _, _ = _pinv_parts(Ul)
+            W = _Svd.of(Ul).range_basis
             projected[l] = S[l] - W @ (W.T @ S[l])
         else:
             projected[l] = S[l]
         scores[l] = projected[l].T @ r[l]
-    _, ss, Vts = _pinv_parts(projected.reshape(L * n, P))
-    bread = (Vts.T / ss**2) @ Vts
-    return L / (L - 1) * bread @ (scores.T @ scores) @ bread
+    svd = _Svd.of(projected.reshape(L * n, P))
+    bread = svd.normal_pinv()
+    cov = L / (L - 1) * bread @ (scores.T @ scores) @ bread
+    undetermined = svd.undetermined()
+    # an undetermined parameter's variance is infinite (see `_Svd.undetermined`)
+    return np.where(undetermined[:, None] & undetermined[None, :] & np.eye(P, dtype=bool), np.inf, cov)
 
 
 def digits(value: float, spread: float) -> int:
@@ -214,5 +287,7 @@ def digits(value: float, spread: float) -> int:
 def interval_text(lo: float, hi: float) -> str:
     """`[lo, hi]` with the digits that tell its ends apart (`digits` of each end against
     the width): `[11.995, 12.001]`, not `[12, 12]`."""
+    if np.isinf(lo) or np.isinf(hi):  # an undetermined parameter's
+        return "not determined"
     d = max(digits(lo, hi - lo), digits(hi, hi - lo))
     return f"[{lo:.{d}g}, {hi:.{d}g}]"

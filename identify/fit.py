@@ -657,6 +657,13 @@ class FitResult:
             lines.append(
                 f"warning: the data cannot separate {w['combination']} (singular value ratio {w['ratio']:.2g})"
             )
+        undetermined = [n for n, se in zip(self.names, self.std_errors) if not np.isfinite(se)]
+        if undetermined:
+            lines.append(
+                f"warning: {', '.join(undetermined)} not determined by these data (no interval): the fit is the "
+                "same anywhere along the combination(s) the data cannot separate; fix one parameter of each, or "
+                "add data that separate them"
+            )
         return "\n".join(lines)
 
     def to_dict(self) -> dict:

@@ -81,6 +81,49 @@ def test_a_combination_degenerate_after_eliminating_the_nuisances_is_reported_by
         assert len(cov.identifiability) == 1, cov.identifiability
         combo = cov.identifiability[0]["combination"]
         assert "log link1.EI" in combo and "log joint1.damping" in combo and "payload.mass" not in combo
+    # the null vector (-2e-3, 1, 0, -c_l per log): EI, damping and every log's nuisances
+    # move along it without changing the fit, so they have no standard error; payload.mass
+    # is orthogonal to it, and its standard error (an estimable function's: the same for any
+    # generalised inverse) agrees between the two paths
+    expect = np.ones(dense.std_errors.size, bool)
+    expect[2] = False
+    np.testing.assert_array_equal(~np.isfinite(dense.std_errors), expect)
+    np.testing.assert_array_equal(~np.isfinite(blocked.std_errors), expect)
+    assert blocked.std_errors[2] == pytest.approx(dense.std_errors[2], rel=1e-6)
+    assert np.isnan(blocked.correlation[0, 2]) and blocked.correlation[2, 2] == pytest.approx(1.0)
+
+
+def test_a_parameter_on_an_exact_null_direction_has_no_standard_error():
+    """A pendulum-like degeneracy: the data see two parameters only through one
+    combination (here column 1 = 2 x column 0, in other units), so both are undetermined:
+    infinite standard error, no interval. The pseudo-inverse alone would give them a small
+    finite one (the spread of their projection on the determined direction). The other
+    parameters keep the standard errors of the model with one of the pair fixed (oracle:
+    NumPy's inverse of the reduced normal matrix, the same residual variance)."""
+    rng = np.random.default_rng(5)
+    n = 300
+    J = rng.normal(size=(n, 4)) * np.array([1e3, 1.0, 30.0, 0.2])
+    J[:, 1] = 2e-3 * J[:, 0]
+    r = rng.normal(size=n)
+    names = ("link1.com", "link1.inertia", "joint1.damping", "payload.mass")
+    cov = covariance.dense(names, (False, True, True, False), r, J)
+    assert np.isinf(cov.std_errors[:2]).all()
+    s2 = float(r @ r) / (n - 4)
+    reduced = J[:, [0, 2, 3]]
+    ref = np.sqrt(np.diag(s2 * np.linalg.inv(reduced.T @ reduced)))[1:]
+    np.testing.assert_allclose(cov.std_errors[2:], ref, rtol=1e-9)
+    assert cov.identifiability and "link1.com" in cov.identifiability[0]["combination"]
+    # the same through the blocked path (no nuisances) and the cluster-robust one
+    L = 3
+    blocks = (r.reshape(L, -1), J.reshape(L, n // L, 4), np.zeros((L, n // L, 0)), np.zeros((L, 0), int))
+    used = np.ones((L, n // L), bool)
+    b = covariance.blocked(names, (False, True, True, False), *blocks, used)
+    np.testing.assert_array_equal(np.isinf(b.std_errors), [True, True, False, False])
+    np.testing.assert_allclose(b.std_errors[2:], ref, rtol=1e-9)
+    robust = np.diag(covariance.clustered(*blocks, used))
+    np.testing.assert_array_equal(np.isinf(robust), [True, True, False, False])
+    assert covariance.interval_text(-np.inf, np.inf) == "not determined"
+    assert covariance.interval_text(0.0, np.inf) == "not determined"
 
 
 def test_no_nuisances_and_no_shared_parameters():
