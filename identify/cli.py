@@ -287,11 +287,16 @@ def _versions() -> dict:
 # ---------------------------------------------------------------------------
 
 
-def _residual_lines(report: dict, sigma: dict, roles: dict) -> list[str]:
+def _residual_lines(report: dict, outputs: dict, roles: dict) -> list[str]:
+    """The residual table: per log and channel the residual's RMS, its ratio to the noise
+    floor of the measured samples alone (`identify.noise_floor`: ~1 where the model
+    explains the data; the fit's own noise estimate would read ~1 whatever the misfit),
+    whiteness and correlation with the input. `outputs`: `fitted_outputs` of the logs."""
+    from .noise_floor import noise_floor
     from .report import display_unit
 
     lines = [
-        f"{'log':<24} {'channel':<10} {'RMS':>14} {'RMS/noise':>9}  {'whiteness (Ljung-Box p)':<26} input correlation"
+        f"{'log':<24} {'channel':<10} {'RMS':>14} {'RMS/floor':>9}  {'whiteness (Ljung-Box p)':<26} input correlation"
     ]
     for name, per_channel in report.items():
         label = name + (" [val]" if roles.get(name) == "validation" else "")
@@ -305,21 +310,27 @@ def _residual_lines(report: dict, sigma: dict, roles: dict) -> list[str]:
             else:
                 bad = [k for k, v in ic.items() if not v["independent"]]
                 inp = "correlated with " + ", ".join(bad) if bad else "independent of " + ", ".join(ic)
-            ratio = item["rms"] / sigma[c] if sigma.get(c) else float("nan")
+            entry = outputs.get(name, {})
+            floor = noise_floor(entry["t"], entry["measured"][c]) if c in entry.get("measured", {}) else 0.0
+            ratio = item["rms"] / floor if floor > 0 else float("nan")
             rms = f"{scale * item['rms']:.4g} {unit}"
             lines.append(f"{label:<24} {c:<10} {rms:>14} {ratio:>9.3g}  {white:<26} {inp}")
+    lines.append(
+        "(RMS/floor: the residual against the noise of the measured samples alone, identify.noise_floor; "
+        "a model that explains the data reaches ~1)"
+    )
     return lines
 
 
 def _nuisance_lines(result, validation_nuisances: dict) -> list[str]:
-    from .report import display_unit
+    from .report import display_unit, state_display_unit
 
     lines = []
     names = list(dict.fromkeys([*result.initial_states, *result.offsets, *validation_nuisances]))
     for name in names:
         parts = []
         for entry, (v, se) in result.initial_states.get(name, {}).items():
-            scale, unit = display_unit(entry) if not entry.endswith("_rate") else (1.0, "SI")
+            scale, unit = state_display_unit(entry)
             parts.append(f"initial {entry} = {scale * v:.4g} +- {scale * se:.2g} {unit}")
         for c, (v, se) in result.offsets.get(name, {}).items():
             scale, unit = display_unit(c)
@@ -327,7 +338,7 @@ def _nuisance_lines(result, validation_nuisances: dict) -> list[str]:
         val = validation_nuisances.get(name)
         if val is not None:
             for entry, v in val["initial_states"].items():
-                scale, unit = display_unit(entry) if not entry.endswith("_rate") else (1.0, "SI")
+                scale, unit = state_display_unit(entry)
                 parts.append(f"initial {entry} = {scale * v:.4g} {unit}")
             for c, v in val["offsets"].items():
                 scale, unit = display_unit(c)
@@ -467,7 +478,14 @@ def _fit_command(args) -> int:
         ratio = float(sv[-1] / sv[0]) if sv.size and sv[0] > 0 else float("nan")
         print(f"identifiability: no warnings (smallest/largest singular value of the Jacobian {ratio:.2g})")
     if not result.converged:
-        print(f"WARNING: the fit did not converge (last stage: {result.stages[-1]['result']}); try more --stages")
+        last = result.stages[-1]["result"]
+        if last != "successful":
+            print(f"WARNING: the fit did not converge (last stage: {last}); try more --stages")
+        else:  # the solver stopped at a bound: not an interior optimum
+            print(
+                f"WARNING: the fit ended with {', '.join(result.at_bounds)} on a bound, so it is not an optimum of "
+                "the model: widen the bounds, or check the model (gravity, units: see the warnings above)"
+            )
     if robust is not None:
         print()
         print(robust.summary())
@@ -490,7 +508,7 @@ def _fit_command(args) -> int:
     print()
     print("Residuals (fitted - measured; [val] = validation log, not used by the fit):")
     combined_report = {**resid, **val_report}
-    print("\n".join(_residual_lines(combined_report, result.sigma, roles)))
+    print("\n".join(_residual_lines(combined_report, all_outputs, roles)))
 
     # ---- files ---------------------------------------------------------------
     t0 = time.perf_counter()

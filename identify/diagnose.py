@@ -50,7 +50,10 @@ the model, and measure the gain on held-out data.
    held-out gain `min_gain` (`Diagnosis.notes` says so). A structural candidate whose model holds the current one
    as a limit (`catalogue.NESTED_LIMIT`: an elastic joint stiff enough is the rigid one)
    but whose fit ends above it stopped in a local minimum; the notes say so, since its
-   rejection is then no evidence against the effect (`_stuck_above_nested`).
+   rejection is then no evidence against the effect (`_stuck_above_nested`). So do they
+   for a continuous candidate whose fit ends above the model it extends at its neutral
+   values, and for a baseline with parameters its fit logs do not determine (no
+   interval: `identify.covariance`), a degeneracy every candidate inherits.
 
 The result (`Diagnosis`) holds the baseline fit, the evidence, every candidate's scores,
 the accepted causes with their parameters and 95 % intervals (from the exact Jacobian
@@ -68,6 +71,7 @@ import dataclasses
 import math
 import time
 import types
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -508,7 +512,7 @@ class Diagnosis:
             f"total dBIC {self.delta_bic_total:.1f}; fraction of the held-out residual explained "
             f"{self.fraction_explained:.3f} (of its excess over the noise: {self.excess_explained_text})"
         )
-        lines.extend(f"note: round {n['round']}: {n['text']}" for n in self.notes)
+        lines.extend(f"note: {note_text(n)}" for n in self.notes)
         if self.not_tried:
             lines.append("not tried:")
             lines.extend(f"  {n}: {why}" for n, why in self.not_tried.items())
@@ -629,6 +633,9 @@ def diagnose_logs(
     base = fit(base_problem, parameters, estimate_noise=estimate or False, progress=progress, **options)
     sigma = np.asarray([base.sigma[c] for c in base_problem.channels])
     sigma_j = jnp.asarray(sigma)
+    notes = _baseline_notes(base.names, base.std_errors)  # `Diagnosis.notes`
+    for n in notes:
+        say(f"  warning: {n['text']}")
     step = base.step
     fitted_chain = base.chain
     modal = _modal_frequencies(fitted_chain)
@@ -922,6 +929,11 @@ def diagnose_logs(
                 p_value = float(stats.f.sf(F, k, dof)) if np.isfinite(F) else 0.0
                 rms_c = float(np.sqrt(np.mean(r_ho**2)))
                 gain = rms_cur / rms_c if rms_c > 0 else np.inf
+                limit = ", ".join(f"{n} = {neutral[ext_names.index(n)]:g}" for n in c.params)
+                stuck = _stuck_above_nested(c, cost_c, current["cost"], bic_threshold, limit=limit)
+                if stuck:
+                    say(f"  round {rnd + 1}: {stuck}")
+                    notes.append({"round": rnd + 1, "text": stuck})
                 theta_b = np.asarray(thetas[bs.index(b)])
                 values = {n: float(theta_b[len(parameters) + ext_names.index(n)]) for n in c.params}
                 scores.append(
@@ -999,10 +1011,24 @@ def diagnose_logs(
     causes_scores = []
     screen_size: dict = {}
     struct_promising: set = set()
-    notes: list = []  # `Diagnosis.notes`
     struct_drop: dict = {}  # structural label -> (cost drop when last fitted, k)
     struct_models: dict = {}  # structural label -> its fitted model (this round's)
     stack_on = None  # a structural winner with rounds left: the search goes on from its model
+    structural = _StructuralFits(
+        base,
+        parameters,
+        sup_meas,
+        list(fit_logs),
+        list(held_out_logs),
+        channels,
+        sigma,
+        N,
+        rtol,
+        bic_threshold,
+        min_gain,
+        max_f,
+        say,
+    )
     for rnd in range(max_effects):
         done = {a.label for a, _ in accepted}
         remaining = [c for c in cands if c.label not in done and not c.structural]
@@ -1028,29 +1054,7 @@ def diagnose_logs(
         # model of the previous round (each is a model of its own, compiled and fitted
         # separately: the expensive part)
         for c in [x for x in cands if x.structural and x.label not in done and x.label in struct_promising]:
-            s = _structural_score(
-                rtol,
-                c,
-                chain,
-                sup_chain,
-                sup_meas,
-                parameters,
-                base,
-                current,
-                accepted,
-                joint,
-                ext_names,
-                fit_logs,
-                held_out_logs,
-                channels,
-                sigma,
-                N,
-                bic_threshold,
-                min_gain,
-                max_f,
-                rms_cur,
-                say,
-            )
+            s = structural.score(c, current, rms_cur)
             if s is not None:
                 scores.append(s[0])
                 struct_models[c.label] = s[1]
@@ -1371,12 +1375,14 @@ def _with_headroom(labels: set, problem: Problem, r_used, min_gain: float, rnd: 
     return set()
 
 
-def _stuck_above_nested(c, cost: float, cost_current: float, bic_threshold: float) -> str:
-    """A note when structural candidate `c`, whose model holds the current one as a limit
-    (`catalogue.NESTED_LIMIT`), ended its fit with a cost (chi-square units, fit data) more
-    than `bic_threshold` above the current model's: its fit stopped in a local minimum,
-    and its dBIC is no evidence against the effect. Else ''."""
-    limit = cat.NESTED_LIMIT.get(c.name)
+def _stuck_above_nested(c, cost: float, cost_current: float, bic_threshold: float, limit: str | None = None) -> str:
+    """A note when candidate `c`, whose model holds the current one as a limit, ended its
+    fit with a cost (chi-square units, fit data) more than `bic_threshold` above the
+    current model's: its fit stopped in a local minimum (or ran out of steps), and its
+    dBIC is no evidence against the effect. Else ''. The limit: `limit` (a continuous
+    candidate: its parameters at their neutral values), else the structural change's
+    (`catalogue.NESTED_LIMIT`: an elastic joint stiff enough is the rigid one)."""
+    limit = limit if limit is not None else cat.NESTED_LIMIT.get(c.name)
     if limit is None or not cost > cost_current + bic_threshold:
         return ""
     return (
@@ -1384,6 +1390,27 @@ def _stuck_above_nested(c, cost: float, cost_current: float, bic_threshold: floa
         f"{cost_current:.1f}), which it holds as a limit ({limit}): a local minimum, not "
         "evidence against the effect"
     )
+
+
+def _baseline_notes(names, std_errors) -> list:
+    """`Diagnosis.notes` of the baseline fit (round 0): the parameters its fit logs do not
+    determine (no interval: `identify.covariance`). Its degeneracy is every candidate's,
+    whose fit then wanders along it."""
+    undetermined = [n for n, se in zip(names, std_errors) if not np.isfinite(se)]
+    if not undetermined:
+        return []
+    text = (
+        f"the fit logs do not determine the baseline's {', '.join(undetermined)} (they see only a combination "
+        "of them; see the fit's identifiability warning): fix one parameter of each combination, or the "
+        "candidates' fits inherit the degeneracy"
+    )
+    return [{"round": 0, "text": text}]
+
+
+def note_text(note: dict) -> str:
+    """A `Diagnosis.notes` entry as printed: where it arose (round 0: the baseline) and what it says."""
+    where = "baseline" if note["round"] == 0 else f"round {note['round']}"
+    return f"{where}: {note['text']}"
 
 
 def _promising(drops: dict, cost: float, n: int, bic_threshold: float) -> set:
@@ -1620,34 +1647,41 @@ def _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, hel
     return out
 
 
-def _structural_score(
-    rtol,
-    c,
-    chain,
-    sup_chain,
-    sup_meas,
-    parameters,
-    base,
-    current,
-    accepted,
-    joint,
-    ext_names,
-    fit_logs,
-    held_out_logs,
-    channels,
-    sigma,
-    N,
-    bic_threshold,
-    min_gain,
-    max_f,
-    rms_cur,
-    say,
-):
+@dataclasses.dataclass(frozen=True)
+class _StructuralFits:
+    """What every structural candidate's fit shares in one diagnosis: the baseline
+    (`base`, its free `parameters`), the superset measurement model (`measurement`), the
+    fit and held-out logs, the channels and their noise `sigma`, the `N` residuals the
+    information criterion counts, and the acceptance thresholds."""
+
+    base: object  # the baseline's `FitResult`
+    parameters: list
+    measurement: meas.Measurement
+    fit_logs: list
+    held_out_logs: list
+    channels: tuple
+    sigma: np.ndarray
+    N: int
+    rtol: float
+    bic_threshold: float
+    min_gain: float
+    max_frequency_hz: float
+    say: Callable[[str], None]
+
+    def score(self, c, current: dict, rms_cur: float):
+        return _structural_score(self, c, current, rms_cur)
+
+
+def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float):
     """Fit a structural candidate as a model of its own (baseline parameters refitted from
     the baseline's values, accepted continuous effects kept at their fitted values).
     Returns `(score, model)` (`model`: the fitted chain, its measurement, the free
     parameters at their fitted values, the fit, the held-out weighted cost), or None when
     the fit failed."""
+    base, parameters, sup_meas = setting.base, setting.parameters, setting.measurement
+    channels, sigma, N, rtol, say = setting.channels, setting.sigma, setting.N, setting.rtol, setting.say
+    fit_logs, held_out_logs = setting.fit_logs, setting.held_out_logs
+    bic_threshold, min_gain, max_f = setting.bic_threshold, setting.min_gain, setting.max_frequency_hz
     values = {n: val for n, val, _ in current["layout"]}
     base_chain = base.chain
     struct_chain, new = cat.structural_model(base_chain, c, max_frequency_hz=max_f)

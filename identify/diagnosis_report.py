@@ -14,6 +14,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from . import covariance, evidence as ev  # noqa: E402
+from .diagnose import note_text  # noqa: E402
 from .report import display_unit  # noqa: E402
 
 JSON_FILE = "diagnosis.json"
@@ -271,7 +272,7 @@ def markdown(diag, title: str = "") -> str:
             lines.append(f"| {s.label} | {params} | {s.delta_bic:.1f} | {p} | {gain} | {'yes' if s.accepted else ''} |")
     if diag.notes:
         lines.append("")
-        lines.extend(f"- Round {n['round']}: {n['text']}" for n in diag.notes)
+        lines.extend(f"- {note_text(n)[:1].upper()}{note_text(n)[1:]}" for n in diag.notes)
     if diag.not_tried:
         lines.append("")
         lines.append("Not tried:")

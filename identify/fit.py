@@ -560,6 +560,13 @@ def _jacobian_blocks(problem: Problem, x, y0_free, offset_free, sigma, step):
 # ---------------------------------------------------------------------------
 
 
+#: `FitResult.summary`: a residual this many times its noise floor is more likely a set-up
+#: error than a missing effect (seen: a log in degrees read as radians, 2.5e4x; gravity
+#: pointing the wrong way for the logs' angle zero, 3.5e4x; the real pendulum's unmodelled
+#: drag and dry friction, 46x)
+GROSS_MISFIT = 300.0
+
+
 @dataclasses.dataclass
 class FitResult:
     """Everything a fit produced (SI units; see `summary()` and `to_dict()`)."""
@@ -647,6 +654,12 @@ class FitResult:
                 "or the model misses an effect (try other guesses, or `identify diagnose`), unless the sensor's "
                 "noise is low-pass filtered (a first-order filter at a twentieth of the sampling rate makes the "
                 "floor 0.42 of the noise: identify.noise_floor)"
+                + (
+                    "; this far off, check the set-up first: the rig's gravity against the logs' angle zero, and "
+                    "the columns' units (identify/FORMAT.md)"
+                    if q["ratio"] > GROSS_MISFIT
+                    else ""
+                )
             )
         if self.poor_fit:
             lines.append(

@@ -37,6 +37,15 @@ def display_unit(channel: str) -> tuple[float, str]:
     return 1.0, "SI"
 
 
+def state_display_unit(entry: str) -> tuple[float, str]:
+    """(scale, unit) to show a state entry in (`identify.channels.state_names`): angles
+    (`theta1`, `alpha1`) in deg, modal coordinates (`q1_1`: m, RMS deflection of the mode)
+    in mm, and their `_rate`s per second."""
+    base, rate = (entry[: -len("_rate")], True) if entry.endswith("_rate") else (entry, False)
+    scale, unit = (1e3, "mm") if base.startswith("q") else display_unit(base)
+    return scale, f"{unit}/s" if rate else unit
+
+
 def _figure(rows, cols, title, width=5.0, height=2.8):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

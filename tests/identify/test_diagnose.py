@@ -329,3 +329,15 @@ def test_no_headroom_stops_refits_only_at_the_noise():
     assert notes[1]["round"] == 1
     assert notes[1]["text"].startswith("joint_elasticity:joint1, missing_mode:link1 not fitted: the baseline")
     assert D._with_headroom(labels, _traces(r), r.reshape(-1), 1.1, 1, notes, print) == labels and len(notes) == 2
+
+
+def test_a_baseline_with_undetermined_parameters_is_noted_first():
+    """A baseline whose fit gives some parameters no interval (`identify.covariance`: the
+    data see them only in combination) hands that degeneracy to every candidate: the
+    diagnosis says so, as a note of the baseline (round 0), printed as such."""
+    notes = D._baseline_notes(["link1.com", "link1.inertia", "payload.mass"], np.array([np.inf, np.inf, 0.1]))
+    assert len(notes) == 1 and notes[0]["round"] == 0
+    assert "link1.com, link1.inertia" in notes[0]["text"] and "payload.mass" not in notes[0]["text"]
+    assert D.note_text(notes[0]).startswith("baseline: the fit logs do not determine")
+    assert D.note_text({"round": 2, "text": "x"}) == "round 2: x"
+    assert D._baseline_notes(["a"], np.array([0.1])) == []

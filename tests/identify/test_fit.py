@@ -881,3 +881,26 @@ def test_parameters_the_data_see_only_in_combination_have_no_interval():
     from identify.cli import _jsonable  # what result.json holds: no interval, not a number
 
     assert all(p["ci95"][1] is None for p in _jsonable(result.to_dict())["parameters"])
+
+
+def test_a_gross_misfit_points_at_the_set_up_first():
+    """`FitResult.summary`: a residual hundreds of times its noise floor (a log in degrees
+    read as radians, gravity the wrong way for the logs' angle zero: measured 2.5e4x and
+    3.5e4x on the real pendulum) adds a hint to check gravity and units; a poor fit of a
+    right set-up (the real pendulum's missing drag and dry friction, 46x) does not."""
+    from identify.fit import GROSS_MISFIT, FitResult
+
+    def summary(ratio):
+        quality = {"theta1": {"residual_rms": ratio * 1e-3, "noise_floor": 1e-3, "ratio": ratio, "poor": True}}
+        one = np.ones(1)
+        return FitResult(
+            names=["joint1.damping"], values=one, guesses=one, std_errors=0.1 * one, ci_low=0.8 * one,
+            ci_high=1.2 * one, correlation=np.eye(1), initial_states={}, offsets={}, sigma={"theta1": 1e-3},
+            residual_variance=ratio**2, cost=1.0, n_residuals=100, stages=[{"iterations": 3, "result": "successful"}],
+            converged=True, at_bounds=[], identifiability=[], singular_values=one, wall_time=1.0, problem=None,
+            z={}, fit_quality=quality,
+        ).summary()  # fmt: skip
+
+    assert "check the set-up first" in summary(2.5e4) and "gravity" in summary(2.5e4)
+    assert "check the set-up first" not in summary(46.0) and "times its noise floor" in summary(46.0)
+    assert 46.0 < GROSS_MISFIT < 2.5e4
