@@ -122,7 +122,7 @@ def plot_spectra(diag, folder: Path) -> Path:
 def plot_envelopes(diag, folder: Path) -> Path:
     rows = _panels(diag)
     fig, axes = _fig(
-        len(rows), "decay envelopes: peak amplitudes (a straight line in the upper-left panel = dry friction)"
+        len(rows), "decay envelopes: half swings (a straight line in the upper-left panel = dry friction)"
     )
     for ax, (log, c, e) in zip(axes, rows):
         s, unit = display_unit(c)
@@ -131,9 +131,9 @@ def plot_envelopes(diag, folder: Path) -> Path:
                 y = e["measured"][c] if name == "measured" else e.get(name, {}).get(c)
                 if y is None:
                     continue
-                tp, a = ev._peaks(e["t"], y)
+                tp, a = ev.swing_amplitudes(e["t"], y)
                 ax.plot(tp, s * a, style, ms=3, label=name)
-        ax.set_ylabel(f"|{c}| peaks [{unit}]")
+        ax.set_ylabel(f"{c} half swing [{unit}]")
         ax.set_title(f"{log} ({e['role']})", fontsize=9)
         ax.legend(fontsize=7, loc="upper right")
     axes[-1].set_xlabel("t [s]")

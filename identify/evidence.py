@@ -6,8 +6,8 @@ read and check, computed after the baseline fit by `identify.diagnose`.
 - `spectrum_peaks`: the largest peaks of the residual's periodogram, each with the
   nearest natural frequency of the fitted model (a peak far from every mode is an
   unmodelled mode or a sensor/drive effect).
-- `decay_law`: for a free oscillation, the envelope of successive peak amplitudes
-  `A_k` fitted three ways: exponential (`log A` linear in t: viscous damping), linear
+- `decay_law`: for a free oscillation, the envelope of successive half swings
+  `A_k` (`swing_amplitudes`) fitted three ways: exponential (`log A` linear in t: viscous damping), linear
   (`A` linear in t: dry friction, losing `2 F_c / k` per half period) and hyperbolic
   (`1/A` linear in t: quadratic drag, `dA/dt ~ -A^2`); R^2 of each, for the
   measurement and the simulation.
@@ -88,18 +88,50 @@ def spectrum_peaks(t, residual, modal_frequencies_hz, n_peaks: int = 3) -> list[
     return out
 
 
-def _peaks(t, y):
-    """Times and amplitudes of the local extrema of `y` about its final mean level."""
-    level = np.mean(y[int(0.8 * len(y)) :])
-    d = y - level
-    k = (
-        np.nonzero(
-            ((d[1:-1] > d[:-2]) & (d[1:-1] >= d[2:]) & (d[1:-1] > 0))
-            | ((d[1:-1] < d[:-2]) & (d[1:-1] <= d[2:]) & (d[1:-1] < 0))
-        )[0]
-        + 1
-    )
-    return t[k], np.abs(d[k])
+#: `decay_law`: the R^2 below which no decay law is named (the envelope is not a straight
+#: line in any of the three coordinates)
+DECAY_R2_MIN = 0.9
+
+
+def swing_amplitudes(t, y, noise: float = 0.0):
+    """Times and amplitudes of the half swings of an oscillation `y(t)`: between each turning
+    point and the next (a maximum, then a minimum, ...), half their difference, at their
+    mid-time.
+
+    Half a swing does not depend on the level the oscillation is centred on: a log's
+    sensor offset, or an equilibrium a log does not settle at within its span (the
+    amplitudes of the extrema about a mean level alternate between two sequences then:
+    seen on the real pendulum, R^2 0.49 for every decay law). A turning point counts when
+    `y` has moved back from it by more than `max(10 noise, 1e-3 range)` (a peak-detector's
+    hysteresis: near a turning point, where the signal is flat for tens of samples, the
+    running extremes of white noise reach +-2.5 standard deviations, so 3 of them made
+    false turning points; one turning point per plateau of a quantised encoder). The
+    decay laws hold for half swings as for amplitudes: a constant loss per half period
+    (dry friction) stays linear, a constant ratio (viscous) stays exponential."""
+    t, y = np.asarray(t, float), np.asarray(y, float)
+    if y.size < 3:
+        return np.zeros(0), np.zeros(0)
+    delta = max(10.0 * float(noise), 1e-3 * float(np.ptp(y)), 1e-300)
+    turns_t, turns_y = [], []
+    hi_i = lo_i = 0  # the running maximum / minimum since the last turning point
+    rising = None  # unknown until y has moved by delta
+    for i in range(1, y.size):
+        if y[i] > y[hi_i]:
+            hi_i = i
+        if y[i] < y[lo_i]:
+            lo_i = i
+        if rising is None:
+            if y[hi_i] - y[lo_i] > delta:
+                rising = hi_i > lo_i
+            continue
+        if rising and y[hi_i] - y[i] > delta:  # a maximum at hi_i
+            turns_t.append(t[hi_i]), turns_y.append(y[hi_i])
+            rising, lo_i = False, i
+        elif not rising and y[i] - y[lo_i] > delta:  # a minimum at lo_i
+            turns_t.append(t[lo_i]), turns_y.append(y[lo_i])
+            rising, hi_i = True, i
+    turns_t, turns_y = np.asarray(turns_t), np.asarray(turns_y)
+    return 0.5 * (turns_t[1:] + turns_t[:-1]), 0.5 * np.abs(np.diff(turns_y))
 
 
 def _r2(x, y):
@@ -113,9 +145,10 @@ def _r2(x, y):
 
 
 def decay_law(t, y, noise: float = 0.0) -> dict | None:
-    """Envelope fits of a free oscillation (see the module docstring); None if the signal
-    has fewer than 6 peaks above 5x the noise."""
-    tp, a = _peaks(t, y)
+    """Envelope fits of a free oscillation (see the module docstring) to its half swings
+    (`swing_amplitudes`); None if it has fewer than 6 half swings above 5x the noise.
+    `best`: the law of highest R^2, or "inconclusive" when none reaches `DECAY_R2_MIN`."""
+    tp, a = swing_amplitudes(t, y, noise)
     keep = a > max(5 * noise, 1e-12)
     tp, a = tp[keep], a[keep]
     if len(a) < 6:
@@ -124,10 +157,11 @@ def decay_law(t, y, noise: float = 0.0) -> dict | None:
     r_lin, s_lin = _r2(tp, a)
     r_hyp, s_hyp = _r2(tp, 1.0 / a)
     fits = {"exponential": r_exp, "linear": r_lin, "hyperbolic": r_hyp}
+    best = max(fits, key=lambda k: -np.inf if np.isnan(fits[k]) else fits[k])
     return {
-        "n_peaks": int(len(a)),
+        "n_half_swings": int(len(a)),
         "r2": fits,
-        "best": max(fits, key=lambda k: -np.inf if np.isnan(fits[k]) else fits[k]),
+        "best": best if fits[best] >= DECAY_R2_MIN else "inconclusive",
         "exponential_rate_per_s": -s_exp,
         "linear_slope_per_s": s_lin,
         "amplitude_first_last": [float(a[0]), float(a[-1])],

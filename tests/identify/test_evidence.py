@@ -1,6 +1,8 @@
-"""`identify.evidence`'s model checks: the spin rates read from the simulated angle channels
-and the geometric-stiffening check built on `flexdyn.stiffening` (whose coefficients are
-tested against the Ritz oracle in tests/flexdyn/test_stiffening.py)."""
+"""`identify.evidence`: the decay law of a free oscillation's half swings (oracles: the
+closed-form free vibration with viscous damping and with dry friction), and the model
+checks: the spin rates read from the simulated angle channels and the
+geometric-stiffening check built on `flexdyn.stiffening` (whose coefficients are tested
+against the Ritz oracle in tests/flexdyn/test_stiffening.py)."""
 
 import math
 
@@ -93,3 +95,53 @@ def test_a_link_at_the_end_of_a_spinning_link_feels_its_roots_centripetal_pull(o
     # without the angles of the links before it, the root's motion is unknown: left out
     _, partial = _traces(phi2=lambda t: rate * t)
     assert ev.link_root_accelerations(chain, partial)["link2"] is None
+
+
+def _measured(x, t, rng, offset=0.09, noise=2e-3, lsb=1.5e-3):
+    """`x(t)` as an encoder logs it: off its centre by `offset`, noisy, quantised by `lsb`
+    (flat tops at the turning points, as on the real pendulum's logs)."""
+    return np.round((x + offset + noise * rng.standard_normal(t.size)) / lsb) * lsb
+
+
+def test_half_swings_of_a_viscously_damped_oscillation_decay_exponentially():
+    """Oracle: `A e^(-zeta w t) cos(w_d t)` has half swings `A_k` with `log A_k` linear in
+    t at slope `-zeta w` (each half swing is the mean of two extrema a constant ratio
+    apart). The log's offset and quantised plateaus do not matter (the old envelope,
+    |extrema| about the final mean, alternated between two sequences on such a log)."""
+    rng = np.random.default_rng(0)
+    w, zeta = 2 * np.pi * 1.27, 0.005
+    t = np.arange(0.0, 12.0, 1e-3)
+    x = 0.5 * np.exp(-zeta * w * t) * np.cos(w * math.sqrt(1 - zeta**2) * t)
+    law = ev.decay_law(t, _measured(x, t, rng), noise=2e-3)
+    assert law["best"] == "exponential" and law["r2"]["exponential"] > 0.999, law
+    assert law["exponential_rate_per_s"] == pytest.approx(zeta * w, rel=0.02)
+    assert law["n_half_swings"] == pytest.approx(2 * 1.27 * 12, abs=2)
+
+
+def test_half_swings_under_dry_friction_fall_linearly():
+    """Oracle: Coulomb friction `F` on an oscillator of stiffness `k` (closed form, half
+    period by half period): each half swing is about the centre `+-F/k` on the side it
+    starts from, and the extrema fall by `2 F / k` per half period `pi / w`, so the half
+    swings fall linearly at `2 (F/k) w / pi` per second."""
+    rng = np.random.default_rng(1)
+    w, a = 2 * np.pi * 1.27, 4e-3  # a = F / k, rad
+    t = np.arange(0.0, 12.0, 1e-3)
+    k = np.floor(t * w / np.pi).astype(int)  # half period index
+    mag = 0.5 - 2 * a * k  # |extremum| starting half period k
+    sign = (-1.0) ** k
+    centre = sign * a
+    x = centre + (sign * mag - centre) * np.cos(w * t - np.pi * k)
+    law = ev.decay_law(t, _measured(x, t, rng), noise=2e-3)
+    assert law["best"] == "linear" and law["r2"]["linear"] > 0.999, law
+    assert -law["linear_slope_per_s"] == pytest.approx(2 * a * w / np.pi, rel=0.02)
+
+
+def test_no_decay_law_is_named_for_an_envelope_none_fits():
+    """Half swings of random sizes: no law reaches `DECAY_R2_MIN`, and it says so."""
+    rng = np.random.default_rng(2)
+    w = 2 * np.pi
+    t = np.arange(0.0, 10.0, 1e-3)
+    sizes = rng.uniform(0.2, 1.0, 40)
+    x = sizes[np.floor(t * w / np.pi).astype(int)] * np.sin(w * t)
+    law = ev.decay_law(t, x, noise=1e-3)
+    assert law["best"] == "inconclusive" and max(law["r2"].values()) < ev.DECAY_R2_MIN, law
