@@ -529,15 +529,16 @@ class Diagnosis:
         for r, scores in enumerate(self.rounds, start=1):
             lines.append("")
             lines.append(f"round {r}: candidates (best first)")
-            lines.append(f"  {'candidate':<34} {'dBIC':>10} {'p-value':>9} {'held-out gain':>14}  accepted")
+            w = max([34] + [len(s.label) for s in scores])  # a pair's label is long
+            lines.append(f"  {'candidate':<{w}} {'dBIC':>10} {'p-value':>9} {'held-out gain':>14}  accepted")
             for s in scores:
                 if s.screened:
                     lines.append(
-                        f"  {s.label:<34} {s.delta_bic:>10.1f}   (screened out: predicted by one Gauss-Newton step)"
+                        f"  {s.label:<{w}} {s.delta_bic:>10.1f}   (screened out: predicted by one Gauss-Newton step)"
                     )
                     continue
                 lines.append(
-                    f"  {s.label:<34} {s.delta_bic:>10.1f} {s.p_value:>9.2g} {s.held_out_gain:>13.3f}x  "
+                    f"  {s.label:<{w}} {s.delta_bic:>10.1f} {s.p_value:>9.2g} {s.held_out_gain:>13.3f}x  "
                     f"{'yes' if s.accepted else ''}"
                 )
         return "\n".join(lines)
@@ -1127,13 +1128,14 @@ def diagnose_logs(
             }
         )
         winners = [s for s in scores if s.accepted]
+        width = max([32] + [len(s.label) for s in scores[:5]])
         for s in scores[:5]:
             outcome = (
                 "(screened out: predicted by one Gauss-Newton step)"
                 if s.screened
                 else f"held-out gain {s.held_out_gain:6.3f}x {'ACCEPTED' if s.accepted else ''}"
             )
-            say(f"  {s.label:<32} dBIC {s.delta_bic:10.1f}  {outcome}")
+            say(f"  {s.label:<{width}} dBIC {s.delta_bic:10.1f}  {outcome}")
         if not winners:
             break
         w = winners[0]

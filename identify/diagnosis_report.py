@@ -15,7 +15,7 @@ import numpy as np  # noqa: E402
 
 from . import covariance, evidence as ev  # noqa: E402
 from .diagnose import note_text  # noqa: E402
-from .report import display_unit  # noqa: E402
+from .report import display_unit, wrapped_title  # noqa: E402
 
 JSON_FILE = "diagnosis.json"
 REPORT_FILE = "report.md"
@@ -53,7 +53,7 @@ def _panels(diag):
 
 def _fig(n, title):
     fig, axes = plt.subplots(n, 1, figsize=(9, 2.4 * n + 0.6), squeeze=False)
-    fig.suptitle(title)
+    fig.suptitle(wrapped_title(title, 9))
     return fig, axes[:, 0]
 
 

@@ -53,8 +53,16 @@ def _figure(rows, cols, title, width=5.0, height=2.8):
     fig = Figure(figsize=(width * cols, height * rows + 0.6), layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(rows, cols, squeeze=False)
-    fig.suptitle(title)
+    fig.suptitle(wrapped_title(title, width * cols))
     return fig, axes
+
+
+def wrapped_title(title: str, width_in: float) -> str:
+    """`title` broken into lines that fit a figure `width_in` inches wide at the default
+    title size (~9 characters per inch): a long experiment name was clipped at both ends."""
+    import textwrap
+
+    return textwrap.fill(title, width=max(20, int(9 * width_in)))
 
 
 def _panels(outputs: dict) -> list[tuple[str, str]]:

@@ -1,4 +1,4 @@
-"""Display units of the reports (`identify.report`)."""
+"""Display units and figure titles of the reports (`identify.report`)."""
 
 from __future__ import annotations
 
@@ -24,3 +24,15 @@ def test_state_entries_print_in_the_units_of_their_channels(entry, scale, unit):
     (it used to print as a bare number labelled "SI")."""
     assert state_display_unit(entry) == pytest.approx((scale, unit))
     assert display_unit("tip1") == (1e3, "mm")
+
+
+def test_a_long_figure_title_is_wrapped_to_the_figure_width():
+    """A 5-inch figure titled with a long experiment name clipped it at both ends (seen:
+    "easured vs fitted: ... (Kaheman et al"); wrapped, every line fits and nothing is lost."""
+    from identify.report import wrapped_title
+
+    title = "Measured vs fitted: single pendulum free swing (Kaheman et al.)"
+    lines = wrapped_title(title, 5.0).splitlines()
+    assert len(lines) == 2 and all(len(line) <= 45 for line in lines)
+    assert " ".join(lines) == title
+    assert wrapped_title("Residuals", 5.0) == "Residuals"
