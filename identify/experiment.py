@@ -166,6 +166,7 @@ class Experiment:
 
     def summary(self) -> str:
         lines = [f"experiment {self.name!r} ({self.path})", f"  coordinates: {self.chain.coordinate_names()}"]
+        lines.append(f"  {gravity_text(self.chain.gravity)}")
         for p in self.free:
             scale = "log" if p.log_scale else "linear"
             lines.append(f"  free {p.name} = {p.guess:g} in [{p.lower}, {p.upper}] {p.unit} ({scale})")
@@ -179,6 +180,20 @@ class Experiment:
         for entry in self.logs:
             lines.append(f"  [{entry.role}] " + entry.log.summary().replace("\n", "\n    "))
         return "\n".join(lines)
+
+
+def gravity_text(gravity) -> str:
+    """The rig's gravity and where it makes the first link hang, in the logs' angle
+    convention (`theta1` from the base x axis, counter-clockwise): the check of a log's
+    angle zero against the model's (FORMAT.md, "Gravity and the angle zero")."""
+    g = np.asarray(gravity, float)
+    if not np.any(g):
+        return "gravity [0, 0]: a rig in a horizontal plane (give [rig] gravity for a vertical one)"
+    hang = math.degrees(math.atan2(g[1], g[0]))
+    return (
+        f"gravity [{g[0]:g}, {g[1]:g}] m/s^2: the first link hangs at theta1 = {hang:.0f} deg "
+        "(its centre of mass below the joint): a free swing settles about that angle"
+    )
 
 
 # ---------------------------------------------------------------------------

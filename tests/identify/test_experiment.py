@@ -632,3 +632,21 @@ def test_measurement_mistakes_name_the_line_and_key(tmp_path, body, fragments):
     line = line_of(path, body.splitlines()[1].split("=")[0].strip()) if "parameters" in body else None
     with pytest.raises(ExperimentError, match=msg(*((f"line {line}",) if line else ()), *fragments)):
         load_experiment(path)
+
+
+@pytest.mark.parametrize(
+    ("gravity", "text"),
+    [
+        ((0.0, -9.81), "hangs at theta1 = -90 deg"),  # the papers' convention: theta = 0 horizontal
+        ((-9.81, 0.0), "hangs at theta1 = 180 deg"),  # a log whose zero is upright
+        ((9.81, 0.0), "hangs at theta1 = 0 deg"),  # a log whose zero is hanging
+        ((0.0, 0.0), "a rig in a horizontal plane"),
+    ],
+)
+def test_the_summary_says_where_gravity_makes_the_first_link_hang(gravity, text):
+    """Oracle: the direction of the gravity vector in the base frame (`atan2(g_y, g_x)`):
+    where a link with its centre of mass beyond the joint hangs. A log swinging about
+    another angle has its zero elsewhere (the commonest set-up error on the real pendulum)."""
+    from identify.experiment import gravity_text
+
+    assert text in gravity_text(gravity)
