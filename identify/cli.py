@@ -412,6 +412,7 @@ def _fit_command(args) -> int:
     import numpy as np
 
     from . import evidence, report as plots
+    from .experiment import gravity_text
     from .fit import fitted_outputs
     from .run import fit_experiment, residual_report
     from .uncertainty import clustered_uncertainty
@@ -424,6 +425,7 @@ def _fit_command(args) -> int:
         f"  rig: {exp.chain.n_links} link(s), coordinates {', '.join(exp.chain.coordinate_names())}; "
         f"free: {', '.join(p.name for p in exp.free)}"
     )
+    say(f"  {gravity_text(exp.chain.gravity)}")
     say(
         f"  {n_fit} fit log(s) ({n_samples} samples), {len(exp.validation_logs)} validation log(s); "
         f"{args.stages} horizon stage(s); JAX on {jax.default_backend()}"
@@ -594,8 +596,10 @@ def _diagnose_command(args) -> int:
 
     from .diagnose import diagnose
     from .diagnosis_report import write_report
+    from .experiment import gravity_text
 
     say(f"identify diagnose: experiment {exp.name!r} ({exp.path})")
+    say(f"  {gravity_text(exp.chain.gravity)}")
     say(f"  catalogue: {', '.join(catalogue)}; compiling takes most of the first minutes")
     last = [time.perf_counter()]
 
