@@ -165,6 +165,11 @@ def _parse_mapping(path: Path, columns: Mapping[str, str], where: str) -> list[_
 def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibration) -> tuple[str, Calibration | None]:
     """The canonical unit of a wanted channel, checked against the channel's dimension."""
     written = w.unit if w.unit is not None else file_unit
+    if w.unit is not None and u.normalise_unit(w.unit) is None:
+        raise LogError(
+            f"{where}: the experiment maps {w.channel} = '{w.source} [{w.unit}]': unknown unit [{w.unit}]; "
+            f"known units: {u.known_units()}"
+        )
     if w.unit is not None and file_unit is not None:
         a, b = u.normalise_unit(w.unit), u.normalise_unit(file_unit)
         if (a or w.unit) != (b or file_unit):

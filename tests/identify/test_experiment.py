@@ -494,6 +494,10 @@ def test_log_error_names_log_and_experiment_entry(tmp_path):
         match=msg("drop.csv, line 1, column 3", "header says [mm]", "make them agree", "exp.toml, line 6: logs[1]]"),
     ):
         load_experiment(path)
+    # a unit typo in the mapping is named as an unknown unit, not as a disagreement
+    path = experiment(tmp_path, RIG + LOG.replace("tip1 [mm]", "tip1 [mmm]"))
+    with pytest.raises(LogError, match=msg("drop.csv, line 1, column 3", "unknown unit [mmm]", "known units")):
+        load_experiment(path)
     path = experiment(tmp_path, RIG + LOG.replace('theta1 = "theta1 [deg]"', 'theta1 = "enc [deg]"'))
     with pytest.raises(LogError, match=msg("drop.csv, line 1", "no column 'enc'", "exp.toml logs[1].columns.theta1")):
         load_experiment(path)
