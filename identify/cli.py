@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import platform
 import sys
 import time
@@ -249,25 +248,6 @@ def validate(exp, result, progress=None):
         for name in held.problem.log_names
     }
     return fitted_outputs(held), residual_report(held), nuisances
-
-
-def _jsonable(x):
-    """Plain JSON types (NaN and infinities become null)."""
-    import numpy as np
-
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, Path):
-        return str(x)
-    return x
 
 
 def _versions() -> dict:
@@ -542,7 +522,7 @@ def _fit_command(args) -> int:
     doc["options"] = {"stages": args.stages}
     doc["command"] = ["identify", "fit", *map(str, _argv_tail(args))]
     doc["versions"] = _versions()
-    (out / RESULT_FILE).write_text(json.dumps(_jsonable(doc), indent=1) + "\n")
+    (out / RESULT_FILE).write_text(json.dumps(plots.jsonable(doc), indent=1) + "\n")
     written = [out / MARKER, out / RESULT_FILE]
     written += plots.write_plots(
         result,

@@ -11,11 +11,10 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
 
 from . import covariance, evidence as ev  # noqa: E402
 from .diagnose import note_text  # noqa: E402
-from .report import display_unit, wrapped_title  # noqa: E402
+from .report import display_unit, jsonable, wrapped_title  # noqa: E402
 
 JSON_FILE = "diagnosis.json"
 REPORT_FILE = "report.md"
@@ -27,20 +26,6 @@ PLOT_FILES = (
     "diagnosis_scores.png",
 )
 FILES = (JSON_FILE, REPORT_FILE, *PLOT_FILES)
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        return _jsonable(x.item())
-    if isinstance(x, float) and not np.isfinite(x):
-        return None if np.isnan(x) else ("inf" if x > 0 else "-inf")
-    return x
 
 
 def _panels(diag):
@@ -297,7 +282,7 @@ def write_report(diag, folder, title: str = "", extra: dict | None = None) -> li
     folder.mkdir(parents=True, exist_ok=True)
     doc = diag.to_dict()
     doc.update(extra or {})
-    (folder / JSON_FILE).write_text(json.dumps(_jsonable(doc), indent=1) + "\n")
+    (folder / JSON_FILE).write_text(json.dumps(jsonable(doc), indent=1) + "\n")
     (folder / REPORT_FILE).write_text(markdown(diag, title) + "\n")
     plots = [plot_traces(diag, folder), plot_residuals(diag, folder), plot_spectra(diag, folder)]
     plots += [plot_envelopes(diag, folder), plot_scores(diag, folder)]

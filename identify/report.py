@@ -24,6 +24,25 @@ PLOT_FILES = (FIT_PLOT, RESIDUALS_PLOT, SPECTRUM_PLOT, AUTOCORRELATION_PLOT, COR
 DPI = 110
 
 
+def jsonable(x):
+    """`x` in plain JSON types for `result.json` and `diagnosis.json`: arrays as lists,
+    paths as strings, and NaN and infinities (a parameter the data do not determine has an
+    infinite standard error and interval) as null, which every JSON reader accepts."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
 def display_unit(channel: str) -> tuple[float, str]:
     """(scale, unit) to show an SI channel value in: degrees for angles, mm for lengths."""
     if channel.startswith(("theta", "phi", "alpha")):

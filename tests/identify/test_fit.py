@@ -878,9 +878,9 @@ def test_parameters_the_data_see_only_in_combination_have_no_interval():
     summary = result.summary()
     assert "not determined" in summary and "link1.com, link1.inertia, joint1.damping not determined" in summary
     assert result.identifiability, summary
-    from identify.cli import _jsonable  # what result.json holds: no interval, not a number
+    from identify.report import jsonable  # what result.json holds: no interval, not a number
 
-    assert all(p["ci95"][1] is None for p in _jsonable(result.to_dict())["parameters"])
+    assert all(p["ci95"][1] is None for p in jsonable(result.to_dict())["parameters"])
 
 
 def test_a_gross_misfit_points_at_the_set_up_first():
