@@ -288,15 +288,18 @@ def _refine(
     never continued."""
     by_label = {c.label: c for c in owners}
     predicted = predicted or {}
+
+    def dbic(cost, lab):
+        return N * math.log(max(cost, 1e-300) / cost_cur) + len(by_label[lab].params) * math.log(N)
+
     for _ in range(MAX_REFINEMENTS):
-        dbic = {
-            b: N * math.log(max(min(costs[b], predicted.get(lab, np.inf)), 1e-300) / cost_cur)
-            + len(by_label[lab].params) * math.log(N)
-            for lab, b in best.items()
-        }
-        lowest = min(dbic.values(), default=0.0)
+        reached = {b: dbic(costs[b], lab) for lab, b in best.items()}
+        # a fit short of its prediction is judged by the prediction; the bar is set by the
+        # fits (a screening step's prediction can be optimistic, and must not lift the bar)
+        judged = {b: min(reached[b], dbic(predicted.get(lab, np.inf), lab)) for lab, b in best.items()}
+        lowest = min(reached.values(), default=0.0)
         # only the contenders: those within half the best candidate's dBIC of it
-        more = [b for b in best.values() if steps[b] >= max_steps and dbic[b] < 0 and dbic[b] <= 0.5 * lowest]
+        more = [b for b in best.values() if steps[b] >= max_steps and judged[b] < 0 and judged[b] <= 0.5 * lowest]
         if not more:
             break
         n = _few_size(len(more), *size)
