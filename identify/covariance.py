@@ -91,8 +91,11 @@ class _Svd:
     keep: np.ndarray
 
     @staticmethod
-    def of(A: np.ndarray) -> _Svd:
-        norms = np.linalg.norm(A, axis=0)
+    def of(A: np.ndarray, norms: np.ndarray | None = None) -> _Svd:
+        """`norms`: the column scales (default `A`'s column norms). A projected block is
+        scaled by its columns before the projection, so that a column the projection
+        removed (a parameter the nuisances absorb) keeps only roundoff, which is dropped."""
+        norms = np.linalg.norm(A, axis=0) if norms is None else np.asarray(norms, float)
         norms = np.where(norms > 0, norms, 1.0)
         W, s, Vt = np.linalg.svd(A / norms, full_matrices=False)
         keep = s > (s[0] * max(A.shape) * np.finfo(float).eps if s.size else 0.0)
@@ -220,8 +223,11 @@ def blocked(
         nuis_undetermined.append(svd_l.undetermined())
 
     stacked = projected.reshape(L * n, P)
+    # scaled by the columns of S (not of the projection: a parameter the nuisances absorb
+    # shows a small singular value, for the rank and the identifiability warnings alike)
+    norms = np.sqrt(np.sum(S**2, axis=(0, 1)))
     if P:
-        svd = _Svd.of(stacked)
+        svd = _Svd.of(stacked, norms)
         cov_ss = s2 * svd.normal_pinv()
         shared_undetermined = svd.undetermined()
     else:
@@ -236,14 +242,7 @@ def blocked(
         se[P + slots[l, cols]] = np.where(bad, np.inf, np.sqrt(np.clip(var, 0, None)))
 
     corr = _correlation(cov_ss, shared_undetermined)
-    # the identifiability warnings: the stacked blocks normalised by the columns of S (not
-    # of the projection: a parameter the nuisances absorb shows a small singular value)
-    norms = np.sqrt(np.sum(S**2, axis=(0, 1)))
-    norms = np.where(norms > 0, norms, 1.0)
-    if P:
-        _, Sn, Vtn = np.linalg.svd(stacked / norms, full_matrices=False)
-    else:
-        Sn, Vtn = np.zeros(0), np.zeros((0, 0))
+    Sn, Vtn = (svd.s, svd.Vt) if P else (np.zeros(0), np.zeros((0, 0)))
     ident = _weak_directions(names, log_scale, Vtn, Sn, threshold, len(names))
     return Covariance(rss, n_res, s2, se, corr, Sn, ident)
 
@@ -266,7 +265,7 @@ def clustered(r: np.ndarray, S: np.ndarray, U: np.ndarray, slots: np.ndarray, us
         else:
             projected[l] = S[l]
         scores[l] = projected[l].T @ r[l]
-    svd = _Svd.of(projected.reshape(L * n, P))
+    svd = _Svd.of(projected.reshape(L * n, P), np.sqrt(np.sum(S**2, axis=(0, 1))))
     bread = svd.normal_pinv()
     cov = L / (L - 1) * bread @ (scores.T @ scores) @ bread
     undetermined = svd.undetermined()

@@ -236,3 +236,21 @@ def test_digits_show_a_change_of_the_spread():
     assert covariance.digits(11.998, 0.00146) == 5  # 11.998, where 4 digits print 12
     assert covariance.digits(1.0, 1e-15) == 12  # capped
     assert covariance.digits(0.0, 1.0) == covariance.digits(1.0, 0.0) == covariance.digits(1.0, np.inf) == 4
+
+
+def test_a_parameter_the_nuisances_absorb_is_undetermined_in_both_paths():
+    """A shared column that each log's nuisances reproduce exactly (an offset fitted per log
+    and a parameter that only shifts the output) is not determined. After the projection
+    its column is roundoff; scaled by its own (roundoff) norm it would look like a full
+    column, and get a large finite error. Scaled by the column before the projection it
+    is dropped, as the dense path drops it."""
+    r, S, U, slots, used = _blocks(6)
+    for l in range(S.shape[0]):
+        cols = np.flatnonzero(slots[l] >= 0)
+        S[l, :, 2] = U[l][:, cols] @ np.linspace(1.0, 2.0, cols.size) if cols.size else 0.0
+    rd, Jd = _dense(r, S, U, slots, used)
+    dense = covariance.dense(NAMES, LOG_SCALE, rd, Jd)
+    blocked = covariance.blocked(NAMES, LOG_SCALE, r, S, U, slots, used)
+    assert np.isinf(dense.std_errors[2]) and np.isinf(blocked.std_errors[2])
+    np.testing.assert_allclose(blocked.std_errors[:2], dense.std_errors[:2], rtol=1e-6)
+    np.testing.assert_array_equal(np.isinf(blocked.std_errors), np.isinf(dense.std_errors))
