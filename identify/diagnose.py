@@ -52,8 +52,11 @@ the model, and measure the gain on held-out data.
    but whose fit ends above it stopped in a local minimum; the notes say so, since its
    rejection is then no evidence against the effect (`_stuck_above_nested`). So do they
    for a continuous candidate whose fit ends above the model it extends at its neutral
-   values, and for a baseline with parameters its fit logs do not determine (no
-   interval: `identify.covariance`), a degeneracy every candidate inherits.
+   values, for a baseline with parameters its fit logs do not determine (no
+   interval: `identify.covariance`), a degeneracy every candidate inherits, and for a
+   last round whose best fit predicts the held-out logs worse
+   (`_fits_but_does_not_predict`: with a sensor calibration candidate, per-log offsets
+   are the usual cure).
 
 The result (`Diagnosis`) holds the baseline fit, the evidence, every candidate's scores,
 the accepted causes with their parameters and 95 % intervals (from the exact Jacobian
@@ -1140,6 +1143,10 @@ def diagnose_logs(
             )
             say(f"  {s.label:<{width}} dBIC {s.delta_bic:10.1f}  {outcome}")
         if not winners:
+            hint = _fits_but_does_not_predict(scores, bic_threshold, min_gain, offsets_fitted)
+            if hint:
+                say(f"  round {rnd + 1}: {hint}")
+                notes.append({"round": rnd + 1, "text": hint})
             break
         w = winners[0]
         if w.members:
@@ -1421,6 +1428,33 @@ def _baseline_notes(names, std_errors) -> list:
         "candidates' fits inherit the degeneracy"
     )
     return [{"round": 0, "text": text}]
+
+
+def _fits_but_does_not_predict(scores, bic_threshold: float, min_gain: float, offsets_fitted) -> str:
+    """A note when the round's best fit (lowest dBIC, below `-bic_threshold`) predicts the
+    held-out logs worse than the model it extends, by as much as acceptance asks it to
+    predict them better (held-out gain below `1 / min_gain`): it absorbs something
+    particular to the fit logs. A sensor calibration candidate on a channel without per-log offsets is the
+    usual case (seen on the real pendulum: an encoder offset that differs between logs).
+    Else ''."""
+    fitted = [s for s in scores if not s.screened and np.isfinite(s.held_out_gain)]
+    if not fitted:
+        return ""
+    s = min(fitted, key=lambda x: x.delta_bic)
+    if not (s.delta_bic < -bic_threshold and s.held_out_gain < 1.0 / min_gain):
+        return ""
+    text = (
+        f"{s.label} fits the fit logs far better (dBIC {s.delta_bic:.1f}) but predicts the held-out logs worse "
+        f"({s.held_out_gain:.3f}x): it absorbs something particular to the fit logs"
+    )
+    for label in s.members or (s.label,):
+        name, _, channel = label.partition(":")
+        if name == "sensor_gain_offset" and channel not in offsets_fitted:
+            text += (
+                f"; an offset of {channel} that differs between logs is one such thing: give each log its own "
+                f'(offsets = ["{channel}"] in its [[logs]] entry)'
+            )
+    return text
 
 
 def note_text(note: dict) -> str:

@@ -377,3 +377,26 @@ def test_an_unconverged_fit_short_of_its_screening_prediction_is_continued(monke
     continued.clear()
     D._refine(*args, lambda msg: None)  # without predictions: as before, the fit above is left alone
     assert continued[0] == [0], continued
+
+
+def test_a_best_fit_that_predicts_the_held_out_logs_worse_is_noted():
+    """The real pendulum fitted from one log without per-log offsets: a calibration
+    offset (with drag) fits far better (dBIC -19996) and predicts the held-out log worse
+    (0.52x); the note says so and names per-log offsets. A candidate that predicts better,
+    or worse by less than acceptance asks it to gain (`1 / min_gain`), gets no note; the
+    same one where offsets are fitted per log, no advice about them."""
+
+    def score(name, where, dbic, gain, members=(), screened=False):
+        return D.Score(name, where, {}, 1.0, dbic, 0.0, {}, gain, False, 1, screened=screened, members=members)
+
+    pair = score("pair", "", -19996.4, 0.521, members=("sensor_gain_offset:theta1", "quadratic_damping:link1"))
+    scores = [pair, score("quadratic_damping", "link1", -9206.0, 0.521), score("sensor_delay", "theta1", -83.9, 1.0)]
+    text = D._fits_but_does_not_predict(scores, 10.0, 1.1, offsets_fitted=set())
+    assert "dBIC -19996.4" in text and "(0.521x)" in text and 'offsets = ["theta1"]' in text
+    assert "offsets =" not in D._fits_but_does_not_predict(scores, 10.0, 1.1, offsets_fitted={"theta1"})
+    # predicting slightly worse (within what acceptance asks) or better: no note
+    for gain in (0.95, 1.05):
+        assert D._fits_but_does_not_predict([score("coulomb_friction", "joint1", -500.0, gain)], 10.0, 1.1, set()) == ""
+    # a screened-out entry's dBIC is a prediction, not a fit
+    screened = [score("x", "y", -500.0, float("nan"), screened=True)]
+    assert D._fits_but_does_not_predict(screened, 10.0, 1.1, set()) == ""
