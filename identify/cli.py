@@ -267,6 +267,20 @@ def _versions() -> dict:
 # ---------------------------------------------------------------------------
 
 
+def _set_up_checks(exp) -> list[str]:
+    """What to check of the set-up before a long run: where the rig's gravity makes the
+    first link hang (against the logs' angle zero), and any log whose sampling rate
+    questions its time column's unit."""
+    from .experiment import gravity_text
+
+    lines = [gravity_text(exp.chain.gravity)]
+    for spec in exp.logs:
+        hint = spec.log.sampling.time_unit_hint
+        if hint:
+            lines.append(f"warning: log {spec.name!r}: {spec.log.sampling.rate:.6g} Hz, {hint}")
+    return lines
+
+
 def _residual_lines(report: dict, outputs: dict, roles: dict) -> list[str]:
     """The residual table: per log and channel the residual's RMS, its ratio to the noise
     floor of the measured samples alone (`identify.noise_floor`: ~1 where the model
@@ -392,7 +406,6 @@ def _fit_command(args) -> int:
     import numpy as np
 
     from . import evidence, report as plots
-    from .experiment import gravity_text
     from .fit import fitted_outputs
     from .run import fit_experiment, residual_report
     from .uncertainty import clustered_uncertainty
@@ -405,7 +418,8 @@ def _fit_command(args) -> int:
         f"  rig: {exp.chain.n_links} link(s), coordinates {', '.join(exp.chain.coordinate_names())}; "
         f"free: {', '.join(p.name for p in exp.free)}"
     )
-    say(f"  {gravity_text(exp.chain.gravity)}")
+    for line in _set_up_checks(exp):
+        say(f"  {line}")
     say(
         f"  {n_fit} fit log(s) ({n_samples} samples), {len(exp.validation_logs)} validation log(s); "
         f"{args.stages} horizon stage(s); JAX on {jax.default_backend()}"
@@ -576,10 +590,10 @@ def _diagnose_command(args) -> int:
 
     from .diagnose import diagnose
     from .diagnosis_report import write_report
-    from .experiment import gravity_text
 
     say(f"identify diagnose: experiment {exp.name!r} ({exp.path})")
-    say(f"  {gravity_text(exp.chain.gravity)}")
+    for line in _set_up_checks(exp):
+        say(f"  {line}")
     say(f"  catalogue: {', '.join(catalogue)}; compiling takes most of the first minutes")
     last = [time.perf_counter()]
 

@@ -23,6 +23,9 @@ from . import units as u
 #: Fewest samples a log may have (a fit needs more data points than free parameters).
 MIN_SAMPLES = 10
 
+#: Sampling rates of a rig's logs (Hz): outside, a log's summary asks about the time
+#: column's unit (the loader cannot tell; the numbers are valid either way).
+PLAUSIBLE_RATE_HZ = (1.0, 1e5)
 #: A sampling interval larger than this multiple of the median interval is a gap.
 GAP_FACTOR = 1.5
 
@@ -74,7 +77,20 @@ class Sampling:
         )
         if self.n_gaps:
             text += f", {self.n_gaps} gap(s), the largest {self.max_dt:.6g} s at t = {self.largest_gap_at:.6g} s"
-        return text
+        hint = self.time_unit_hint
+        return f"{text} ({hint})" if hint else text
+
+    @property
+    def time_unit_hint(self) -> str:
+        """A question about the time column's unit when the rate is outside what a rig's log
+        has (`PLAUSIBLE_RATE_HZ`): seconds read as milliseconds give 1,000x the rate,
+        milliseconds read as seconds 1/1,000 of it. Else ''."""
+        lo, hi = PLAUSIBLE_RATE_HZ
+        if self.rate > hi:
+            return f"a rate above {hi:g} Hz: is the time column in seconds but labelled [ms] or [us]?"
+        if self.rate < lo:
+            return f"a rate below {lo:g} Hz: is the time column in milliseconds but labelled [s]?"
+        return ""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -268,3 +268,24 @@ def test_diagnose_help_lists_every_catalogue_entry():
     only = next(a for a in sub.choices["diagnose"]._actions if a.dest == "only")
     listed = only.help.split("apply): ", 1)[1].split(", ")
     assert listed == list(NAMES)
+
+
+def test_the_set_up_checks_name_gravity_and_an_implausible_time_unit():
+    """Printed before a fit or diagnosis: where gravity makes the first link hang, and a
+    warning for a log whose rate questions its time unit (seconds labelled [ms]: 1 MHz)."""
+    import dataclasses
+
+    import numpy as np
+
+    from identify import load_experiment
+    from identify.cli import _set_up_checks
+    from identify.logs import _sampling
+
+    exp = load_experiment(EXAMPLE / "experiment.toml")
+    lines = _set_up_checks(exp)
+    assert lines[0].startswith("gravity [0, -9.81] m/s^2: the first link hangs at theta1 = -90 deg"), lines
+    assert not any(line.startswith("warning") for line in lines)
+    spec = exp.logs[0]
+    fast = dataclasses.replace(spec, log=dataclasses.replace(spec.log, sampling=_sampling(1e-6 * np.arange(50))))
+    lines = _set_up_checks(dataclasses.replace(exp, logs=[fast, *exp.logs[1:]]))
+    assert lines[1].startswith(f"warning: log {spec.name!r}: 1e+06 Hz") and "labelled [ms]" in lines[1], lines

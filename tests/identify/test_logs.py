@@ -330,3 +330,16 @@ def test_mat_v73_and_garbage(tmp_path, monkeypatch):
     path.write_bytes(b"this is not a mat file")
     with pytest.raises(LogError, match=msg("junk.mat", "not a readable MATLAB .mat file")):
         load_log(path, MAT_COLUMNS)
+
+
+@pytest.mark.parametrize(
+    ("dt", "hint"),
+    [(1e-6, "labelled [ms] or [us]"), (1.0 / 200.0, ""), (2.0, "in milliseconds but labelled [s]")],
+)
+def test_an_implausible_sampling_rate_asks_about_the_time_unit(dt, hint):
+    """A 1 kHz log whose seconds were labelled [ms] loads at 1 MHz (the numbers are valid,
+    so the loader cannot refuse them); its summary asks about the unit."""
+    from identify.logs import _sampling
+
+    sampling = _sampling(dt * np.arange(100))
+    assert (hint in str(sampling)) if hint else sampling.time_unit_hint == ""
