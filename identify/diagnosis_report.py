@@ -247,7 +247,7 @@ def markdown(diag, title: str = "") -> str:
         lines.append("| candidate | parameters | dBIC | F-test p | held-out gain | accepted |")
         lines.append("| --- | --- | ---: | ---: | ---: | --- |")
         for s in scores:
-            params = ", ".join(f"`{n}` = {v:.3g}" for n, v in s.params.items()) or (
+            params = ", ".join(f"`{n}` = {v:.5g}" for n, v in s.params.items()) or (  # a gain near 1: 5 digits
                 "(screened out)" if s.screened else ""
             )
             gain = "" if s.screened else f"{s.held_out_gain:.3f}x"
