@@ -98,7 +98,9 @@ class _Svd:
         norms = np.linalg.norm(A, axis=0) if norms is None else np.asarray(norms, float)
         norms = np.where(norms > 0, norms, 1.0)
         W, s, Vt = np.linalg.svd(A / norms, full_matrices=False)
-        keep = s > (s[0] * max(A.shape) * np.finfo(float).eps if s.size else 0.0)
+        # the reference is the scaled columns' size, 1 (a projected block's largest
+        # singular value can be far below it when the projection took most of every column)
+        keep = s > (max(s[0], 1.0) * max(A.shape) * np.finfo(float).eps if s.size else 0.0)
         return _Svd(W, s, Vt, norms, keep)
 
     @property
@@ -123,16 +125,48 @@ class _Svd:
         V = self.Vt[self.keep]
         return np.sqrt(np.clip(1.0 - np.sum(V**2, axis=0), 0.0, None)) > NULL_LOADING
 
-    def sees_null_space(self, G: np.ndarray) -> np.ndarray:
+    def null_space(self) -> NullSpace:
+        """The complement of the kept right singular vectors."""
+        V = self.Vt[self.keep]
+        P = V.shape[1]
+        if V.shape[0] == 0:
+            return NullSpace(np.eye(P), self.norms)
+        _, _, Wt = np.linalg.svd(V, full_matrices=True)
+        return NullSpace(Wt[V.shape[0] :].T, self.norms)
+
+    def sees_null_space(self, G: np.ndarray, scale: np.ndarray) -> np.ndarray:
         """Per row of `G` (`k x P`): `g . n != 0` for a null vector `n` of `A` (more than
-        `NULL_LOADING` of the row, in the normalised coordinates). A nuisance
-        `x_l = U_l^+ (r_l - S_l theta)` moves with `theta` along `n` when its row of
-        `G = U_l^+ S_l` does, so it is not determined either."""
+        `NULL_LOADING` of the row's `scale`, the size it has when nothing cancels, in the
+        normalised coordinates: a row that is zero in exact arithmetic is roundoff pointing
+        anywhere). A nuisance `x_l = U_l^+ (r_l - S_l theta)` moves with `theta` along `n`
+        when its row of `G = U_l^+ S_l` does, so it is not determined either."""
         V = self.Vt[self.keep]
         Gn = G / self.norms  # theta = D^-1 theta_n
-        size = np.linalg.norm(Gn, axis=1)
         null_part = np.linalg.norm(Gn - (Gn @ V.T) @ V, axis=1)
-        return null_part > NULL_LOADING * np.where(size > 0, size, np.inf)
+        return null_part > NULL_LOADING * scale
+
+
+@dataclasses.dataclass(frozen=True)
+class NullSpace:
+    """The directions of the parameters the data do not see: `basis` (`P x m`,
+    orthonormal columns) in the scaled coordinates `theta_n = D theta` of `_Svd` (`scales`:
+    `D`), so that `theta + D^-1 basis c` fits the data as well as `theta` for any `c`."""
+
+    basis: np.ndarray
+    scales: np.ndarray
+
+    def undetermined(self) -> np.ndarray:
+        """Per parameter: it moves along a null direction (`_Svd.undetermined`)."""
+        return np.linalg.norm(self.basis, axis=1) > NULL_LOADING
+
+    def determines(self, grad: np.ndarray) -> bool:
+        """Whether the data determine a function of the parameters with gradient `grad`
+        (natural coordinates): `grad . D^-1 n = 0` for every null direction `n` (to
+        `NULL_LOADING` of its size; e.g. the sum of two parameters of which only the sum
+        is seen is determined, either alone is not)."""
+        g = np.asarray(grad, float) / self.scales
+        size = np.linalg.norm(g)
+        return bool(np.linalg.norm(self.basis.T @ g) <= NULL_LOADING * size) if size > 0 else True
 
 
 def _correlation(cov: np.ndarray, undetermined: np.ndarray) -> np.ndarray:
@@ -238,7 +272,9 @@ def blocked(
         if cols.size == 0:
             continue
         var = s2 * np.sum(Uinv[l] ** 2, axis=1) + np.einsum("ip,pq,iq->i", G[l], cov_ss, G[l])
-        bad = nuis_undetermined[l] | (svd.sees_null_space(G[l]) if P else False)
+        # a row of G = U_l^+ S_l at its largest: |U_l^+ row| |S_l D^-1| (normalised coordinates)
+        scale = np.linalg.norm(Uinv[l], axis=1) * np.linalg.norm(S[l] / svd.norms) if P else 0.0
+        bad = nuis_undetermined[l] | (svd.sees_null_space(G[l], scale) if P else False)
         se[P + slots[l, cols]] = np.where(bad, np.inf, np.sqrt(np.clip(var, 0, None)))
 
     corr = _correlation(cov_ss, shared_undetermined)
@@ -247,9 +283,15 @@ def blocked(
     return Covariance(rss, n_res, s2, se, corr, Sn, ident)
 
 
-def clustered(r: np.ndarray, S: np.ndarray, U: np.ndarray, slots: np.ndarray, used: np.ndarray) -> np.ndarray:
+def clustered(
+    r: np.ndarray, S: np.ndarray, U: np.ndarray, slots: np.ndarray, used: np.ndarray, *, null_space: bool = False
+):
     """The cluster-robust covariance of the `P` shared parameters, clusters = logs (module
-    docstring), natural coordinates; arguments as for `blocked`. Needs at least 2 logs."""
+    docstring), natural coordinates; arguments as for `blocked`. Needs at least 2 logs.
+
+    With `A` singular the sandwich uses a generalised inverse of it: right for what the
+    data determine, finite and meaningless for the rest. `null_space=True` returns
+    `(cov, NullSpace)` to tell them apart (`NullSpace.undetermined`, `.determines`)."""
     L, n, P = S.shape
     if L < 2:
         raise ValueError(f"clustered: the cluster-robust covariance needs at least 2 logs, got {L}")
@@ -268,9 +310,7 @@ def clustered(r: np.ndarray, S: np.ndarray, U: np.ndarray, slots: np.ndarray, us
     svd = _Svd.of(projected.reshape(L * n, P), np.sqrt(np.sum(S**2, axis=(0, 1))))
     bread = svd.normal_pinv()
     cov = L / (L - 1) * bread @ (scores.T @ scores) @ bread
-    undetermined = svd.undetermined()
-    # an undetermined parameter's variance is infinite (see `_Svd.undetermined`)
-    return np.where(undetermined[:, None] & undetermined[None, :] & np.eye(P, dtype=bool), np.inf, cov)
+    return (cov, svd.null_space()) if null_space else cov
 
 
 def digits(value: float, spread: float) -> int:

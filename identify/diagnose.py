@@ -1207,13 +1207,8 @@ def diagnose_logs(
             joint, xb, v["xe"], v["y0"], v["offset"], jnp.asarray(idx_c), jnp.asarray(logf_c), sigma_j, step
         )
         r, J = np.asarray(r)[used], np.asarray(J)[used]
-        nparam = J.shape[1]
-        s2 = float(r @ r) / max(N - nparam, 1)
-        U, S, Vt = np.linalg.svd(J, full_matrices=False)
-        tol = S[0] * max(J.shape) * np.finfo(float).eps
-        inv = np.where(S > tol, 1.0 / np.where(S > tol, S, 1.0) ** 2, 0.0)
-        cov = s2 * (Vt.T * inv) @ Vt
-        se_nat = np.sqrt(np.clip(np.diag(cov), 0, None))
+        # (an undetermined parameter gets an infinite error, as in the fit: `identify.covariance`)
+        se_nat = covariance.dense((), (), r, J).std_errors
         natural = [
             (p.name, float(xb[i]), float(se_nat[i]), base_problem.log_scale[i]) for i, p in enumerate(parameters)
         ]

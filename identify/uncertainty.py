@@ -50,10 +50,13 @@ class ClusteredUncertainty:
     dof: int
     covariance: np.ndarray
     log_scale: tuple[bool, ...]
+    # what the data do not determine (`identify.covariance.NullSpace`); None: everything
+    null_space: covariance.NullSpace | None = None
 
     def interval(self, fn, h: float = 1e-6) -> tuple[float, float, float]:
         """Value and interval of a combination `fn(values: dict) -> float` of the
-        parameters (delta method in natural coordinates, central differences of step `h`)."""
+        parameters (delta method in natural coordinates, central differences of step `h`);
+        an infinite interval where the data do not determine the combination."""
         log = np.asarray(self.log_scale)
         x0 = np.where(log, np.log(self.values), self.values)
 
@@ -61,7 +64,10 @@ class ClusteredUncertainty:
             return float(fn(dict(zip(self.names, np.where(log, np.exp(x), x).tolist()))))
 
         grad = np.array([(of(x0 + h * e) - of(x0 - h * e)) / (2 * h) for e in np.eye(len(x0))])
-        se = float(np.sqrt(max(grad @ self.covariance @ grad, 0.0)))
+        if self.null_space is not None and not self.null_space.determines(grad):
+            se = float("inf")  # the combination moves along a direction the data do not see
+        else:
+            se = float(np.sqrt(max(grad @ self.covariance @ grad, 0.0)))
         q = scipy.stats.t.ppf(0.5 + self.level / 2, self.dof)
         f0 = of(x0)
         return f0, f0 - q * se, f0 + q * se
@@ -116,8 +122,8 @@ def clustered_uncertainty(result: FitResult, level: float = 0.95) -> ClusteredUn
     if blocks is None:
         sigma = jnp.asarray([result.sigma[c] for c in problem.channels], dtype=float)
         blocks = jacobian_blocks_at(problem, jnp.asarray(x), result.z, sigma, result.step)
-    cov = covariance.clustered(*blocks)
-    se_nat = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    cov, null = covariance.clustered(*blocks, null_space=True)
+    se_nat = np.where(null.undetermined(), np.inf, np.sqrt(np.clip(np.diag(cov), 0.0, None)))
     q = scipy.stats.t.ppf(0.5 + level / 2, n_logs - 1)
     log = np.asarray(problem.log_scale)
     values = np.asarray(result.values, float)
@@ -135,4 +141,5 @@ def clustered_uncertainty(result: FitResult, level: float = 0.95) -> ClusteredUn
         dof=n_logs - 1,
         covariance=cov,
         log_scale=tuple(bool(v) for v in problem.log_scale),
+        null_space=null,
     )

@@ -120,8 +120,13 @@ def test_a_parameter_on_an_exact_null_direction_has_no_standard_error():
     b = covariance.blocked(names, (False, True, True, False), *blocks, used)
     np.testing.assert_array_equal(np.isinf(b.std_errors), [True, True, False, False])
     np.testing.assert_allclose(b.std_errors[2:], ref, rtol=1e-9)
-    robust = np.diag(covariance.clustered(*blocks, used))
-    np.testing.assert_array_equal(np.isinf(robust), [True, True, False, False])
+    cov, null = covariance.clustered(*blocks, used, null_space=True)
+    np.testing.assert_array_equal(null.undetermined(), [True, True, False, False])
+    # what the data see, com + 2e-3 inertia (column 1 = 2e-3 column 0), is determined;
+    # either alone, or com + inertia, is not; the determined parameters are
+    assert null.determines(np.array([1.0, 2e-3, 0.0, 0.0])) and null.determines(np.array([0.0, 0.0, 1.0, 1.0]))
+    assert not null.determines(np.array([1.0, 0.0, 0.0, 0.0])) and not null.determines(np.array([1.0, 1.0, 0, 0]))
+    assert np.isfinite(cov).all()
     assert covariance.interval_text(-np.inf, np.inf) == "not determined"
     assert covariance.interval_text(0.0, np.inf) == "not determined"
 
@@ -254,3 +259,37 @@ def test_a_parameter_the_nuisances_absorb_is_undetermined_in_both_paths():
     assert np.isinf(dense.std_errors[2]) and np.isinf(blocked.std_errors[2])
     np.testing.assert_allclose(blocked.std_errors[:2], dense.std_errors[:2], rtol=1e-6)
     np.testing.assert_array_equal(np.isinf(blocked.std_errors), np.isinf(dense.std_errors))
+
+
+def test_blocked_agrees_with_dense_on_absorbed_columns_and_on_nuisances_a_null_direction_misses():
+    """Two cases found in review, the dense path as the oracle. (1) Every shared column is
+    mostly absorbed by the per-log offsets, one of them exactly: after the projection the
+    block's largest singular value is far below its columns' size, and the rank cut must
+    be taken against the size (else the absorbed column's roundoff was kept: SE 3e14).
+    (2) Zero-mean shared columns with a null direction among them, and a constant offset per
+    log: `G = U^+ S` is zero (roundoff), so the offsets do not move along the null
+    direction and stay determined (the roundoff, compared with its own size, flagged them)."""
+    rng = np.random.default_rng(11)
+    L, n = 5, 600
+    U = rng.normal(size=(L, n, 1))
+    S = np.empty((L, n, 2))
+    S[..., 0] = 2.7 * U[..., 0]
+    S[..., 1] = U[..., 0] + 1e-4 * rng.normal(size=(L, n))
+    r, slots, used = rng.normal(size=(L, n)), np.arange(L)[:, None], np.ones((L, n), bool)
+    names = ("a", "b")
+    blocked = covariance.blocked(names, (False, False), r, S, U, slots, used)
+    dense = covariance.dense(names, (False, False), *_dense(r, S, U, slots, used))
+    np.testing.assert_array_equal(np.isinf(blocked.std_errors), np.isinf(dense.std_errors))
+    assert np.isinf(blocked.std_errors[0]) and np.isfinite(blocked.std_errors[1])
+    np.testing.assert_allclose(blocked.std_errors[1], dense.std_errors[1], rtol=1e-6)
+
+    S = rng.normal(size=(L, n, 3))
+    S -= S.mean(axis=1, keepdims=True)
+    S[..., 2] = S[..., 0] + 0.3 * S[..., 1]
+    U = np.ones((L, n, 1))
+    names = ("a", "b", "c")
+    blocked = covariance.blocked(names, (False,) * 3, r, S, U, slots, used)
+    dense = covariance.dense(names, (False,) * 3, *_dense(r, S, U, slots, used))
+    np.testing.assert_array_equal(np.isinf(blocked.std_errors), [True] * 3 + [False] * L)
+    np.testing.assert_array_equal(np.isinf(dense.std_errors), [True] * 3 + [False] * L)
+    np.testing.assert_allclose(blocked.std_errors[3:], dense.std_errors[3:], rtol=1e-9)
