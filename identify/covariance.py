@@ -17,9 +17,10 @@ block inverse of `J^T J` (Schur complement of the nuisance blocks):
 
 (`U_l^+` by a per-log SVD with the same relative cut-off; `Cov_SS` from one SVD of the
 stacked `(I - P_l) S_l`, an `L n x P` matrix). With every block of full rank this is
-`(J^T J)^-1` exactly; with a rank-deficient block it is a generalised inverse that may
-differ from the dense pseudo-inverse in the unidentifiable directions (whose standard
-errors mean nothing either way; they are reported by the identifiability check).
+`(J^T J)^-1` exactly; with a rank-deficient block it is a generalised inverse, which
+gives what the data determine as the dense pseudo-inverse does (an estimable quantity's
+variance does not depend on the generalised inverse), and both mark the rest undetermined
+(below).
 
 **Cluster-robust covariance** (`clustered`). `s^2 (J^T J)^+` assumes white residuals. On
 real data the residual of each log is mostly model error, correlated along the log, and
@@ -44,7 +45,7 @@ nuisance that moves with them) get an infinite standard error and no interval in
 
 Identifiability: the right singular vectors of the column-normalised `J` with a singular
 value below `threshold` times the largest. `blocked` looks at the shared parameters after
-eliminating the nuisances (the column-normalised `(I - P_l) S_l` stacked): a weak
+eliminating the nuisances (the stacked `(I - P_l) S_l`, scaled by the columns of `S`): a weak
 combination of the physical parameters is found either way; its singular values are the
 eliminated block's (`P` of them), not the whole `J`'s.
 """

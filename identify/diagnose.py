@@ -280,9 +280,10 @@ def _refine(
     `_few_size`). A winner's scores and 95 % intervals must be those of its
     optimum: seen, a sensor-gain candidate whose fit moved the pendulum's hub inertia 5.3
     in log from its bound needed 40 steps, and at 25 its held-out prediction was 2.6x
-    worse than the baseline's. Candidates drifting to their neutral value (dBIC > 0, a
-    log-scale parameter sliding towards zero never "converges") and those far behind the
-    best one (dBIC above half the lowest) are left alone: they cannot win.
+    worse than the baseline's. Candidates drifting to their neutral value (dBIC > 0 and no
+    prediction below 0: a log-scale parameter sliding towards zero never "converges") and
+    those far behind the best one (dBIC above half the lowest) are left alone: they cannot
+    win.
 
     `predicted`: label -> the cost the screening's Gauss-Newton step predicted. A fit that
     ran out of steps short of it counts as a contender at the predicted dBIC: seen on the
