@@ -114,7 +114,8 @@ def plot_envelopes(diag, folder: Path) -> Path:
                 y = e["measured"][c] if name == "measured" else e.get(name, {}).get(c)
                 if y is None:
                     continue
-                tp, a = ev.swing_amplitudes(e["t"], y)
+                noise = diag.baseline.sigma.get(c, 0.0) if name == "measured" else 0.0  # as `decay_law`
+                tp, a = ev.swing_amplitudes(e["t"], y, noise)
                 ax.plot(tp, s * a, style, ms=3, label=name)
         ax.set_ylabel(f"{c} half swing [{unit}]")
         ax.set_title(f"{log} ({e['role']})", fontsize=9)

@@ -102,7 +102,8 @@ def swing_amplitudes(t, y, noise: float = 0.0):
     sensor offset, or an equilibrium a log does not settle at within its span (the
     amplitudes of the extrema about a mean level alternate between two sequences then:
     seen on the real pendulum, R^2 0.49 for every decay law). A turning point counts when
-    `y` has moved back from it by more than `max(10 noise, 1e-3 range)` (a peak-detector's
+    `y` has moved back from it by more than `max(10 noise, 2 quantum, 1e-3 range)`
+    (`quantum`: the smallest change between samples, an encoder's step; a peak-detector's
     hysteresis: near a turning point, where the signal is flat for tens of samples, the
     running extremes of white noise reach +-2.5 standard deviations, so 3 of them made
     false turning points; one turning point per plateau of a quantised encoder). The
@@ -111,7 +112,9 @@ def swing_amplitudes(t, y, noise: float = 0.0):
     t, y = np.asarray(t, float), np.asarray(y, float)
     if y.size < 3:
         return np.zeros(0), np.zeros(0)
-    delta = max(10.0 * float(noise), 1e-3 * float(np.ptp(y)), 1e-300)
+    steps = np.abs(np.diff(y))
+    quantum = float(steps[steps > 0].min()) if np.any(steps > 0) else 0.0  # an encoder's step
+    delta = max(10.0 * float(noise), 2.0 * quantum, 1e-3 * float(np.ptp(y)), 1e-300)
     turns_t, turns_y = [], []
     hi_i = lo_i = 0  # the running maximum / minimum since the last turning point
     rising = None  # unknown until y has moved by delta
