@@ -286,7 +286,7 @@ def _residual_lines(report: dict, outputs: dict, roles: dict) -> list[str]:
     floor of the measured samples alone (`identify.noise_floor`: ~1 where the model
     explains the data; the fit's own noise estimate would read ~1 whatever the misfit),
     whiteness and correlation with the input. `outputs`: `fitted_outputs` of the logs."""
-    from .noise_floor import noise_floor
+    from .noise_floor import series_floor
     from .report import display_unit
 
     lines = [
@@ -305,7 +305,7 @@ def _residual_lines(report: dict, outputs: dict, roles: dict) -> list[str]:
                 bad = [k for k, v in ic.items() if not v["independent"]]
                 inp = "correlated with " + ", ".join(bad) if bad else "independent of " + ", ".join(ic)
             entry = outputs.get(name, {})
-            floor = noise_floor(entry["t"], entry["measured"][c]) if c in entry.get("measured", {}) else 0.0
+            floor = series_floor(entry["t"], entry["measured"][c]) if c in entry.get("measured", {}) else 0.0
             ratio = item["rms"] / floor if floor > 0 else float("nan")
             rms = f"{scale * item['rms']:.4g} {unit}"
             lines.append(f"{label:<24} {c:<10} {rms:>14} {ratio:>9.3g}  {white:<26} {inp}")

@@ -93,6 +93,14 @@ def noise_floor(t, y, order: int = ORDER) -> float:
     return float(np.sqrt(np.mean(e**2))) if e.size else 0.0
 
 
+def series_floor(t, y) -> float:
+    """The floor a fit of the samples `y` is judged against: `noise_floor`, at least
+    `RESOLUTION` times their RMS (noise-free data)."""
+    y = np.asarray(y, float)
+    rms = float(np.sqrt(np.mean(y**2))) if y.size else 0.0
+    return max(noise_floor(t, y), RESOLUTION * rms)
+
+
 def channel_floors(t, measured, valid, present) -> tuple[np.ndarray, np.ndarray]:
     """Per log and channel: the noise floor and the number of samples it stands for.
 
@@ -107,9 +115,7 @@ def channel_floors(t, measured, valid, present) -> tuple[np.ndarray, np.ndarray]
         k = valid[l]
         for j in range(C):
             if present[l, j]:
-                y = measured[l, k, j]
-                rms = float(np.sqrt(np.mean(y**2))) if y.size else 0.0
-                floor[l, j] = max(noise_floor(t[l, k], y), RESOLUTION * rms)
+                floor[l, j] = series_floor(t[l, k], measured[l, k, j])
                 count[l, j] = int(k.sum())
     return floor, count
 
