@@ -1631,7 +1631,14 @@ def _stacked(outer: Diagnosis, inner: Diagnosis) -> Diagnosis:
         rounds=outer.rounds + inner.rounds,
         causes=causes + inner.causes,
         # the inner search's rounds continue the outer's count
-        notes=outer.notes + [{**n, "round": n["round"] + len(outer.rounds)} for n in inner.notes],
+        # (the inner search's baseline notes are about the model after the outer rounds; one
+        # the outer search already made is not repeated)
+        notes=outer.notes
+        + [
+            {**n, "round": n["round"] + len(outer.rounds)}
+            for n in inner.notes
+            if not (n["round"] == 0 and any(o["text"] == n["text"] for o in outer.notes))
+        ],
         # not tried by either search (the inner one may try what the outer could not)
         not_tried={n: why for n, why in outer.not_tried.items() if n in inner.not_tried},
         held_out=_held_out_summary(
