@@ -96,14 +96,28 @@ def test_coulomb_friction_hidden_with_a_random_magnitude():
     fc = float(rng.uniform(0.5e-3, 2.0e-3))  # N m
     diag = run(logs_of(pendulum(coulomb=fc), 11))
     assert_found(diag, "coulomb_friction", "joint1.coulomb", fc)
-    # the evidence that tells it from drag: straight-line decay envelopes in the data
+    # the evidence that tells it from drag: in every log the data's half swings fall more
+    # like a straight line (dry friction) and less like a hyperbola (drag) than the viscous
+    # baseline's, each against an exponential; the smallest swings, where the friction's
+    # loss outweighs the viscous one, are best fitted by a straight line. Measured
+    # (R^2 linear - exponential, data vs baseline): -0.0055 / -0.0083, -0.0027 / -0.0068,
+    # +0.0009 / -0.0057 for the 0, -30, -60 deg drops. (Before the half swings, |extrema|
+    # about the final mean gave R^2 0.70-0.94 for every law, "linear" by a hair.)
     laws = [
-        item["decay_law"]["measured"]["best"]
+        item["decay_law"]
         for log in diag.evidence.values()
         for item in log.values()
-        if item["decay_law"]["measured"]
+        if item["decay_law"]["measured"] and item["decay_law"]["simulated"]
     ]
-    assert laws.count("linear") >= 2, laws
+
+    def tilt(law, towards):
+        return law["r2"][towards] - law["r2"]["exponential"]
+
+    assert len(laws) == 3, laws
+    for law in laws:
+        assert tilt(law["measured"], "linear") > tilt(law["simulated"], "linear"), law
+        assert tilt(law["measured"], "hyperbolic") < tilt(law["simulated"], "hyperbolic"), law
+    assert "linear" in [law["measured"]["best"] for law in laws], laws
 
 
 def test_quadratic_damping_hidden_and_told_apart_from_dry_friction(monkeypatch):
