@@ -1394,15 +1394,21 @@ def _with_headroom(labels: set, problem: Problem, r_used, min_gain: float, rnd: 
     return set()
 
 
+#: `_stuck_above_nested`: an excess below this fraction of the current cost is the
+#: optimiser's precision, not a local minimum (seen on the spinning-link example, whose
+#: baseline misfit is large: a sensor high-pass ended at 104508119 against 104508062)
+STUCK_RELATIVE = 1e-4
+
+
 def _stuck_above_nested(c, cost: float, cost_current: float, bic_threshold: float, limit: str | None = None) -> str:
     """A note when candidate `c`, whose model holds the current one as a limit, ended its
-    fit with a cost (chi-square units, fit data) more than `bic_threshold` above the
-    current model's: its fit stopped in a local minimum (or ran out of steps), and its
-    dBIC is no evidence against the effect. Else ''. The limit: `limit` (a continuous
+    fit with a cost (chi-square units, fit data) more than `bic_threshold` (and more than
+    `STUCK_RELATIVE` of it) above the current model's: its fit stopped in a local minimum
+    (or ran out of steps), and its dBIC is no evidence against the effect. Else ''. The limit: `limit` (a continuous
     candidate: its parameters at their neutral values), else the structural change's
     (`catalogue.NESTED_LIMIT`: an elastic joint stiff enough is the rigid one)."""
     limit = limit if limit is not None else cat.NESTED_LIMIT.get(c.name)
-    if limit is None or not cost > cost_current + bic_threshold:
+    if limit is None or not cost > cost_current + max(bic_threshold, STUCK_RELATIVE * cost_current):
         return ""
     return (
         f"{c.label}: its fit ended above the model it extends (cost {cost:.1f} against "
