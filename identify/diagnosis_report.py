@@ -106,7 +106,11 @@ def plot_spectra(diag, folder: Path) -> Path:
 
 def plot_envelopes(diag, folder: Path) -> Path:
     rows = _panels(diag)
-    fig, axes = _fig(len(rows), "decay envelopes: half swings (a straight line in the upper-left panel = dry friction)")
+    fig, axes = _fig(
+        len(rows),
+        "decay envelopes: half swings (falling in a straight line: dry friction; flattening out: viscous damping "
+        "or drag)",
+    )
     for ax, (log, c, e) in zip(axes, rows):
         s, unit = display_unit(c)
         for name, style in (("measured", "o"), ("baseline", "-"), ("extended", "--")):
