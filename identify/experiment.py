@@ -752,7 +752,9 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
             context=context,
         )
     except LogError as e:
-        raise LogError(f"{e} [{r.where(*key)}]") from None
+        # a problem with one entry of the column mapping points at that entry's line
+        at = key + ("columns", e.channel) if columns and e.channel in columns else key
+        raise LogError(f"{e} [{r.where(*at)}]", channel=e.channel) from None
     if not columns:  # CSV read through its header: check the channels it found
         for channel in log.channels:
             why = channel_problem(chain, channel)

@@ -35,7 +35,15 @@ MAT_SUFFIXES = (".mat",)
 
 class LogError(ValueError):
     """A log file (or its description in an experiment file) is not usable. The message
-    names the file, the line and column or variable, and what was expected."""
+    names the file, the line and column or variable, and what was expected.
+
+    `channel` is the channel whose entry in the column mapping the problem concerns (a
+    unit or column name that disagrees with the file), or None: an experiment file then
+    points at that entry's line rather than the log's."""
+
+    def __init__(self, message: str, *, channel: str | None = None):
+        super().__init__(message)
+        self.channel = channel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,20 +192,25 @@ def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibrati
     if w.unit is not None and u.normalise_unit(w.unit) is None:
         raise LogError(
             f"{where}: the experiment maps {w.channel} = '{w.source} [{w.unit}]': unknown unit [{w.unit}]; "
-            f"known units: {u.known_units()}"
+            f"known units: {u.known_units()}",
+            channel=w.channel,
         )
     if w.unit is not None and file_unit is not None:
         a, b = u.normalise_unit(w.unit), u.normalise_unit(file_unit)
         if (a or w.unit) != (b or file_unit):
             raise LogError(
                 f"{where}: the file's header says [{file_unit}] but the experiment maps {w.channel} = "
-                f"'{w.source} [{w.unit}]'; make them agree"
+                f"'{w.source} [{w.unit}]'; make them agree",
+                channel=w.channel,
             )
     if written is None:
-        raise LogError(f"{where}: no unit; expected the unit in brackets, e.g. '{w.source} [{_si(w.channel)}]'")
+        raise LogError(
+            f"{where}: no unit; expected the unit in brackets, e.g. '{w.source} [{_si(w.channel)}]'",
+            channel=w.channel,
+        )
     unit = u.normalise_unit(written)
     if unit is None:
-        raise LogError(f"{where}: unknown unit [{written}]; known units: {u.known_units()}")
+        raise LogError(f"{where}: unknown unit [{written}]; known units: {u.known_units()}", channel=w.channel)
     dim, dim_unit = u.channel_dimension(w.channel), u.unit_dimension(unit)
     cal = (calibration or {}).get(w.channel)
     if dim_unit == u.VOLTAGE and dim != u.TIME:
@@ -205,19 +218,22 @@ def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibrati
             raise LogError(
                 f"{where}: {w.channel} is in [{written}] and needs a calibration "
                 f"(SI = scale * V + offset): add calibration = {{ {w.channel} = {{ scale = ..., offset = ... }} }} "
-                "to this log in the experiment file"
+                "to this log in the experiment file",
+                channel=w.channel,
             )
         return unit, cal
     if dim_unit != dim:
         raise LogError(
             f"{where}: {w.channel} is a{'n' if dim[0] in 'aeiou' else ''} {dim} but [{written}] is a "
             f"{dim_unit} unit; expected one of {_units_of(dim)}"
-            + ("" if dim == u.TIME else " or [V] with a calibration")
+            + ("" if dim == u.TIME else " or [V] with a calibration"),
+            channel=w.channel,
         )
     if cal is not None:
         raise LogError(
             f"{where}: a calibration is given for {w.channel} but its unit is [{written}], not [V]; "
-            "remove the calibration (it applies to voltage columns only)"
+            "remove the calibration (it applies to voltage columns only)",
+            channel=w.channel,
         )
     return unit, None
 
@@ -430,7 +446,8 @@ def _read_csv(path: Path, wanted, cals, strict, context):
         if w.source not in seen:
             raise LogError(
                 f"{path}, line {hline}: no column {w.source!r} (mapped by {context}.{w.channel}); "
-                f"the header has {[n for n in names if n]}"
+                f"the header has {[n for n in names if n]}",
+                channel=w.channel,
             )
         c = seen[w.source]
         where = f"{path}, line {hline}, column {c} ({header[c - 1]!r})"
@@ -516,7 +533,8 @@ def _read_mat(path: Path, wanted, cals, strict, context):
     for w in wanted:
         if w.source not in variables:
             raise LogError(
-                f"{path}: no variable {w.source!r} (mapped by {context}.{w.channel}); the file has {sorted(variables)}"
+                f"{path}: no variable {w.source!r} (mapped by {context}.{w.channel}); the file has {sorted(variables)}",
+                channel=w.channel,
             )
         where = f"{path}: variable {w.source!r}"
         unit, cal = _resolve_unit(path, w, None, where, cals)

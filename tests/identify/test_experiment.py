@@ -488,19 +488,46 @@ def test_csv_header_channel_not_on_rig(tmp_path):
 
 
 def test_log_error_names_log_and_experiment_entry(tmp_path):
+    # the file's side (line and column of the header) and the mapping entry's line (8)
     path = experiment(tmp_path, RIG + LOG.replace("tip1 [mm]", "tip1 [deg]"))
     with pytest.raises(
         LogError,
-        match=msg("drop.csv, line 1, column 3", "header says [mm]", "make them agree", "exp.toml, line 6: logs[1]]"),
-    ):
+        match=msg(
+            "drop.csv, line 1, column 3",
+            "header says [mm]",
+            "make them agree",
+            "exp.toml, line 8: logs[1].columns.tip1]",
+        ),
+    ) as info:
         load_experiment(path)
+    assert info.value.channel == "tip1"
     # a unit typo in the mapping is named as an unknown unit, not as a disagreement
     path = experiment(tmp_path, RIG + LOG.replace("tip1 [mm]", "tip1 [mmm]"))
-    with pytest.raises(LogError, match=msg("drop.csv, line 1, column 3", "unknown unit [mmm]", "known units")):
+    with pytest.raises(
+        LogError,
+        match=msg("drop.csv, line 1, column 3", "unknown unit [mmm]", "known units", "line 8: logs[1].columns.tip1]"),
+    ):
         load_experiment(path)
     path = experiment(tmp_path, RIG + LOG.replace('theta1 = "theta1 [deg]"', 'theta1 = "enc [deg]"'))
-    with pytest.raises(LogError, match=msg("drop.csv, line 1", "no column 'enc'", "exp.toml logs[1].columns.theta1")):
+    with pytest.raises(
+        LogError,
+        match=msg(
+            "drop.csv, line 1", "no column 'enc'", "exp.toml logs[1].columns.theta1", "line 8: logs[1].columns.theta1]"
+        ),
+    ):
         load_experiment(path)
+    # the mapping written as a sub-table: the entry's own line
+    table = '[[logs]]\nfile = "logs/drop.csv"\n[logs.columns]\n'
+    table += 'time = "time [s]"\ntheta1 = "theta1 [deg]"\ntip1 = "tip1 [m]"\n'
+    path = experiment(tmp_path, RIG + table)
+    with pytest.raises(LogError, match=msg("header says [mm]", "exp.toml, line 10: logs[1].columns.tip1]")):
+        load_experiment(path)
+    # a problem in the file itself (no mapping entry concerned) still points at the log
+    write_log(tmp_path / "logs" / "drop.csv", header=("time [s]", "theta1 [deg]", "tip1 [mm]"), n=3)
+    path = experiment(tmp_path, RIG + LOG, log=False)
+    with pytest.raises(LogError, match=msg("drop.csv", "exp.toml, line 6: logs[1]]")) as info:
+        load_experiment(path)
+    assert info.value.channel is None
 
 
 def test_calibration_errors(tmp_path):
