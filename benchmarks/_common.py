@@ -130,3 +130,18 @@ def write_json(path, payload: dict) -> None:
         with open(path, "w") as f:
             json.dump(payload, f, indent=2, default=float)
             f.write("\n")
+
+
+def publish(json_path, benchmark: str, env: dict, rows: list[dict], columns, *, environment=True, note="", **extra):
+    """Print the machine and versions (unless `environment` is False: printed earlier),
+    a blank line and the results table; write the JSON `run_all.py` reads (`benchmark`,
+    `environment`, `columns` (their keys), `results`, and any `extra` entries) to
+    `json_path` if given. `note` is appended to the environment line (a peer's version)."""
+    if environment:
+        print(format_environment(env) + note)
+        print()
+    print(format_table(rows, columns))
+    write_json(
+        json_path,
+        {"benchmark": benchmark, "environment": env, "columns": [c[0] for c in columns], "results": rows, **extra},
+    )

@@ -31,7 +31,7 @@ import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, median_time, timed, write_json  # noqa: E402
+from _common import environment, median_time, publish, timed  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 from flexdyn import denoc as dn  # noqa: E402
@@ -146,10 +146,7 @@ def main(argv=None):
         f"bench_denoc_recursive: forward dynamics, batch {args.batch} states (vmapped, jitted), "
         f"{args.modes} modes per flexible link"
     )
-    print(format_environment(env))
-    print()
-    print(format_table(rows, COLUMNS))
-    write_json(args.json, {"environment": env, "columns": COLUMNS, "results": rows, "args": vars(args)})
+    publish(args.json, "denoc_recursive", env, rows, COLUMNS, args=vars(args))
     return 0
 
 

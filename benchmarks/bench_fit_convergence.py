@@ -39,7 +39,7 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, write_json  # noqa: E402
+from _common import environment, publish  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 import identify  # noqa: E402
@@ -177,10 +177,7 @@ def main(argv=None) -> int:
         )
         details[method] = per
     print()
-    print(format_environment(environment()))
-    print()
-    print(format_table(rows, COLUMNS))
-    write_json(args.json, {"results": rows, "columns": COLUMNS, "trials": details})
+    publish(args.json, "fit_convergence", environment(), rows, COLUMNS, trials=details)
     return 0
 
 

@@ -47,7 +47,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optimistix as optx  # noqa: E402
-from _common import environment, format_environment, format_table, median_time, timed, write_json  # noqa: E402
+from _common import environment, median_time, publish, timed  # noqa: E402
 from bench_fit_convergence import TRUTH, scenario  # noqa: E402
 
 import flexdyn as fd  # noqa: E402, F401  (enables float64)
@@ -270,13 +270,7 @@ def main(argv=None):
         rows += covariance_rows(L, args.repeats)
     print()
     print("bench_fit_many_logs: 4 shared parameters, 3 nuisances per log (1.2 s logs at 4 ms, Tsit5 1 ms)")
-    print(format_environment(env))
-    print()
-    print(format_table(rows, COLUMNS))
-    write_json(
-        args.json,
-        {"benchmark": "fit_many_logs", "environment": env, "columns": [c[0] for c in COLUMNS], "results": rows},
-    )
+    publish(args.json, "fit_many_logs", env, rows, COLUMNS)
     return rows
 
 

@@ -34,7 +34,7 @@ sys.path.insert(0, os.path.join(HERE, "..", "tests", "identify"))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, write_json  # noqa: E402
+from _common import environment, publish  # noqa: E402
 from test_fit import BARS, CHANNELS, DT, T_END, TRUTH, Arm, doublets  # noqa: E402
 
 import identify  # noqa: E402
@@ -104,10 +104,7 @@ def main(argv=None):
         f"bench_fit_rest: 1-link flexible arm, 4 parameters, {args.rest:g} s of rest then {T_END:g} s of doublets "
         f"({len(t)} samples x 2 channels), {args.seeds} noise seeds"
     )
-    print(format_environment(env))
-    print()
-    print(format_table(rows, COLUMNS))
-    write_json(args.json, {"environment": env, "results": rows, "trials": details})
+    publish(args.json, "fit_rest", env, rows, COLUMNS, trials=details)
 
 
 if __name__ == "__main__":

@@ -38,7 +38,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, round_robin, timed, warm_summary, write_json  # noqa: E402
+from _common import environment, publish, round_robin, timed, warm_summary  # noqa: E402
 from bench_fit_convergence import TRUTH, scenario  # noqa: E402
 from numpy_arm import NumpyChain  # noqa: E402
 
@@ -195,9 +195,7 @@ def main(argv=None):
         f"bench_fit_vs_scipy: 1-link flexible arm, 4 parameters (EI, joint damping, hub inertia, payload), "
         f"{len(t)} samples x 2 channels, guess x{f:g} / x{1 / f:.3g}"
     )
-    print(format_environment(env))
-    print()
-    print(format_table(rows, COLUMNS))
+    publish(args.json, "fit_vs_scipy", env, rows, COLUMNS, guess=dict(zip(NAMES, guess)))
     print()
     print("Targets: fit >= 20x faster than least_squares at the same final cost; fit compile < 30 s on 2 cores.")
     peer_cost = rows[-1]["cost_common"]
@@ -209,16 +207,6 @@ def main(argv=None):
             c = r["compile_s"]
             comp = f"; compile {c:.1f} s, " + ("met" if c < 30 else f"missed by {c / 30:.1f}x")
         print(f"  {r['run']}: speed-up {r['speedup']:.1f}x, {speed} ({cost}){comp}")
-    write_json(
-        args.json,
-        {
-            "benchmark": "fit_vs_scipy",
-            "environment": env,
-            "guess": dict(zip(NAMES, guess)),
-            "columns": [c[0] for c in COLUMNS],
-            "results": rows,
-        },
-    )
     return rows
 
 

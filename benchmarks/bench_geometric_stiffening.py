@@ -21,7 +21,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-from _common import environment, format_environment, format_table, median_time, timed, write_json  # noqa: E402
+from _common import environment, median_time, publish, timed  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 
@@ -70,19 +70,7 @@ def main(argv=None):
 
     env = environment()
     print(f"bench_geometric_stiffening: paper 004 arm (8 coordinates), bang-bang 0.2 N m / 0.5 s, 0 -> {T_END:g} s")
-    print(format_environment(env))
-    print()
-    print(format_table(rows, COLUMNS))
-    write_json(
-        args.json,
-        {
-            "benchmark": "geometric_stiffening",
-            "environment": env,
-            "repeats": args.repeats,
-            "columns": [c[0] for c in COLUMNS],
-            "results": rows,
-        },
-    )
+    publish(args.json, "geometric_stiffening", env, rows, COLUMNS, repeats=args.repeats)
     return 0
 
 

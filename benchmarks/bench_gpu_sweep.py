@@ -59,7 +59,7 @@ import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, median_time, timed, write_json  # noqa: E402
+from _common import environment, format_environment, median_time, publish, timed, write_json  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 from flexdyn import fixed_step  # noqa: E402
@@ -564,18 +564,8 @@ def main(argv=None):
             bench("diffrax RK4 1 ms (fd.simulate)", diffrax_rk4, args.cpu_size, cpu, n_fixed, "cho")
 
     print()
-    print(format_table(rows, COLUMNS))
+    publish(args.json, "gpu_sweep", env, rows, COLUMNS, environment=False, rhs_flops=flops)
     print(f"\nFP64 peak assumed {FP64_PEAK / 1e12:.1f} TFLOP/s (vector, no tensor cores); FLOPs/RHS {flops}")
-    write_json(
-        args.json,
-        {
-            "benchmark": "gpu_sweep",
-            "environment": env,
-            "rhs_flops": flops,
-            "columns": [c[0] for c in COLUMNS],
-            "results": rows,
-        },
-    )
     return rows
 
 

@@ -44,7 +44,7 @@ import diffrax  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, round_robin, timed, write_json  # noqa: E402
+from _common import environment, publish, round_robin, timed  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 
@@ -194,9 +194,7 @@ def main(argv=None):
 
     print()
     print(f"bench_gradient_cost: paper 004 arm, {args.duration:g} s log at 1 kHz ({ts.shape[0]} samples)")
-    print(format_environment(env))
-    print()
-    print(format_table(rows, COLUMNS))
+    publish(args.json, "gradient_cost", env, rows, COLUMNS, duration_s=args.duration)
     print()
     print("Targets: value_and_grad w.r.t. 10 params <= 4x a forward solve; jacfwd with 4 params <= 3x.")
     for r in rows:
@@ -205,16 +203,6 @@ def main(argv=None):
             worst = max(r["ratio"], r["own_ratio"])
             verdict = "met" if worst <= target else f"missed by {worst / target:.2f}x"
             print(f"  {r['run']}: {r['ratio']:.2f}x / {r['own_ratio']:.2f}x (target {target:g}x): {verdict}")
-    write_json(
-        args.json,
-        {
-            "benchmark": "gradient_cost",
-            "environment": env,
-            "duration_s": args.duration,
-            "columns": [c[0] for c in COLUMNS],
-            "results": rows,
-        },
-    )
     return rows
 
 

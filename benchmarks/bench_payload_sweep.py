@@ -47,7 +47,7 @@ import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, median_time, timed, write_json  # noqa: E402
+from _common import environment, format_environment, median_time, publish, timed  # noqa: E402
 from numpy_arm import NumpyChain  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
@@ -247,13 +247,18 @@ def main(argv=None):
             print(f"  {name}, {size}: cold {cold or warm:.1f} s, warm {warm:.2f} s", flush=True)
 
     per_state = {size: rhs_lower_bound(devices, size) for size in sizes}
+    fixed = [r for r in rows if r["run"].startswith("flexdyn RK4") and "vmapped" in r["run"]]
+    for r in fixed:
+        r["rhs_lower_bound_s"] = per_state[r["size"]] * r["size"] * r["steps"] * 4
     print()
-    print(format_table(rows, COLUMNS))
+    extra = dict(
+        device=args.device, n_devices=len(devices), rhs_us_per_state={str(k): v * 1e6 for k, v in per_state.items()}
+    )
+    publish(args.json, "payload_sweep", env, rows, COLUMNS, environment=False, **extra)
     print()
     for r in rows:
-        if r["run"].startswith("flexdyn RK4") and "vmapped" in r["run"]:
-            bound = per_state[r["size"]] * r["size"] * r["steps"] * 4
-            r["rhs_lower_bound_s"] = bound
+        if "rhs_lower_bound_s" in r:
+            bound = r["rhs_lower_bound_s"]
             print(
                 f"Fixed-step sweep of {r['size']}: the batched right-hand side alone costs "
                 f"{per_state[r['size']] * 1e6:.2f} us per state, so {r['steps']} steps x 4 stages take "
@@ -268,18 +273,6 @@ def main(argv=None):
             )
     if args.device == "gpu":
         print("GPU: trajectories/s above are on the GPU; the SciPy peer ran on the CPU.")
-    write_json(
-        args.json,
-        {
-            "benchmark": "payload_sweep",
-            "environment": env,
-            "device": args.device,
-            "n_devices": len(devices),
-            "rhs_us_per_state": {str(k): v * 1e6 for k, v in per_state.items()},
-            "columns": [c[0] for c in COLUMNS],
-            "results": rows,
-        },
-    )
     return rows
 
 

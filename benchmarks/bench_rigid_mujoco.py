@@ -30,7 +30,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "tests"))  # oracles.py: 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import environment, format_environment, format_table, median_time, timed, usable_cores, write_json  # noqa: E402
+from _common import environment, median_time, publish, timed, usable_cores  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 from flexdyn import batch as fb  # noqa: E402
@@ -137,19 +137,7 @@ def main(argv=None):
         r["ratio"] = r["warm_s"] / rows[0]["warm_s"]
 
     print(f"bench_rigid_mujoco: rigid 2-link arm, vertical plane, {args.batch} rollouts x {N_STEPS} RK4 steps of 1 ms")
-    print(format_environment(env) + f"; MuJoCo {mujoco.__version__}")
-    print()
-    print(format_table(rows, COLUMNS))
-    write_json(
-        args.json,
-        {
-            "benchmark": "rigid_mujoco",
-            "environment": env,
-            "batch": args.batch,
-            "columns": [c[0] for c in COLUMNS],
-            "results": rows,
-        },
-    )
+    publish(args.json, "rigid_mujoco", env, rows, COLUMNS, note=f"; MuJoCo {mujoco.__version__}", batch=args.batch)
     return rows
 
 

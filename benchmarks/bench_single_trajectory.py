@@ -43,16 +43,7 @@ import diffrax  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import (  # noqa: E402
-    environment,
-    format_environment,
-    format_table,
-    median_time,
-    round_robin,
-    timed,
-    warm_summary,
-    write_json,
-)
+from _common import environment, format_table, median_time, publish, round_robin, timed, warm_summary  # noqa: E402
 from numpy_arm import NumpyChain  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
@@ -280,11 +271,10 @@ def main(argv=None):
             r["ratio"] = r["warm_s"] / tsit5["warm_s"]
 
     print("bench_single_trajectory: paper 004 arm (8 coordinates), bang-bang 0.2 N m / 0.5 s, 0 -> 5 s")
-    print(format_environment(env))
-    print()
-    print(format_table(rows, COLUMNS))
-    print()
     matched = matched_speedups(rows)
+    extra = dict(repeats=args.repeats, matched_accuracy=matched, numpy_peer_max_rel_difference=check)
+    publish(args.json, "single_trajectory", env, rows, COLUMNS, **extra)
+    print()
     print("At matched accuracy (NumPy peer's warm time interpolated to the flexdyn run's error):")
     print(format_table(matched, MATCHED_COLUMNS))
     print()
@@ -300,18 +290,6 @@ def main(argv=None):
     print(
         "Error: max over coordinates of |Q(5 s) - Q_ref(5 s)| (rad, m); reference diffrax Dopri8 at rtol "
         f"{REF_RTOL:g}, atol {REF_ATOL:g}. RHS evals for flexdyn are steps x stages (accepted steps only)."
-    )
-    write_json(
-        args.json,
-        {
-            "benchmark": "single_trajectory",
-            "environment": env,
-            "repeats": args.repeats,
-            "columns": [c[0] for c in COLUMNS],
-            "results": rows,
-            "matched_accuracy": matched,
-            "numpy_peer_max_rel_difference": check,
-        },
     )
     return rows
 

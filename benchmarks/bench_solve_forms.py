@@ -22,15 +22,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import (  # noqa: E402
-    environment,
-    format_environment,
-    format_table,
-    round_robin,
-    timed,
-    warm_summary,
-    write_json,
-)
+from _common import environment, publish, round_robin, timed, warm_summary  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 from flexdyn import fixed_step  # noqa: E402
@@ -68,13 +60,7 @@ def main(argv=None) -> list:
         r["ratio"] = r["warm_s"] / rows[0]["warm_s"]
     env = environment()
     print(f"bench_solve_forms: paper 004 arm, RK4 {T_END} s at {DT * 1e3:g} ms, one state, CPU")
-    print(format_environment(env))
-    print()
-    print(format_table(rows, COLUMNS))
-    write_json(
-        args.json,
-        {"benchmark": "solve_forms", "environment": env, "columns": [c[0] for c in COLUMNS], "results": rows},
-    )
+    publish(args.json, "solve_forms", env, rows, COLUMNS)
     return rows
 
 
