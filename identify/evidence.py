@@ -93,6 +93,9 @@ def spectrum_peaks(t, residual, modal_frequencies_hz, n_peaks: int = 3) -> list[
 DECAY_R2_MIN = 0.9
 
 
+START_SWING_FRACTION = 0.9  # of the next half swing's time (see `swing_amplitudes`)
+
+
 def swing_amplitudes(t, y, noise: float = 0.0):
     """Times and amplitudes of the half swings of an oscillation `y(t)`: between each turning
     point and the next (a maximum, then a minimum, ...), half their difference, at their
@@ -108,7 +111,12 @@ def swing_amplitudes(t, y, noise: float = 0.0):
     running extremes of white noise reach +-2.5 standard deviations, so 3 of them made
     false turning points; one turning point per plateau of a quantised encoder). The
     decay laws hold for half swings as for amplitudes: a constant loss per half period
-    (dry friction) stays linear, a constant ratio (viscous) stays exponential."""
+    (dry friction) stays linear, a constant ratio (viscous) stays exponential.
+
+    The log's start counts as the first turning point (a release from rest: its largest
+    half swing) when the time from it to the first turning point found is at least
+    `START_SWING_FRACTION` of the next half swing's: a log that starts mid-swing would
+    otherwise add a partial half swing, too small for its time."""
     t, y = np.asarray(t, float), np.asarray(y, float)
     if y.size < 3:
         return np.zeros(0), np.zeros(0)
@@ -118,6 +126,7 @@ def swing_amplitudes(t, y, noise: float = 0.0):
     turns_t, turns_y = [], []
     hi_i = lo_i = 0  # the running maximum / minimum since the last turning point
     rising = None  # unknown until y has moved by delta
+    start = None  # the extreme y moved away from first: a turning point if y started at rest
     for i in range(1, y.size):
         if y[i] > y[hi_i]:
             hi_i = i
@@ -126,6 +135,7 @@ def swing_amplitudes(t, y, noise: float = 0.0):
         if rising is None:
             if y[hi_i] - y[lo_i] > delta:
                 rising = hi_i > lo_i
+                start = lo_i if rising else hi_i
             continue
         if rising and y[hi_i] - y[i] > delta:  # a maximum at hi_i
             turns_t.append(t[hi_i]), turns_y.append(y[hi_i])
@@ -133,6 +143,8 @@ def swing_amplitudes(t, y, noise: float = 0.0):
         elif not rising and y[i] - y[lo_i] > delta:  # a minimum at lo_i
             turns_t.append(t[lo_i]), turns_y.append(y[lo_i])
             rising, hi_i = True, i
+    if len(turns_t) >= 2 and turns_t[0] - t[start] >= START_SWING_FRACTION * (turns_t[1] - turns_t[0]):
+        turns_t.insert(0, t[start]), turns_y.insert(0, y[start])
     turns_t, turns_y = np.asarray(turns_t), np.asarray(turns_y)
     return 0.5 * (turns_t[1:] + turns_t[:-1]), 0.5 * np.abs(np.diff(turns_y))
 

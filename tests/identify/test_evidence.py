@@ -122,6 +122,28 @@ def test_half_swings_of_a_viscously_damped_oscillation_decay_exponentially():
     assert law["best"] == "exponential" and law["n_half_swings"] == pytest.approx(2 * 1.27 * 12, abs=2), law
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_release_from_rest_keeps_its_first_half_swing_and_a_start_mid_swing_adds_no_partial_one(seed):
+    """Oracle: `A e^(-zeta w t) cos(w t + phase)`. Released from rest (phase 0) the log's
+    first sample is the first turning point: the first half swing is `(A + A e^(-zeta pi))
+    / 2` (half the drop from the release to the first minimum). Started mid-swing (phase
+    0.2 pi or 0.5 pi) the start is not a turning point: every half swing is a whole one
+    (within the decay of one half period of the previous), none the partial start."""
+    w, zeta, amplitude = 2 * np.pi * 1.27, 0.005, 0.5
+    t = np.arange(0.0, 12.0, 1e-3)
+    decay = np.exp(-zeta * np.pi)  # per half period
+    x = amplitude * np.exp(-zeta * w * t) * np.cos(w * t)
+    tp, a = ev.swing_amplitudes(t, _measured(x, t, np.random.default_rng(seed)), noise=2e-3)
+    assert a[0] == pytest.approx(0.5 * amplitude * (1 + decay), rel=0.01)
+    assert tp[0] == pytest.approx(0.5 * np.pi / w, rel=0.05)
+    assert len(a) == int(12.0 * w / np.pi)  # turning points at k pi / w, k = 0 .. 30
+    for phase in (0.2 * np.pi, 0.5 * np.pi):
+        x = amplitude * np.exp(-zeta * w * t) * np.cos(w * t + phase)
+        tp, a = ev.swing_amplitudes(t, _measured(x, t, np.random.default_rng(seed)), noise=2e-3)
+        whole = amplitude * np.exp(-zeta * w * tp) * 0.5 * (1 + 1 / decay)  # mean of its two extrema
+        np.testing.assert_allclose(a, whole, rtol=0.02)
+
+
 def test_half_swings_under_dry_friction_fall_linearly():
     """Oracle: Coulomb friction `F` on an oscillator of stiffness `k` (closed form, half
     period by half period): each half swing is about the centre `+-F/k` on the side it
