@@ -40,9 +40,53 @@ def check_parameter(owner: str, name: str, value, *, positive: bool = False, sig
         raise ValueError(f"{owner}.{name}: expected a value >= 0, got {value!r}")
 
 
-def checked(value, owner: str, name: str, *, positive: bool = False):
-    """`value` with a run-time check (works under jit/vmap/grad) that it is finite and
-    > 0 (`positive`) or >= 0."""
-    bad = ~jnp.isfinite(value) | ((value <= 0) if positive else (value < 0))
-    bound = "> 0" if positive else ">= 0"
-    return eqx.error_if(value, jnp.any(bad), f"{owner}.{name} must be finite and {bound}")
+POSITIVE, NONNEGATIVE, SIGNED = "positive", "nonnegative", "signed"
+
+
+def checked(value, owner: str, name: str, kind: str = NONNEGATIVE):
+    """`value` as a float array, checked to be finite and > 0 (`POSITIVE`), >= 0
+    (`NONNEGATIVE`) or of any sign (`SIGNED`). A concrete value is checked at once
+    (`check_parameter`'s `ValueError`); a traced one (under jit/vmap/grad) at run time
+    with `eqx.error_if`."""
+    if kind not in (POSITIVE, NONNEGATIVE, SIGNED):
+        raise ValueError(f"checked: unknown kind {kind!r}")
+    if _is_concrete(value):
+        check_parameter(owner, name, value, positive=kind == POSITIVE, signed=kind == SIGNED)
+        return as_float_array(value)
+    bad = ~jnp.isfinite(value)
+    if kind != SIGNED:
+        bad = bad | ((value <= 0) if kind == POSITIVE else (value < 0))
+    bound = {POSITIVE: " and > 0", NONNEGATIVE: " and >= 0", SIGNED: ""}[kind]
+    return eqx.error_if(value, jnp.any(bad), f"{owner}.{name} must be finite{bound}")
+
+
+def _shape(part, name: str) -> tuple:
+    return (part.n_modes,) if name == "damping_ratio" else ()
+
+
+def check_part(part) -> None:
+    """Check every parameter of `part` named in its `PARAMETERS` table ((name, kind)
+    pairs; None values skipped) when it is built: shape, and for concrete values
+    finiteness and sign (a `ValueError` naming the part and the parameter)."""
+    owner = type(part).__name__
+    for name, kind in part.PARAMETERS:
+        value = getattr(part, name)
+        if value is not None:
+            check_parameter(
+                owner, name, value, positive=kind == POSITIVE, signed=kind == SIGNED, shape=_shape(part, name)
+            )
+
+
+def checked_part(part, owner: str | None = None):
+    """`part` with every parameter of its `PARAMETERS` table passed through `checked`:
+    the chain's assembly applies it, so that values set after construction
+    (`eqx.tree_at`, `with_parameters`, traced values under jit/vmap/grad) are held to the
+    same rules as at construction, and a Python float becomes an array. Messages name
+    the parameter as `owner.name` (default owner: the part's class)."""
+    owner = type(part).__name__ if owner is None else owner
+    names = [name for name, _ in part.PARAMETERS if getattr(part, name) is not None]
+    values = [checked(getattr(part, name), owner, name, kind) for name, kind in part.PARAMETERS if name in names]
+    for name, value in zip(names, values):
+        if jnp.shape(value) != _shape(part, name):
+            raise ValueError(f"{owner}.{name}: expected shape {_shape(part, name)}, got {jnp.shape(value)}")
+    return eqx.tree_at(lambda p: [getattr(p, name) for name in names], part, values, is_leaf=lambda x: x is None)

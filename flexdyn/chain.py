@@ -110,7 +110,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import as_float_array, checked
+from ._checks import as_float_array, checked_part
 from .modes import GAUSS_W, GAUSS_X, evaluate_shapes, mode_shapes
 from .nonlinear import backlash_energy, has_nonlinear_forces, nonlinear_forces
 from .parts import ElasticJoint, FlexibleLink, Hub, Payload, RigidJoint, RigidLink
@@ -274,9 +274,9 @@ class AssembledChain(eqx.Module):
 def _rigid_moments(link):
     """(mass, first moment, second moment) about the joint of the undeformed link."""
     if isinstance(link, RigidLink):
-        m = checked(link.mass, "RigidLink", "mass", positive=True)
+        m = link.mass
         return m, m * link.com, link.inertia + m * link.com**2
-    m = checked(link.rho, "FlexibleLink", "rho", positive=True) * link.length
+    m = link.rho * link.length
     return m, m * link.length / 2.0, m * link.length**2 / 3.0
 
 
@@ -299,7 +299,7 @@ def tip_load(chain: Chain, i: int):
 
 def _assemble_link(chain: Chain, i: int) -> LinkMatrices:
     link = chain.links[i]
-    length = checked(link.length, type(link).__name__, "length", positive=True)
+    length = link.length
     mass, c1, c2 = _rigid_moments(link)
     M, S, J = tip_load(chain, i)
     empty = jnp.zeros((0,))
@@ -326,7 +326,7 @@ def _assemble_link(chain: Chain, i: int) -> LinkMatrices:
             jnp.zeros((0, 0)),
         )
     rho = link.rho
-    EI = checked(link.EI, "FlexibleLink", "EI", positive=True)
+    EI = link.EI
     n = link.n_modes
     lam, coef = mode_shapes(n, M / (rho * length), S / (rho * length**2), J / (rho * length**3))
     xi = jnp.asarray(GAUSS_X)
@@ -382,7 +382,23 @@ def assemble(chain: Chain | AssembledChain) -> AssembledChain:
     integrals. Pure and differentiable; call it inside `jit` with the chain as input."""
     if isinstance(chain, AssembledChain):
         return chain
+    chain = checked_chain(chain)
     return AssembledChain(chain, tuple(_assemble_link(chain, i) for i in range(chain.n_links)))
+
+
+def checked_chain(chain: Chain) -> Chain:
+    """The chain with every part's parameters checked (`flexdyn._checks.checked_part`,
+    named as in `flexdyn.with_parameters`: `link1.EI`, `hub2.inertia`, `payload.mass`):
+    finite, and > 0 or >= 0 where the part's constructor requires it. Values set after
+    construction (`eqx.tree_at`, `with_parameters`) and traced values (under jit, vmap or
+    grad: an `eqx.error_if` at run time) are held to the constructor's rules."""
+    return Chain(
+        links=[checked_part(p, f"link{i + 1}") for i, p in enumerate(chain.links)],
+        joints=[checked_part(p, f"joint{i + 1}") for i, p in enumerate(chain.joints)],
+        hubs=[checked_part(p, f"hub{i + 1}") for i, p in enumerate(chain.hubs)],
+        payload=checked_part(chain.payload, "payload"),
+        gravity=chain.gravity,
+    )
 
 
 # ---------------------------------------------------------------------------

@@ -48,7 +48,8 @@ from .chain import (
     mass_and_velocity_terms,
 )
 from .inputs import AbstractInput
-from .simulate import Trajectory, _check_torque_shape, as_initial_state, as_input
+from .linear import check_rk4_step
+from .simulate import Trajectory, _check_torque_shape, as_initial_state, as_input, check_times
 from .smallsolve import spd_solve, spd_solve_rsqrt
 
 _SOLVES = {
@@ -399,19 +400,13 @@ def rk4_trajectory(
             "rk4_trajectory: ts must be concrete numbers (the steps are laid out when the function is "
             "traced); close over them instead of passing them as traced arguments, or use fd.simulate"
         ) from e
-    if ts_np.ndim != 1 or ts_np.shape[0] < 2:
-        raise ValueError(f"rk4_trajectory: ts expected a 1-D array of at least 2 times, got shape {ts_np.shape}")
-    if not np.all(np.isfinite(ts_np)) or not np.all(np.diff(ts_np) > 0):
-        bad = int(np.argmax(~np.isfinite(ts_np[1:]) | ~(np.diff(ts_np) > 0))) + 1
-        raise ValueError(
-            f"rk4_trajectory: ts expected finite, strictly increasing times; ts[{bad}] = {float(ts_np[bad])!r} "
-            f"after ts[{bad - 1}] = {float(ts_np[bad - 1])!r}"
-        )
+    check_times(ts_np, "rk4_trajectory")
     asm = assemble(chain)
     torque = as_input(torque, asm.chain.n_links)
     n = asm.layout.n_dof
     y0 = as_initial_state(asm, y0, "rk4_trajectory")
     _check_torque_shape(torque, ts_np[0], y0, asm.chain.n_links)
+    y0 = check_rk4_step(asm, y0, torque(ts_np[0], y0), dt, "rk4_trajectory")
     jumps = _breaks(torque, float(ts_np[0]), float(ts_np[-1]), "rk4_trajectory")[1:-1]
     table, index = _output_table(ts_np, jumps, dt)
     table = tuple(jnp.asarray(x) for x in table)

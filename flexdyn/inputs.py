@@ -140,13 +140,39 @@ class SampledTorque(AbstractInput):
         has no stretch: every entry is `inf` and no step is clipped."""
         if self.hold != "linear":
             return None
-        v, t = self.values, self.times
-        same = jnp.all(v[1:] == v[:-1], axis=1)  # the torque is constant on [t_k, t_k+1]
-        no = jnp.zeros(1, bool)
-        first = jnp.concatenate([same & ~jnp.concatenate([no, same[:-1]]), no])  # a run's first sample
-        last = jnp.concatenate([no, same & ~jnp.concatenate([same[1:], no])])  # its last sample
-        mark = (first | last).at[0].set(False).at[-1].set(False)
-        return jnp.where(mark, t, jnp.inf)
+        return constant_stretch_ends(self.times, self.values)
+
+
+def constant_stretch_ends(times, values):
+    """`times` (shape (T,)) where a run of equal `values` (shape (T, n)) starts or ends,
+    except the first and last time; `inf` elsewhere (a fixed-length array, so it may be
+    traced). See `SampledTorque.step_times`."""
+    v, t = values, times
+    same = jnp.all(v[1:] == v[:-1], axis=1)  # the torque is constant on [t_k, t_k+1]
+    no = jnp.zeros(1, bool)
+    first = jnp.concatenate([same & ~jnp.concatenate([no, same[:-1]]), no])  # a run's first sample
+    last = jnp.concatenate([no, same & ~jnp.concatenate([same[1:], no])])  # its last sample
+    mark = (first | last).at[0].set(False).at[-1].set(False)
+    return jnp.where(mark, t, jnp.inf)
+
+
+#: Probe points of `probed_step_times` over the span of a solve.
+PROBE_POINTS = 1024
+
+
+def probed_step_times(torque, t0, t1, y0, n: int = PROBE_POINTS):
+    """Step times for an input that declares none (`jump_times()` and `step_times()`
+    both None: a plain callable, a feedback law): the ends of its constant stretches
+    (`constant_stretch_ends`) on `n` equally spaced probe times of `[t0, t1]`, the state
+    held at `y0`. Without them a chain at rest under a torque that is zero until later
+    gives the adaptive solver an error estimate of exactly zero, its steps grow tenfold
+    each, and it steps over the input: found in review, a 0.1 s pulse at 1 s written as
+    `lambda t: jnp.where((t >= 1) & (t < 1.1), 0.05, 0)` left the link at rest (5 steps
+    to 3 s). A change shorter than the probe spacing `(t1 - t0) / (n - 1)` can still be
+    missed: declare it (`FunctionInput(fn, jumps=...)`) or bound the steps (`dtmax`)."""
+    tp = jnp.linspace(t0, t1, n)
+    values = jax.vmap(lambda t: jnp.atleast_1d(torque(t, y0)))(tp)
+    return constant_stretch_ends(tp, values.reshape(n, -1))
 
 
 class QuinticReference(eqx.Module):
@@ -209,10 +235,21 @@ class FunctionInput(AbstractInput):
 
     The callable must be traceable by JAX; arrays it closes over are constants, not
     parameters (use a Module subclass of `AbstractInput` for trainable inputs).
+    `jumps`: the times (s) where `fn` is discontinuous, if known: adaptive and fixed
+    steps land on them (as `BangBang`'s). Without them the adaptive solvers find where
+    `fn` changes by probing it (`probed_step_times`).
     """
 
     fn: Callable
     state_feedback: bool = eqx.field(static=True, default=False)
+    jumps: Float[Array, " J"] | None = None
+
+    def __post_init__(self):
+        if self.jumps is not None:
+            self.jumps = jnp.atleast_1d(as_float_array(self.jumps))
 
     def __call__(self, t, y):
         return jnp.atleast_1d(self.fn(t, y) if self.state_feedback else self.fn(t))
+
+    def jump_times(self):
+        return self.jumps

@@ -222,3 +222,58 @@ def stable_step(
         lo, hi = np.where(worse, lo, mid), np.where(worse, mid, hi)
     h = np.where(never, np.inf, lo / scale)
     return float(safety * np.min(h))
+
+
+#: `check_rk4_step` reports a fixed step above RK4's stability limit by more than this
+#: factor: `rk4_growth`'s limit is within 1 % of `stable_step`'s on the papers' rigs
+#: (measured: paper 004's arm, its damping not proportional, 0.990x; paper 002's, 1.00x).
+RK4_MARGIN = 1.02
+
+
+def check_rk4_step(chain: Chain | AssembledChain, y0, torque0, dt, caller: str):
+    """`y0`, with a run-time error (`eqx.error_if`) if the fixed step `dt` is above RK4's
+    stability limit for the chain's linearisation about `y0` by more than `RK4_MARGIN`
+    (`rk4_growth`). Above it, a mode that the motion barely excites grows from round-off
+    and the run ends finite but wrong (found in review: 16 % above the limit, a hub angle
+    of 6.16 rad where the adaptive solve gives 0.107) or with an error that blames
+    `max_steps`."""
+    unstable = rk4_growth(chain, y0, torque0, dt / RK4_MARGIN) > 1.0 + 1e-9
+    return eqx.error_if(
+        y0,
+        unstable,
+        f"{caller}: the fixed step dt is above RK4's stability limit for the chain's stiffest mode at y0 "
+        "(fd.stable_step(chain, y0, solver='rk4') gives the limit): a mode would grow from round-off and "
+        "the result be wrong; reduce dt or use the adaptive solver (dt=None)",
+    )
+
+
+def rk4_growth(chain: Chain | AssembledChain, y0, torque0, dt):
+    """The largest factor by which one RK4 step of `dt` s multiplies a mode of the chain's
+    linearisation about `y0` beyond the mode's own physical decay or growth: above 1, the
+    fixed step is unstable. Jittable (runs on GPU: `eigh`, no general eigensolver).
+
+    Each undamped mode `v_j` (mass-normalised, `K v = omega^2 M v` with `K = -dF/dQ`, `F`
+    the generalised forces (`generalised_forces`: springs, bending, gravity, damping),
+    and `M` at `y0`, symmetrised) is taken with its modal damping `c_j = v_j^T D v_j`
+    (`D = -dF/dQdot`; the velocity terms of the kinetic energy, which vanish at rest, are
+    left out): the roots `lam` of `lam^2 + c_j lam + omega_j^2 = 0`, and
+    the factor `|R(dt lam)| / max(1, |exp(dt lam)|)` with RK4's stability function `R(z) =
+    1 + z + z^2/2 + z^3/6 + z^4/24`. Exact for proportional damping (the modes of the
+    damped system are then these); otherwise it neglects the modes' coupling through `D`.
+    `stable_step(solver="rk4")` is the host-side step limit from the eigenvalues of the
+    full `A`."""
+    asm = assemble(chain)
+    n = asm.layout.n_dof
+    y0 = jnp.asarray(y0, dtype=float)
+    Q0, Qd0 = y0[:n], y0[n:]
+    K, D = jax.jacfwd(lambda Q, Qd: -generalised_forces(asm, Q, Qd, torque0), argnums=(0, 1))(Q0, Qd0)
+    M = mass_matrix(asm, Q0)
+    L = jnp.linalg.cholesky(M)
+    Linv = jax.scipy.linalg.solve_triangular(L, jnp.eye(n), lower=True)
+    w2, V = jnp.linalg.eigh(Linv @ (0.5 * (K + K.T)) @ Linv.T)
+    c = jnp.einsum("ij,ik,kj->j", V, Linv @ (0.5 * (D + D.T)) @ Linv.T, V)
+    c, w2 = c.astype(complex), w2.astype(complex)
+    root = jnp.sqrt(c**2 - 4.0 * w2)
+    z = jnp.asarray(dt).astype(complex) * jnp.concatenate([(-c + root) / 2, (-c - root) / 2])
+    R = 1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24
+    return jnp.max(jnp.abs(R) / jnp.maximum(1.0, jnp.abs(jnp.exp(z))))

@@ -8,12 +8,14 @@ is built; the message names the part and the parameter.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import as_float_array, check_parameter
+from ._checks import NONNEGATIVE, POSITIVE, SIGNED, as_float_array, check_part
 
 Scalar = Float[Array, ""]
 
@@ -58,13 +60,16 @@ class RigidLink(eqx.Module):
         self.inertia = self.mass * self.length**2 / 12.0 if inertia is None else as_float_array(inertia)
         self.drag = None if drag is None else as_float_array(drag)
 
+    PARAMETERS: ClassVar = (
+        ("length", POSITIVE),
+        ("mass", POSITIVE),
+        ("com", SIGNED),
+        ("inertia", NONNEGATIVE),
+        ("drag", NONNEGATIVE),
+    )
+
     def __check_init__(self):
-        check_parameter("RigidLink", "length", self.length, positive=True, shape=())
-        check_parameter("RigidLink", "mass", self.mass, positive=True, shape=())
-        check_parameter("RigidLink", "inertia", self.inertia, shape=())
-        check_parameter("RigidLink", "com", self.com, signed=True, shape=())
-        if self.drag is not None:
-            check_parameter("RigidLink", "drag", self.drag, shape=())
+        check_part(self)
 
     @property
     def n_modes(self) -> int:
@@ -135,14 +140,17 @@ class FlexibleLink(eqx.Module):
         self.sqrt_stiffness_damping = as_float_array(sqrt_stiffness_damping)
         self.drag = None if drag is None else as_float_array(drag)
 
+    PARAMETERS: ClassVar = (
+        ("length", POSITIVE),
+        ("rho", POSITIVE),
+        ("EI", POSITIVE),
+        ("damping_ratio", NONNEGATIVE),
+        ("sqrt_stiffness_damping", NONNEGATIVE),
+        ("drag", NONNEGATIVE),
+    )
+
     def __check_init__(self):
-        if self.drag is not None:
-            check_parameter("FlexibleLink", "drag", self.drag, shape=())
-        check_parameter("FlexibleLink", "length", self.length, positive=True, shape=())
-        check_parameter("FlexibleLink", "rho", self.rho, positive=True, shape=())
-        check_parameter("FlexibleLink", "EI", self.EI, positive=True, shape=())
-        check_parameter("FlexibleLink", "damping_ratio", self.damping_ratio, shape=(self.n_modes,))
-        check_parameter("FlexibleLink", "sqrt_stiffness_damping", self.sqrt_stiffness_damping, shape=())
+        check_part(self)
 
     @property
     def mass(self):
@@ -189,12 +197,15 @@ class RigidJoint(eqx.Module):
         self.coulomb = None if coulomb is None else as_float_array(coulomb)
         self.coulomb_velocity = _smoothing("RigidJoint", "coulomb_velocity", coulomb_velocity)
 
+    PARAMETERS: ClassVar = (
+        ("damping", NONNEGATIVE),
+        ("rotor_inertia", NONNEGATIVE),
+        ("gear_ratio", POSITIVE),
+        ("coulomb", NONNEGATIVE),
+    )
+
     def __check_init__(self):
-        if self.coulomb is not None:
-            check_parameter("RigidJoint", "coulomb", self.coulomb, shape=())
-        check_parameter("RigidJoint", "damping", self.damping, shape=())
-        check_parameter("RigidJoint", "rotor_inertia", self.rotor_inertia, shape=())
-        check_parameter("RigidJoint", "gear_ratio", self.gear_ratio, positive=True, shape=())
+        check_part(self)
 
     @property
     def elastic(self) -> bool:
@@ -254,15 +265,18 @@ class ElasticJoint(eqx.Module):
         self.backlash = None if backlash is None else as_float_array(backlash)
         self.coulomb_velocity = _smoothing("ElasticJoint", "coulomb_velocity", coulomb_velocity)
 
+    PARAMETERS: ClassVar = (
+        ("stiffness", POSITIVE),
+        ("rotor_inertia", POSITIVE),
+        ("gear_ratio", POSITIVE),
+        ("damping", NONNEGATIVE),
+        ("spring_damping", NONNEGATIVE),
+        ("coulomb", NONNEGATIVE),
+        ("backlash", NONNEGATIVE),
+    )
+
     def __check_init__(self):
-        for name in ("coulomb", "backlash"):
-            if getattr(self, name) is not None:
-                check_parameter("ElasticJoint", name, getattr(self, name), shape=())
-        check_parameter("ElasticJoint", "stiffness", self.stiffness, positive=True, shape=())
-        check_parameter("ElasticJoint", "rotor_inertia", self.rotor_inertia, positive=True, shape=())
-        check_parameter("ElasticJoint", "gear_ratio", self.gear_ratio, positive=True, shape=())
-        check_parameter("ElasticJoint", "damping", self.damping, shape=())
-        check_parameter("ElasticJoint", "spring_damping", self.spring_damping, shape=())
+        check_part(self)
 
     @property
     def elastic(self) -> bool:
@@ -284,9 +298,10 @@ class Hub(eqx.Module):
         self.mass = as_float_array(mass)
         self.inertia = as_float_array(inertia)
 
+    PARAMETERS: ClassVar = (("mass", NONNEGATIVE), ("inertia", NONNEGATIVE))
+
     def __check_init__(self):
-        check_parameter("Hub", "mass", self.mass, shape=())
-        check_parameter("Hub", "inertia", self.inertia, shape=())
+        check_part(self)
 
 
 class Payload(eqx.Module):
@@ -302,6 +317,7 @@ class Payload(eqx.Module):
         self.mass = as_float_array(mass)
         self.inertia = as_float_array(inertia)
 
+    PARAMETERS: ClassVar = (("mass", NONNEGATIVE), ("inertia", NONNEGATIVE))
+
     def __check_init__(self):
-        check_parameter("Payload", "mass", self.mass, shape=())
-        check_parameter("Payload", "inertia", self.inertia, shape=())
+        check_part(self)

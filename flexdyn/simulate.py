@@ -31,7 +31,8 @@ from .chain import (
     tip_deflections,
     total_energy,
 )
-from .inputs import AbstractInput, FunctionInput, ZeroTorque
+from .inputs import AbstractInput, FunctionInput, ZeroTorque, probed_step_times
+from .linear import check_rk4_step
 from .solvers import RK4
 
 
@@ -69,27 +70,52 @@ def _check_torque_shape(torque: AbstractInput, t0, y0, n_joints: int) -> None:
         )
 
 
+def check_times(ts, caller: str):
+    """`ts` as a float array, checked to be 1-D, of at least 2 finite, strictly increasing
+    times: concrete values at once (a `ValueError` naming the first bad entry), traced ones
+    at run time (`eqx.error_if`). diffrax would integrate a decreasing grid backwards from
+    `y0` at `ts[0]` without a word (found in review)."""
+    if not isinstance(ts, jax.core.Tracer):
+        ts = np.asarray(ts, dtype=float)  # concrete: checked on the host, even inside jit
+    if np.ndim(ts) != 1 or np.shape(ts)[0] < 2:
+        raise ValueError(f"{caller}: ts expected a 1-D array of at least 2 times, got shape {np.shape(ts)}")
+    expected = f"{caller}: ts expected finite, strictly increasing times"
+    if isinstance(ts, jax.core.Tracer):
+        ts = jnp.asarray(ts, dtype=float)
+        bad = ~jnp.all(jnp.isfinite(ts)) | ~jnp.all(jnp.diff(ts) > 0)
+        return eqx.error_if(ts, bad, expected)
+    t = ts
+    if not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
+        k = int(np.argmax(~np.isfinite(t[1:]) | ~(np.diff(t) > 0))) + 1
+        k = 0 if not np.isfinite(t[0]) else k
+        after = f" after ts[{k - 1}] = {float(t[k - 1])!r}" if k else ""
+        raise ValueError(f"{expected}; ts[{k}] = {float(t[k])!r}{after}")
+    return jnp.asarray(t)
+
+
 def prepare(chain, y0, ts, torque, caller: str):
     """The assembled chain, `y0`, `ts` and the input of a solve, checked (a `ValueError`
     naming `caller` and what was expected otherwise)."""
     asm = assemble(chain)
     y0 = as_initial_state(asm, y0, caller)
-    ts = jnp.asarray(ts, dtype=float)
-    if ts.ndim != 1 or ts.shape[0] < 2:
-        raise ValueError(f"{caller}: ts expected a 1-D array of at least 2 times, got shape {ts.shape}")
+    ts = check_times(ts, caller)
     torque = as_input(torque, asm.chain.n_links)
     _check_torque_shape(torque, ts[0], y0, asm.chain.n_links)
     return asm, y0, ts, torque
 
 
-def adaptive_controller(torque: AbstractInput, rtol: float, atol: float, dtmax: float | None = None):
+def adaptive_controller(torque: AbstractInput, rtol: float, atol: float, dtmax: float | None = None, probe=None):
     """diffrax's PID step-size controller (steps of at most `dtmax` s, if given), with the
     steps clipped onto the input's jumps (`torque.jump_times()`) so that no stage reads the
     far side of a discontinuity, and onto its step times (`torque.step_times()`: e.g. where
     a sampled torque's constant stretch ends, so that a chain at rest does not step over
-    the input that follows)."""
+    the input that follows). An input that declares neither (a plain callable, a feedback
+    law) is probed over the solve's span, `probe = (t0, t1, y0)`
+    (`flexdyn.inputs.probed_step_times`)."""
     controller = diffrax.PIDController(rtol=rtol, atol=atol, dtmax=dtmax)
     jumps, steps = torque.jump_times(), torque.step_times()
+    if jumps is None and steps is None and probe is not None and not isinstance(torque, ZeroTorque):
+        steps = probed_step_times(torque, *probe)
     if jumps is not None or steps is not None:
         controller = diffrax.ClipStepSizeController(controller, step_ts=steps, jump_ts=jumps)
     return controller
@@ -183,11 +209,21 @@ def simulate(
     - `y0`: initial state `[Q, Q_dot]` (see `initial_state`).
     - `ts`: output times, s, increasing; integration runs from `ts[0]` to `ts[-1]`.
     - `torque`: joint-torque input, N m (default: none): an `AbstractInput`
-      (`BangBang`, `SampledTorque`, `PDTracking`, ...) or any callable `fn(t)`.
+      (`BangBang`, `SampledTorque`, `PDTracking`, ...) or any callable `fn(t)`. The
+      adaptive steps land where an input declares its changes (`jump_times()`,
+      `step_times()`); one that declares none (a plain callable) is probed at 1024 times
+      of `[ts[0], ts[-1]]` and the steps land on the ends of its constant stretches, so
+      that a chain at rest does not step over a torque that starts later. A change
+      shorter than the probe spacing can still be missed: declare it
+      (`FunctionInput(fn, jumps=[...])`) or bound the steps (`dtmax`).
     - `solver`: a diffrax solver (default `Tsit5()` adaptive, `RK4()` with `dt`).
     - `dt`: fixed step, s (e.g. `1e-3` as papers 002/004); adaptive if None. Steps are
       aligned to the input's discontinuities (`torque.jump_times()`), so fixed-step RK4
-      stays fourth-order accurate across a bang-bang switch.
+      stays fourth-order accurate across a bang-bang switch. A `dt` above RK4's stability
+      limit for the linearisation at `y0` (`fd.stable_step(chain, y0, solver="rk4")`) by
+      more than 2 % is refused before the run (`flexdyn.linear.check_rk4_step`; it costs
+      ~1.5 s more compilation on paper 004's arm); the stiffness moves with the
+      configuration, so stay clear of the limit.
     - `rtol`, `atol`: adaptive tolerances.
     - `dtmax`: the largest adaptive step, s (default: none). **Derivatives from rest need
       it.** While nothing moves (at rest, no input yet) the error estimate is 0 and the
@@ -222,13 +258,17 @@ def simulate(
     field = ChainVectorField(asm, torque)
     if dtmax is not None and not (float(dtmax) > 0 and math.isfinite(float(dtmax))):
         raise ValueError(f"simulate: dtmax expected a step > 0 s, got {dtmax!r}")
+    if dt is not None and not isinstance(dt, jax.core.Tracer) and not (float(dt) > 0 and math.isfinite(float(dt))):
+        raise ValueError(f"simulate: dt expected a fixed step > 0 s (or None: adaptive), got {dt!r}")
     if dt is None:
         solver = diffrax.Tsit5() if solver is None else solver
-        controller = adaptive_controller(torque, rtol, atol, dtmax)
+        controller = adaptive_controller(torque, rtol, atol, dtmax, probe=(ts[0], ts[-1], y0))
         dt0 = None
     else:
         if dtmax is not None:
             raise ValueError("simulate: dtmax bounds the adaptive steps; with a fixed dt, leave it None")
+        if solver is None or isinstance(solver, RK4):
+            y0 = check_rk4_step(asm, y0, torque(ts[0], y0), dt, "simulate")
         solver = RK4() if solver is None else solver
         dt0 = dt
         jumps = torque.jump_times()

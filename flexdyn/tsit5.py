@@ -85,7 +85,7 @@ def _solve(dynamic, static, y0, ts, rtol, atol, max_steps, dtmax):
     """diffrax's Tsit5, as `simulate`: the states at `ts`, and at the end of every accepted
     step (`t_steps`, `y_steps`, padded with inf to `max_steps`)."""
     asm, torque = eqx.combine(dynamic, static)
-    controller = adaptive_controller(torque, rtol, atol, dtmax)
+    controller = adaptive_controller(torque, rtol, atol, dtmax, probe=(ts[0], ts[-1], y0))
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(ChainVectorField(asm, torque)),
         diffrax.Tsit5(),

@@ -130,6 +130,20 @@ def test_bad_simulation_arguments_are_rejected():
         fd.simulate(chain, jnp.zeros(2), ts, dt=1e-3, dtmax=1e-3)
     with pytest.raises(ValueError, match=r"tsit5_trajectory: dtmax expected a step > 0 s, got nan"):
         fd.tsit5_trajectory(chain, jnp.zeros(2), ts, dtmax=float("nan"))
+    with pytest.raises(ValueError, match=r"simulate: dt expected a fixed step > 0 s.*got 0.0"):
+        fd.simulate(chain, jnp.zeros(2), ts, dt=0.0)
+
+
+@pytest.mark.parametrize("solve", ["simulate", "tsit5_trajectory", "rk4_trajectory"])
+@pytest.mark.parametrize("ts", [[0.5, 0.4, 0.3], [0.0, 0.2, 0.1, 0.3], [0.0, math.nan, 0.3]])
+def test_times_that_are_not_finite_and_increasing_are_rejected(solve, ts):
+    """diffrax integrates a decreasing grid backwards from `y0` at `ts[0]` without a word
+    (found in review): every solve checks `ts` (at run time when traced)."""
+    chain = fd.rigs.rigid_pendulum()
+    y0 = fd.initial_state(chain, [0.3])
+    kwargs = {"dt": 1e-3} if solve == "rk4_trajectory" else {}
+    with pytest.raises(RUNTIME_ERRORS, match=rf"{solve}: ts expected finite, strictly increasing times"):
+        getattr(fd, solve)(chain, y0, jnp.asarray(ts), **kwargs).Q.block_until_ready()
 
 
 def test_torque_of_the_wrong_size_is_rejected():
@@ -144,22 +158,45 @@ def test_torque_of_the_wrong_size_is_rejected():
 # ---------------------------------------------------------------------------
 
 
+STABILITY = r"dt is above RK4's stability limit.*reduce dt"
+
+
 def test_unstable_fixed_step_raises_instead_of_returning_nan():
     """RK4 at 50 ms on the 3-mode flexible pendulum (highest mode ~2700 rad/s, RK4's
-    stability limit ~2.8 / 2700 s = 1 ms) blows up: the error names dt."""
+    stability limit ~2.8 / 2700 s = 1 ms) would blow up: the error names dt (raised before
+    the run, from the linearisation at y0: `fd.linear.check_rk4_step`)."""
     chain = fd.rigs.flexible_pendulum(n_modes=3)
     y0 = fd.initial_state(chain, [0.0], modal=[1e-4, 0.0, 0.0])
-    with pytest.raises(RUNTIME_ERRORS, match=r"non-finite.*dt|dt.*non-finite"):
+    with pytest.raises(RUNTIME_ERRORS, match=STABILITY):
         fd.simulate(chain, y0, jnp.linspace(0.0, 2.0, 5), dt=0.05).Q.block_until_ready()
-
-
-def test_unstable_fixed_step_with_input_jumps_names_the_stability_limit():
-    """With input jumps the fixed step runs under a step controller that rejects a blown-up
-    state until the step budget is spent: the error must still point at dt."""
-    chain = fd.rigs.flexible_pendulum(n_modes=3)
-    y0 = fd.initial_state(chain, [0.0], modal=[1e-4, 0.0, 0.0])
-    with pytest.raises(RUNTIME_ERRORS, match=r"max_steps.*stability limit.*reduce dt"):
+    with pytest.raises(RUNTIME_ERRORS, match=STABILITY):  # input jumps: the step controller's path
         fd.simulate(chain, y0, jnp.linspace(0.0, 2.0, 5), fd.BangBang(0.01, 0.5), dt=0.05, max_steps=1000).Q
+
+
+def _rk4_rigs():
+    own = fd.Chain(  # an aluminium strip on a hub with a payload, undamped (review's rig)
+        [fd.FlexibleLink(length=0.5, rho=0.081, EI=0.39375, n_modes=2)],
+        hubs=[fd.Hub(inertia=2e-3)],
+        payload=fd.Payload(mass=0.05),
+    )
+    # paper 004's arm: elastic joints and structural damping (not proportional damping)
+    return {"strip": own, "paper004": fd.rigs.flexible_link_joint_arm()}
+
+
+@pytest.mark.parametrize("rig, solve", [("strip", "simulate"), ("paper004", "simulate"), ("strip", "rk4_trajectory")])
+def test_a_fixed_step_just_above_the_rk4_stability_limit_is_refused(rig, solve):
+    """Oracle: `fd.stable_step(solver="rk4")`, the limit from the eigenvalues of the full
+    linearisation `A` (NumPy). 3 % above it the run is refused (found in review: 16 %
+    above, a finite but wrong hub angle, 6.16 rad against 0.107); 3 % below it runs."""
+    chain = _rk4_rigs()[rig]
+    y0 = fd.initial_state(chain, [0.3] * chain.n_links)
+    limit = fd.stable_step(chain, y0, solver="rk4", safety=1.0)
+    ts = jnp.linspace(0.0, 50 * limit, 3)
+    torque = fd.BangBang([0.01] * chain.n_links, 10 * limit)
+    with pytest.raises(RUNTIME_ERRORS, match=rf"{solve}: the fixed step {STABILITY}"):
+        getattr(fd, solve)(chain, y0, ts, torque, dt=1.03 * limit).Q.block_until_ready()
+    traj = getattr(fd, solve)(chain, y0, ts, torque, dt=0.97 * limit)
+    assert jnp.all(jnp.isfinite(traj.Q))
 
 
 def test_too_few_steps_raises_naming_max_steps():
@@ -182,9 +219,9 @@ def test_negative_traced_stiffness_raises_at_run_time():
         return fd.simulate(chain, y0, ts).Q[-1]
 
     assert jnp.all(jnp.isfinite(final_state(3.3)))  # a valid EI runs
-    with pytest.raises(RUNTIME_ERRORS, match=r"FlexibleLink\.EI"):
+    with pytest.raises(RUNTIME_ERRORS, match=r"link1\.EI must be finite and > 0"):
         final_state(-3.3).block_until_ready()
-    with pytest.raises(RUNTIME_ERRORS, match=r"FlexibleLink\.EI"):
+    with pytest.raises(RUNTIME_ERRORS, match=r"link1\.EI must be finite and > 0"):
         final_state(jnp.nan).block_until_ready()
 
 
@@ -198,5 +235,63 @@ def test_negative_traced_payload_mass_raises_under_vmap():
         c = eqx.tree_at(lambda c: c.links[0].rho, chain, mass)
         return fd.simulate(c, y0, ts).Q[-1]
 
-    with pytest.raises(RUNTIME_ERRORS, match=r"FlexibleLink\.rho"):
+    with pytest.raises(RUNTIME_ERRORS, match=r"link1\.rho must be finite and > 0"):
         jax.vmap(final_state)(jnp.array([0.39, -0.39])).block_until_ready()
+
+
+def _every_parameter():
+    """(chain, part path, parameter, kind) for every entry of every part's `PARAMETERS`
+    table, on a chain holding each kind of part (drag, friction and backlash present)."""
+    chain = fd.Chain(
+        [
+            fd.RigidLink(length=0.3, mass=0.2, drag=0.01),
+            fd.FlexibleLink(length=0.4, rho=0.2, EI=2.0, n_modes=1, drag=0.01),
+        ],
+        joints=[
+            fd.RigidJoint(coulomb=0.01),
+            fd.ElasticJoint(stiffness=50.0, rotor_inertia=1e-3, coulomb=0.01, backlash=0.01),
+        ],
+        hubs=[fd.Hub(mass=0.1, inertia=1e-3), fd.Hub(mass=0.1, inertia=1e-3)],
+        payload=fd.Payload(mass=0.05, inertia=1e-5),
+    )
+    cases = []
+    for group, parts in (("links", chain.links), ("joints", chain.joints), ("hubs", chain.hubs)):
+        for i, part in enumerate(parts):
+            for name, kind in part.PARAMETERS:
+                assert getattr(part, name) is not None, name  # every optional term present
+                cases.append((chain, (group, i), f"{group[:-1]}{i + 1}.{name}", name, kind))
+    for name, kind in chain.payload.PARAMETERS:
+        cases.append((chain, ("payload", None), f"payload.{name}", name, kind))
+    return cases
+
+
+@pytest.mark.parametrize("case", _every_parameter(), ids=lambda c: c[2])
+def test_every_parameter_set_after_construction_is_checked(case):
+    """`eqx.tree_at` bypasses the constructor's checks, and under vmap the values are
+    traced: assembly checks every parameter of every part as its constructor does
+    (found in review: a negative damping ratio under vmap made the energy grow 1700x,
+    a negative hub inertia read as 'raise max_steps'). A concrete bad value raises the
+    constructor's ValueError; a traced one an error naming `partN.name`; a Python float
+    is accepted as an array (it used to fail with "No arrays to thread error on to")."""
+    chain, (group, i), label, name, kind = case
+
+    def part_of(c):
+        return c.payload if group == "payload" else getattr(c, group)[i]
+
+    good = getattr(part_of(chain), name)
+    bad = -1.0 if kind != "signed" else math.nan
+    replaced = eqx.tree_at(lambda c: getattr(part_of(c), name), chain, jnp.full(jnp.shape(good), bad))
+    with pytest.raises(ValueError, match=rf"{label}: expected"):
+        fd.assemble(replaced)
+
+    def assembled_mass(value):
+        c = eqx.tree_at(lambda c: getattr(part_of(c), name), chain, jnp.full(jnp.shape(good), value))
+        return fd.mass_matrix(fd.assemble(c), jnp.zeros(chain.n_dof))[0, 0]
+
+    values = jnp.array([float(jnp.ravel(good)[0]), bad])
+    with pytest.raises(RUNTIME_ERRORS, match=rf"{label} must be finite"):
+        jax.vmap(assembled_mass)(values).block_until_ready()
+    if jnp.ndim(good) == 0:  # a Python float set by tree_at: the same chain as with an array
+        as_float = eqx.tree_at(lambda c: getattr(part_of(c), name), chain, float(good))
+        q = jnp.zeros(chain.n_dof)
+        assert jnp.array_equal(fd.mass_matrix(fd.assemble(as_float), q), fd.mass_matrix(fd.assemble(chain), q))
