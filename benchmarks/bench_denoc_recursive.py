@@ -62,7 +62,7 @@ def make_chain(family: str, k: int, n_modes: int) -> fd.Chain:
     return fd.Chain(
         links,
         joints=[fd.RigidJoint(damping=0.01) for _ in range(k)],
-        hubs=[fd.Hub(0.1, 1e-3) for _ in range(k)],
+        hubs=[fd.Hub(mass=0.1, inertia=1e-3) for _ in range(k)],
         payload=fd.Payload(0.1),
         gravity=(0.0, -9.81),
     )

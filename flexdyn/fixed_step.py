@@ -47,7 +47,7 @@ from .chain import (
     generalised_forces,
     mass_and_velocity_terms,
 )
-from .inputs import AbstractInput
+from .inputs import AbstractInput, ZeroTorque
 from .linear import check_rk4_step
 from .simulate import Trajectory, _check_torque_shape, as_initial_state, as_input, check_times
 from .smallsolve import spd_solve, spd_solve_rsqrt
@@ -422,4 +422,5 @@ def rk4_trajectory(
         "rk4_trajectory: the state became non-finite (NaN/inf): dt is probably above the stability limit "
         "of the stiffest mode or joint (reduce dt), or a parameter is invalid (a NaN or negative mass/stiffness?)",
     )
-    return Trajectory(jnp.asarray(ts_np), ys[:, :n], ys[:, n:], jnp.asarray(table[0].shape[0]), asm.layout.names)
+    steps, driven = jnp.asarray(table[0].shape[0]), not isinstance(torque, ZeroTorque)
+    return Trajectory(jnp.asarray(ts_np), ys[:, :n], ys[:, n:], steps, asm.layout.names, driven)

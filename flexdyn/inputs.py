@@ -210,12 +210,13 @@ class QuinticReference(eqx.Module):
 
 
 class PDTracking(AbstractInput):
-    """Joint PD tracking of a reference: `tau = Kp (r - s) + Kd (r_dot - s_dot) + tau_ff`,
-    with `s` the actuated coordinate of each joint (rotor angle of an elastic joint).
+    """Joint PD tracking of a reference: `tau = Kp (r - s) + Kd (r_dot - s_dot)`, with `s`
+    the actuated coordinate of each joint (rotor angle of an elastic joint).
 
     **Arguments:** `reference` (has `position(t)`, `velocity(t)`), `kp` (N m/rad),
     `kd` (N m s/rad), `actuated` (indices of the actuated coordinates in Q, static:
-    `chain.layout.actuated`), `n_dof` (static).
+    `chain.layout.actuated`), `n_dof` (static). `PDTracking.for_chain(chain, reference,
+    kp, kd)` fills the last two from the chain.
     """
 
     reference: QuinticReference
@@ -223,6 +224,11 @@ class PDTracking(AbstractInput):
     kd: Float[Array, " n"]
     actuated: tuple[int, ...] = eqx.field(static=True)
     n_dof: int = eqx.field(static=True)
+
+    @classmethod
+    def for_chain(cls, chain, reference, kp, kd) -> PDTracking:
+        """The tracking law on `chain`'s actuated coordinates."""
+        return cls(reference, as_float_array(kp), as_float_array(kd), tuple(chain.layout.actuated), chain.n_dof)
 
     def __call__(self, t, y):
         idx = jnp.asarray(self.actuated)

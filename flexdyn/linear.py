@@ -120,6 +120,11 @@ def modal_analysis(chain: Chain | AssembledChain, Q0=None) -> Modes:
     asm = assemble(chain)
     n = asm.layout.n_dof
     Q0 = jnp.zeros(n) if Q0 is None else jnp.asarray(Q0, dtype=float)
+    if Q0.shape != (n,):
+        raise ValueError(
+            f"modal_analysis: Q0 expected shape ({n},), the coordinates {list(asm.layout.names)} only "
+            f"(not the state [Q, Q_dot]: pass y0[:{n}]), got {Q0.shape}"
+        )
     M = mass_matrix(asm, Q0)
     K = stiffness_matrix(asm, Q0)
     K = 0.5 * (K + K.T)

@@ -16,6 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import NONNEGATIVE, POSITIVE, SIGNED, as_float_array, check_part
+from .modes import MAX_MODES
 
 Scalar = Float[Array, ""]
 
@@ -83,7 +84,8 @@ class FlexibleLink(eqx.Module):
     - `length`: l, m.
     - `rho`: mass per unit length, kg/m (papers' `rho`).
     - `EI`: flexural rigidity, N m^2.
-    - `n_modes`: number of assumed modes (structure, static).
+    - `n_modes`: number of assumed modes (structure, static), 1 to 18 (`flexdyn.modes.MAX_MODES`:
+      beyond it the clamped-mass frequency equation's roots lose double precision).
     - `damping_ratio`: modal damping ratio per mode (dimensionless), applied as
       `d_j = 2 zeta_j omega_j m_j` with the clamped-mass frequency and generalised
       mass of mode j (so a clamped link decays with exactly this ratio).
@@ -121,8 +123,8 @@ class FlexibleLink(eqx.Module):
         drag=None,
         geometric_stiffening: bool = False,
     ):
-        if isinstance(n_modes, bool) or not isinstance(n_modes, int) or n_modes < 1:
-            raise ValueError(f"FlexibleLink.n_modes: expected an integer >= 1, got {n_modes!r}")
+        if isinstance(n_modes, bool) or not isinstance(n_modes, int) or not 1 <= n_modes <= MAX_MODES:
+            raise ValueError(f"FlexibleLink.n_modes: expected an integer from 1 to {MAX_MODES}, got {n_modes!r}")
         if not isinstance(geometric_stiffening, (bool, np.bool_)):
             raise ValueError(f"FlexibleLink.geometric_stiffening: expected True or False, got {geometric_stiffening!r}")
         self.n_modes = n_modes
@@ -288,13 +290,14 @@ class Hub(eqx.Module):
     carried at the tip of the previous link, e.g. paper 002's centre motor `M_h2`)
     and a rotary inertia turning with the root of the link it drives.
 
-    **Arguments:** `mass` (kg), `inertia` (kg m^2).
+    **Arguments** (keywords only: `Hub(2e-3)` read as a mass of 2 g was a reviewer's
+    mistake): `mass` (kg), `inertia` (kg m^2).
     """
 
     mass: Scalar
     inertia: Scalar
 
-    def __init__(self, mass=0.0, inertia=0.0):
+    def __init__(self, *, mass=0.0, inertia=0.0):
         self.mass = as_float_array(mass)
         self.inertia = as_float_array(inertia)
 

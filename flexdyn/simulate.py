@@ -13,6 +13,7 @@ is an error that says what to change.
 from __future__ import annotations
 
 import math
+import warnings
 
 import diffrax
 import equinox as eqx
@@ -96,6 +97,13 @@ def check_times(ts, caller: str):
 def prepare(chain, y0, ts, torque, caller: str):
     """The assembled chain, `y0`, `ts` and the input of a solve, checked (a `ValueError`
     naming `caller` and what was expected otherwise)."""
+    if jnp.result_type(float) != jnp.float64:
+        warnings.warn(
+            f"{caller}: JAX runs in single precision (jax_enable_x64 is off, e.g. FLEXDYN_NO_X64=1): the "
+            "default tolerances (rtol 1e-8) are below float32's resolution, so the solver takes several "
+            "times the steps and the results carry ~1e-7 relative error; flexdyn expects float64",
+            stacklevel=3,
+        )
     asm = assemble(chain)
     y0 = as_initial_state(asm, y0, caller)
     ts = check_times(ts, caller)
@@ -135,13 +143,15 @@ class ChainVectorField(eqx.Module):
 
 class Trajectory(eqx.Module):
     """A simulated trajectory: `ts` (s), `Q`, `Q_dot` (rad, m; rad/s, m/s) per time sample,
-    the chain's coordinate names (static) and the number of accepted solver steps."""
+    the chain's coordinate names (static) and the number of accepted solver steps.
+    `driven` (static): whether an input drove it (`observe` then needs the same input)."""
 
     ts: Float[Array, " T"]
     Q: Float[Array, "T n"]
     Qd: Float[Array, "T n"]
     num_steps: Array
     names: tuple[str, ...] = eqx.field(static=True)
+    driven: bool = eqx.field(static=True, default=False)
 
     @property
     def y(self):
@@ -322,7 +332,8 @@ def simulate(
         "simulate: the state became non-finite (NaN/inf); with a fixed step this usually means "
         "dt is above the stability limit of the stiffest mode or joint: reduce dt or use the adaptive solver",
     )
-    return Trajectory(ts, ys[:, :n], ys[:, n:], sol.stats["num_accepted_steps"], asm.layout.names)
+    driven = not isinstance(torque, ZeroTorque)
+    return Trajectory(ts, ys[:, :n], ys[:, n:], sol.stats["num_accepted_steps"], asm.layout.names, driven)
 
 
 class Outputs(eqx.Module):
@@ -358,7 +369,15 @@ class Outputs(eqx.Module):
 
 @eqx.filter_jit
 def observe(chain: Chain | AssembledChain, traj: Trajectory, torque: AbstractInput | None = None) -> Outputs:
-    """Evaluate all `Outputs` along a trajectory (the same `torque` as the simulation)."""
+    """Evaluate all `Outputs` along a trajectory (the same `torque` as the simulation:
+    the accelerations and the `torque` output depend on it). A trajectory that an input
+    drove (`traj.driven`) observed without one is refused: its end-point accelerations
+    would be those of free motion, wrong without a word (found in review)."""
+    if torque is None and traj.driven:
+        raise ValueError(
+            "observe: this trajectory was simulated with an input; pass the same torque "
+            "(observe(chain, traj, torque)): without it the accelerations and torques would be those of free motion"
+        )
     asm = assemble(chain)
     lay = asm.layout
     torque = as_input(torque, asm.chain.n_links)

@@ -64,6 +64,7 @@ from jaxtyping import Array, Float
 
 from .chain import AssembledChain, Chain, _solve_forward_dynamics
 from .fixed_step import _stage_vjp
+from .inputs import ZeroTorque
 from .simulate import ChainVectorField, Trajectory, adaptive_controller, prepare
 
 _TABLEAU = diffrax.Tsit5.tableau
@@ -302,4 +303,4 @@ def tsit5_trajectory(
         ~jnp.all(jnp.isfinite(ys)),
         "tsit5_trajectory: the state became non-finite (NaN/inf); check the parameters and the initial state",
     )
-    return Trajectory(ts, ys[:, :n], ys[:, n:], num_steps, asm.layout.names)
+    return Trajectory(ts, ys[:, :n], ys[:, n:], num_steps, asm.layout.names, not isinstance(torque, ZeroTorque))

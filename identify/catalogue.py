@@ -424,7 +424,7 @@ def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: floa
         joints[i] = new
         hubs = list(chain.hubs)
         if not float(joint.rotor_inertia):
-            hubs[i] = fd.Hub(hub.mass, float(hub.inertia) - rotor)
+            hubs[i] = fd.Hub(mass=hub.mass, inertia=float(hub.inertia) - rotor)
         return fd.Chain(chain.links, joints, hubs, chain.payload, chain.gravity), {
             f"joint{index}.stiffness": k,
             f"joint{index}.rotor_inertia": rotor,

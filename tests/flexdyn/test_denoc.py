@@ -178,7 +178,7 @@ def _compare(out, Qd):
 def _flexible_body(rng, n_modes=3):
     chain = fd.Chain(
         [fd.FlexibleLink(0.6, 0.4, 2.0, n_modes=n_modes)],
-        hubs=[fd.Hub(0.3, 0.01)],
+        hubs=[fd.Hub(mass=0.3, inertia=0.01)],
         payload=fd.Payload(0.2, 0.003),
         gravity=(2.0, -9.0),
     )

@@ -146,6 +146,28 @@ def test_times_that_are_not_finite_and_increasing_are_rejected(solve, ts):
         getattr(fd, solve)(chain, y0, jnp.asarray(ts), **kwargs).Q.block_until_ready()
 
 
+def test_review_api_mistakes_get_clear_errors():
+    """Found in a new-user review: `modal_analysis` given the whole state failed in a
+    broadcast; `FlexibleLink(n_modes=19)` was accepted and failed later without naming
+    the link; `Hub(2e-3)` silently set the hub's mass."""
+    chain = fd.rigs.flexible_pendulum(n_modes=2)
+    with pytest.raises(ValueError, match=r"modal_analysis: Q0 expected shape \(3,\).*y0\[:3\]"):
+        fd.modal_analysis(chain, jnp.zeros(6))
+    with pytest.raises(ValueError, match=r"FlexibleLink.n_modes: expected an integer from 1 to 18, got 19"):
+        fd.FlexibleLink(length=0.5, rho=0.1, EI=1.0, n_modes=19)
+    with pytest.raises(TypeError):
+        fd.Hub(2e-3)
+
+
+def test_single_precision_is_warned_about():
+    """flexdyn expects float64 (its default tolerances are below float32's resolution):
+    a solve in single precision warns (found in review: it ran 5x the steps in silence)."""
+    with jax.enable_x64(False), pytest.warns(UserWarning, match="simulate: JAX runs in single precision"):
+        chain = fd.rigs.rigid_pendulum()  # float32 parameters
+        traj = fd.simulate(chain, jnp.zeros(2), jnp.linspace(0.0, 0.1, 3), rtol=1e-4, atol=1e-6)
+        assert traj.Q.dtype == jnp.float32
+
+
 def test_torque_of_the_wrong_size_is_rejected():
     """A 2-joint input on a 1-joint chain must say so, not fail inside a matmul."""
     chain = fd.rigs.rigid_pendulum()

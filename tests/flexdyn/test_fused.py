@@ -84,6 +84,9 @@ def test_state_feedback_input():
     # A PD controller tracking a quintic: the torque reads the state (through a gather).
     reference = fd.QuinticReference(jnp.array([0.0, 0.0]), jnp.array([0.5, 0.3]), 0.2)
     pd = fd.PDTracking(reference, jnp.array([5.0, 3.0]), jnp.array([0.5, 0.3]), ARM.layout.actuated, ARM.layout.n_dof)
+    same = fd.PDTracking.for_chain(ARM, reference, [5.0, 3.0], [0.5, 0.3])  # the convenience constructor
+    assert jax.tree.structure(same) == jax.tree.structure(pd)
+    assert jax.tree.all(jax.tree.map(jnp.array_equal, same, pd))
     chains = arms(PAYLOADS[:3])
     got = np.asarray(fused.rk4_sweep_final(chains, Y0, 0.0, T1, pd, dt=DT, backend="xla"))
     y0 = jnp.broadcast_to(Y0, (3, Y0.size))

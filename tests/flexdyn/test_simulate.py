@@ -408,3 +408,26 @@ def test_new_parameter_values_do_not_recompile():
         finally:
             logger.removeHandler(handler)
     assert not [r for r in records if "Compiling" in r and "simulate" in r], records
+
+
+@pytest.mark.parametrize("solve", ["simulate", "tsit5_trajectory", "rk4_trajectory"])
+def test_observing_a_driven_trajectory_without_its_input_is_refused(solve):
+    """`observe`'s accelerations and torques depend on the input: without it a driven
+    trajectory's end-point acceleration came out as free motion's, without a word (found
+    in review). Oracle for the accepted call: the rotor `J theta_ddot = tau` of a rigid
+    link in the horizontal plane (end-point tangential acceleration `l tau / J` at rest)."""
+    length, mass, hub = 0.5, 0.2, 0.02
+    chain = fd.Chain([fd.RigidLink(length, mass)], joints=[fd.RigidJoint(damping=0.0)], hubs=[fd.Hub(inertia=hub)])
+    y0 = fd.initial_state(chain, joint_angles=[0.0])
+    ts = jnp.linspace(0.0, 0.1, 3)
+    torque = fd.BangBang([0.05], 0.5)
+    kwargs = {"dt": 1e-3} if solve == "rk4_trajectory" else {}
+    traj = getattr(fd, solve)(chain, y0, ts, torque, **kwargs)
+    assert traj.driven
+    with pytest.raises(ValueError, match="observe: this trajectory was simulated with an input"):
+        fd.observe(chain, traj)
+    out = fd.observe(chain, traj, torque)
+    J = hub + mass * length**2 / 3
+    assert float(out.end_point_acceleration[0, 1]) == pytest.approx(length * 0.05 / J, rel=1e-12)
+    free = getattr(fd, solve)(chain, y0, ts, **kwargs)
+    assert not free.driven and jnp.all(fd.observe(chain, free).torque == 0.0)
