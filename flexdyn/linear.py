@@ -242,7 +242,10 @@ def check_rk4_step(chain: Chain | AssembledChain, y0, torque0, dt, caller: str):
     and the run ends finite but wrong (found in review: 16 % above the limit, a hub angle
     of 6.16 rad where the adaptive solve gives 0.107) or with an error that blames
     `max_steps`."""
-    unstable = rk4_growth(chain, y0, torque0, dt / RK4_MARGIN) > 1.0 + 1e-9
+    # no derivative flows through the check (design_move's forward-mode Jacobians would
+    # push every tangent through its eigendecomposition)
+    frozen = jax.tree.map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, (chain, y0, torque0))
+    unstable = rk4_growth(*frozen, dt / RK4_MARGIN) > 1.0 + 1e-9
     return eqx.error_if(
         y0,
         unstable,
