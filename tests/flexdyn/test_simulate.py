@@ -378,6 +378,15 @@ def test_new_parameter_values_do_not_recompile():
     second = fd.simulate(*variant(1.7, 0.05, 0.03, 1.0, 0.3))
     assert _TRACES["n"] == traced_once, "fd.simulate retraced for new parameter values"
     assert not np.allclose(np.asarray(first.Q), np.asarray(second.Q))
+    # Python floats put in with eqx.tree_at (not arrays) into a chain built by the
+    # constructors: no retrace either (found in review: each new float compiled anew)
+    fd.simulate(chain, y0, ts, _CountingTorque(jnp.asarray(0.3)))
+    traced = _TRACES["n"]
+    for EI in (1.3, 1.6):
+        c = eqx.tree_at(lambda c: (c.links[0].EI, c.payload.mass), chain, (EI, 0.02))
+        third = fd.simulate(c, y0, ts, _CountingTorque(jnp.asarray(0.3)))
+        assert jnp.all(jnp.isfinite(third.Q))
+    assert _TRACES["n"] == traced, "fd.simulate retraced for parameters given as Python floats"
 
     # Same through a user's jitted function, checked by equinox's trace counter.
     @eqx.filter_jit
