@@ -43,15 +43,16 @@ def check_parameter(owner: str, name: str, value, *, positive: bool = False, sig
 POSITIVE, NONNEGATIVE, SIGNED = "positive", "nonnegative", "signed"
 
 
-def checked(value, owner: str, name: str, kind: str = NONNEGATIVE):
+def checked(value, owner: str, name: str, kind: str = NONNEGATIVE, shape=None):
     """`value` as a float array, checked to be finite and > 0 (`POSITIVE`), >= 0
-    (`NONNEGATIVE`) or of any sign (`SIGNED`). A concrete value is checked at once
+    (`NONNEGATIVE`) or of any sign (`SIGNED`), and of `shape` if given (the shape at
+    once, always). A concrete value is checked at once
     (`check_parameter`'s `ValueError`); a traced one (under jit/vmap/grad) at run time
     with `eqx.error_if`."""
     if kind not in (POSITIVE, NONNEGATIVE, SIGNED):
         raise ValueError(f"checked: unknown kind {kind!r}")
+    check_parameter(owner, name, value, positive=kind == POSITIVE, signed=kind == SIGNED, shape=shape)
     if _is_concrete(value):
-        check_parameter(owner, name, value, positive=kind == POSITIVE, signed=kind == SIGNED)
         return as_float_array(value)
     bad = ~jnp.isfinite(value)
     if kind != SIGNED:
@@ -84,9 +85,7 @@ def checked_part(part, owner: str | None = None):
     same rules as at construction, and a Python float becomes an array. Messages name
     the parameter as `owner.name` (default owner: the part's class)."""
     owner = type(part).__name__ if owner is None else owner
-    names = [name for name, _ in part.PARAMETERS if getattr(part, name) is not None]
-    values = [checked(getattr(part, name), owner, name, kind) for name, kind in part.PARAMETERS if name in names]
-    for name, value in zip(names, values):
-        if jnp.shape(value) != _shape(part, name):
-            raise ValueError(f"{owner}.{name}: expected shape {_shape(part, name)}, got {jnp.shape(value)}")
+    present = [(name, kind) for name, kind in part.PARAMETERS if getattr(part, name) is not None]
+    names = [name for name, _ in present]
+    values = [checked(getattr(part, name), owner, name, kind, _shape(part, name)) for name, kind in present]
     return eqx.tree_at(lambda p: [getattr(p, name) for name in names], part, values, is_leaf=lambda x: x is None)
