@@ -7,6 +7,8 @@ computation with `eqx.error_if` by `checked`.
 
 from __future__ import annotations
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -38,6 +40,25 @@ def check_parameter(owner: str, name: str, value, *, positive: bool = False, sig
         raise ValueError(f"{owner}.{name}: expected a value > 0, got {value!r}")
     if not positive and not signed and np.any(arr < 0):
         raise ValueError(f"{owner}.{name}: expected a value >= 0, got {value!r}")
+
+
+def warn_if_degrees(owner: str, name: str, angles) -> None:
+    """Warn when a concrete angle (rad) exceeds `2 pi` in magnitude: flexdyn takes
+    radians, and `90` meant as degrees is a quarter of a turn read as 14 turns. Angles
+    beyond a turn are legitimate (a hub wound several turns), so this warns, not raises.
+    Traced values are not looked at."""
+    if not _is_concrete(angles):
+        return
+    arr = np.atleast_1d(np.asarray(angles, dtype=float))
+    big = np.flatnonzero(np.isfinite(arr) & (np.abs(arr) > 2 * np.pi))
+    if big.size:
+        i = int(big[0])
+        warnings.warn(
+            f"{owner}.{name}[{i}] = {arr[i]:g} rad is more than a turn; flexdyn takes angles in radians "
+            f"(if {arr[i]:g} is in degrees, pass np.deg2rad: {np.deg2rad(arr[i]):.6g} rad)",
+            UserWarning,
+            stacklevel=3,
+        )
 
 
 POSITIVE, NONNEGATIVE, SIGNED = "positive", "nonnegative", "signed"

@@ -46,7 +46,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._checks import as_float_array
+from ._checks import as_float_array, warn_if_degrees
 from .chain import Chain
 from .inputs import AbstractInput
 from .simulate import observe, simulate
@@ -164,6 +164,8 @@ class RestToRestMove(eqx.Module):
                 f"RestToRestMove: expected {n} start and goal angles, got {self.start_angles.shape} "
                 f"and {self.goal_angles.shape}"
             )
+        warn_if_degrees("RestToRestMove", "start_angles", self.start_angles)
+        warn_if_degrees("RestToRestMove", "goal_angles", self.goal_angles)
         self.duration = as_float_array(duration)
         self.tau_max = jnp.broadcast_to(as_float_array(tau_max), (n,))
         self.settle = as_float_array(settle)

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import as_float_array
+from ._checks import as_float_array, warn_if_degrees
 
 
 class AbstractInput(eqx.Module):
@@ -192,6 +192,8 @@ class QuinticReference(eqx.Module):
         self.start = jnp.atleast_1d(as_float_array(start))
         self.end = jnp.atleast_1d(as_float_array(end))
         self.duration = as_float_array(duration)
+        warn_if_degrees("QuinticReference", "start", self.start)
+        warn_if_degrees("QuinticReference", "end", self.end)
 
     def _s(self, t):
         return jnp.clip(t / self.duration, 0.0, 1.0)

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._checks import warn_if_degrees
 from .chain import (
     AssembledChain,
     Chain,
@@ -184,6 +185,9 @@ def initial_state(
         return x
 
     theta, theta_d = vec(joint_angles, n_links, "joint_angles"), vec(joint_rates, n_links, "joint_rates")
+    warn_if_degrees("initial_state", "joint_angles", theta)
+    if rotor_angles is not None:
+        warn_if_degrees("initial_state", "rotor_angles", rotor_angles)
     n_modal = sum(len(m) for m in lay.modal)
     modal_idx = [k for m in lay.modal for k in m]
     Q[list(lay.theta)], Qd[list(lay.theta)] = theta, theta_d

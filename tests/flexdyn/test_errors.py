@@ -2,6 +2,7 @@
 raised with a message that says what to change, never returned as NaNs."""
 
 import math
+import warnings
 
 import equinox as eqx
 import jax
@@ -166,6 +167,26 @@ def test_single_precision_is_warned_about():
         chain = fd.rigs.rigid_pendulum()  # float32 parameters
         traj = fd.simulate(chain, jnp.zeros(2), jnp.linspace(0.0, 0.1, 3), rtol=1e-4, atol=1e-6)
         assert traj.Q.dtype == jnp.float32
+
+
+def test_angles_that_look_like_degrees_are_warned_about():
+    """flexdyn takes radians: a start or goal angle above a turn (90, meant as degrees)
+    warns, naming the argument and the value in radians it may have meant; angles within
+    a turn, and traced ones, do not."""
+    from flexdyn import design
+
+    chain = fd.rigs.two_link_flexible_arm()
+    with pytest.warns(UserWarning, match=r"initial_state.joint_angles\[1\] = 90 rad .* 1.5708 rad"):
+        fd.initial_state(chain, joint_angles=[0.0, 90.0])
+    with pytest.warns(UserWarning, match=r"QuinticReference.end\[0\] = -180 rad"):
+        fd.QuinticReference([0.0, 0.0], [-180.0, 30.0], 2.0)
+    with pytest.warns(UserWarning, match=r"RestToRestMove.goal_angles\[0\] = 45 rad"):
+        design.RestToRestMove(chain, [0.0, 0.0], [45.0, 0.5], 1.0, 0.4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fd.initial_state(chain, joint_angles=[-6.28, 6.28])
+        fd.QuinticReference([0.0, 0.0], [math.pi / 2, math.pi / 6], 2.0)
+        jax.vmap(lambda a: fd.QuinticReference(a, a, 1.0).end)(jnp.full((3, 2), 90.0))
 
 
 def test_torque_of_the_wrong_size_is_rejected():
