@@ -19,10 +19,11 @@ from flexdyn import design  # noqa: E402
 
 NOTEBOOK = notebook_path("trajectory_design_paper004.ipynb")
 
-# Measured in the slow run (2026-11-24, 2 CPU cores; 40 + 40 LM steps): optimised residual vibration
-# 3.58e-5 m (Dopri8 3.58e-5), angle error 6.7e-5 rad at T, 1.9e-5 rad at T + 1 s, 8.3e-5 rad at worst over the window
-# (Tsit5), rates at T 2.1e-4 rad/s, joint deflection 3.0e-5 rad, peak torque 0.367 N m; comparisons' residual
-# vibration / the optimised one's: bang-bang 88, ZV 74, ZVD 15, composite (paper gains) 178.
+# Measured in the slow run (2026-12-04, 2 CPU cores; 40 + 40 LM steps with Marquardt's damping update): optimised
+# residual vibration 1.75e-5 m (Dopri8 and Tsit5 1.75e-5), angle error 3.7e-5 rad at T, 4.4e-6 rad at T + 1 s, rates
+# at T 7.3e-5 rad/s, joint deflection 2.0e-5 rad, peak torque 0.372 N m; comparisons' residual vibration / the
+# optimised one's: bang-bang 179, ZV 150, ZVD 30, composite (paper gains) 364. (2026-11-24, optimistix's default
+# trust region: 3.58e-5 m, 6.7e-5 rad at T; bang-bang 88x.)
 # Stated tolerances of the optimised move: at T and at T + 1 s the link angles are within ANGLE_TOL of the goal,
 # link and rotor rates at T below RATE_TOL, joint deflections alpha - theta below DEFLECTION_TOL, and the RMS tip
 # deflection over the window below VIBRATION_TOL; the comparisons' residual vibration is at least FACTOR times larger.
@@ -31,10 +32,11 @@ RATE_TOL = 1e-3  # rad/s
 DEFLECTION_TOL = 1e-4  # rad
 VIBRATION_TOL = 1e-4  # m
 FACTOR = 10.0
-# Robust design (payload_weight 15, batch 0 / 50 / 100 g; measured in the slow run, notebook 485 s: worst case over
-# 0-100 g 1.70e-3 m vs the nominal design's 6.80e-3 m, 4.0x; robust 1.23e-3 to 1.70e-3 m over the range, nominal
-# 3.6e-5 to 6.8e-3 m, bang-bang 3.1e-3 to 8.9e-3 m): the robust worst case is at least ROBUST_FACTOR times below the
-# nominal one, and its largest and smallest residual vibration over the range differ by less than ROBUST_SPREAD.
+# Robust design (payload_weight 15, batch 0 / 50 / 100 g; measured in the slow run of 2026-12-04, notebook 411 s:
+# worst case over 0-100 g 1.67e-3 m vs the nominal design's 6.96e-3 m, 4.2x; robust 1.10e-3 to 1.67e-3 m over the
+# range, nominal 1.8e-5 to 7.0e-3 m, bang-bang 3.1e-3 to 8.9e-3 m): the robust worst case is at least ROBUST_FACTOR
+# times below the nominal one, and its largest and smallest residual vibration over the range differ by less than
+# ROBUST_SPREAD.
 ROBUST_FACTOR = 3.0
 ROBUST_SPREAD = 2.0
 
