@@ -34,12 +34,13 @@ def check_parameter(owner: str, name: str, value, *, positive: bool = False, sig
     if not _is_concrete(value):
         return
     arr = np.asarray(value, dtype=float)
+    shown = f"{arr.item():g}" if arr.ndim == 0 else np.array2string(arr, precision=6)
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{owner}.{name}: expected a finite number, got {value!r}")
+        raise ValueError(f"{owner}.{name}: expected a finite number, got {shown}")
     if positive and np.any(arr <= 0):
-        raise ValueError(f"{owner}.{name}: expected a value > 0, got {value!r}")
+        raise ValueError(f"{owner}.{name}: expected a value > 0, got {shown}")
     if not positive and not signed and np.any(arr < 0):
-        raise ValueError(f"{owner}.{name}: expected a value >= 0, got {value!r}")
+        raise ValueError(f"{owner}.{name}: expected a value >= 0, got {shown}")
 
 
 def warn_if_degrees(owner: str, name: str, angles) -> None:

@@ -269,8 +269,9 @@ def _versions() -> dict:
 
 def _set_up_checks(exp) -> list[str]:
     """What to check of the set-up before a long run: where the rig's gravity makes the
-    first link hang (against the logs' angle zero), and any log whose sampling rate
-    questions its time column's unit."""
+    first link hang (against the logs' angle zero), any log whose sampling rate
+    questions its time column's unit, initial values held at a noisy first sample, and the
+    columns each log leaves unused."""
     from .experiment import gravity_text
 
     lines = [gravity_text(exp.chain.gravity)]
@@ -278,6 +279,9 @@ def _set_up_checks(exp) -> list[str]:
         hint = spec.log.sampling.time_unit_hint
         if hint:
             lines.append(f"warning: log {spec.name!r}: {spec.log.sampling.rate:.6g} Hz, {hint}")
+        lines.extend(f"warning: {w}" for w in spec.warnings())
+        if spec.log.ignored:
+            lines.append(f"log {spec.name!r}: columns not used: {', '.join(map(repr, spec.log.ignored))}")
     return lines
 
 
@@ -313,6 +317,20 @@ def _residual_lines(report: dict, outputs: dict, roles: dict) -> list[str]:
         "(RMS/floor: the residual against the noise of the measured samples alone, identify.noise_floor; "
         "a model that explains the data reaches ~1)"
     )
+    coloured = [
+        f"{name} {c}"
+        for name, per_channel in report.items()
+        if roles.get(name) != "validation"
+        for c, item in per_channel.items()
+        if not item["whiteness"]["white"]
+    ]
+    if coloured:
+        lines.append(
+            f"note: the residuals of {', '.join(coloured)} (fit logs) are not white: the fitted intervals assume "
+            "white residuals and are then too narrow; the cause may be an effect the model misses (identify "
+            'diagnose), a filtered sensor, or an initial value held at a noisy first sample ("measured" without '
+            "fit_initial)"
+        )
     return lines
 
 

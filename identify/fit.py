@@ -85,6 +85,7 @@ from .channels import state_names  # noqa: F401  (re-exported)
 from .covariance import Covariance
 from .frequency_init import STIFFNESS, initialise_stiffness
 from .measurement import Measurement
+from .report import display_unit
 from .residuals import (  # noqa: F401  (re-exported: identify.predict, diagnose)
     FAILED_RESIDUAL,
     _chain,
@@ -190,6 +191,42 @@ class Problem(eqx.Module):
         return self.labels.names
 
 
+def _check_log_data(log: LogData) -> None:
+    """A `LogData` built in Python gets the checks the CSV loader makes (found in review:
+    a NaN in an output read "SVD did not converge", a NaN in the torque "check guesses
+    and bounds", arrays of the wrong length numpy's reshape errors), naming the log, the
+    channel and the first bad sample."""
+    where = f"log {log.name!r}"
+    t = np.asarray(log.t, dtype=float)
+    if t.ndim != 1 or t.size < 2:
+        raise ValueError(f"{where}: t expected a 1-D array of at least 2 sample times (s), got shape {t.shape}")
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        raise ValueError(f"{where}: t[{bad[0]}] is {t[bad[0]]}; expected finite sample times (s)")
+    steps = np.flatnonzero(np.diff(t) <= 0)
+    if steps.size:
+        i = int(steps[0]) + 1
+        raise ValueError(
+            f"{where}: t must be strictly increasing; t[{i}] = {t[i]:.9g} s after t[{i - 1}] = {t[i - 1]:.9g} s"
+        )
+    if not log.outputs:
+        raise ValueError(f"{where}: no output channels (outputs is empty)")
+    series = [(f"outputs[{c!r}]", v, (t.size,)) for c, v in log.outputs.items()]
+    if log.torque is not None:
+        tq = np.asarray(log.torque, dtype=float)
+        series.append(("torque", tq, (t.size,) + tq.shape[1:2]))
+    for label, values, shape in series:
+        v = np.asarray(values, dtype=float)
+        if v.shape[:1] != (t.size,) or v.ndim > (2 if label == "torque" else 1):
+            raise ValueError(f"{where}: {label} has shape {v.shape}; expected {shape}, one row per sample time")
+        bad = np.flatnonzero(~np.all(np.isfinite(v.reshape(t.size, -1)), axis=1))
+        if bad.size:
+            raise ValueError(
+                f"{where}: {label} is not finite at sample {bad[0]} (t = {t[bad[0]]:.9g} s); "
+                "drop or fill such samples before fitting"
+            )
+
+
 def make_problem(
     chain: fd.Chain,
     parameters: Sequence[Parameter],
@@ -238,6 +275,12 @@ def make_problem(
         log_scale.append(not signed)
         lower.append(lo)
         upper.append(hi)
+    seen = set()
+    for log in logs:
+        if log.name in seen:
+            raise ValueError(f"make_problem: two logs are named {log.name!r}; names label the results and must differ")
+        seen.add(log.name)
+        _check_log_data(log)
     channels = sorted({c for log in logs for c in log.outputs})
     for c in channels:
         ch.check_channel(chain, c)
@@ -288,6 +331,8 @@ def make_problem(
     sigma = []
     for j, c in enumerate(channels):
         if noise.get(c) is not None:
+            if not (np.isfinite(float(noise[c])) and float(noise[c]) > 0):
+                raise ValueError(f"make_problem: noise[{c!r}] expected a standard deviation > 0 (SI), got {noise[c]!r}")
             sigma.append(float(noise[c]))
         else:
             rms = np.sqrt(np.mean(measured[:, :, j][valid & present[:, j : j + 1]] ** 2))
@@ -623,15 +668,16 @@ class FitResult:
 
     def summary(self) -> str:
         lines = [
-            f"{'parameter':<28} {'value':>12} {'std err':>10} {'95% CI':>25} {'guess':>12} {'change':>8}",
+            f"{'parameter':<28} {'value':>12} {'std err':>10} {'95% CI':>25} {'guess':>12} {'change':>8}  unit",
         ]
         for i, n in enumerate(self.names):
             change = (self.values[i] - self.guesses[i]) / abs(self.guesses[i]) if self.guesses[i] else float("nan")
             ci = covariance.interval_text(self.ci_low[i], self.ci_high[i])
             d = max(5, covariance.digits(self.values[i], self.std_errors[i]))
+            unit = "" if self.problem is None else parameter_unit(self.problem, n)
             lines.append(
                 f"{n:<28} {self.values[i]:>12.{d}g} {self.std_errors[i]:>10.3g} {ci:>25} "
-                f"{self.guesses[i]:>12.4g} {100 * change:>7.1f}%"
+                f"{self.guesses[i]:>12.4g} {100 * change:>7.1f}%  {unit}"
             )
         its = sum(s["iterations"] for s in self.stages)
         lines.append(
@@ -648,12 +694,13 @@ class FitResult:
             lines.append(f"warning: {name} ended on its bound: widen the bounds or improve the guess")
         for c in self.poor_fit:
             q = self.fit_quality[c]
+            scale, unit = display_unit(c)
             lines.append(
-                f"warning: the residual of {c} (RMS {q['residual_rms']:.3g}) is {q['ratio']:.3g} times its noise "
-                f"floor ({q['noise_floor']:.3g}, estimated from the data alone): the fit ended in a wrong basin "
-                "or the model misses an effect (try other guesses, or `identify diagnose`), unless the sensor's "
-                "noise is low-pass filtered (a first-order filter at a twentieth of the sampling rate makes the "
-                "floor 0.42 of the noise: identify.noise_floor)"
+                f"warning: the residual of {c} (RMS {scale * q['residual_rms']:.3g} {unit}) is {q['ratio']:.3g} times "
+                f"its noise floor ({scale * q['noise_floor']:.3g} {unit}, estimated from the data alone): the fit "
+                "ended in a wrong basin or the model misses an effect (try other guesses, or `identify diagnose`), "
+                "unless the sensor's noise is low-pass filtered (a first-order filter at a twentieth of the "
+                "sampling rate makes the floor 0.42 of the noise: identify.noise_floor)"
                 + (
                     "; this far off, check the set-up first: the rig's gravity against the logs' angle zero, and "
                     "the columns' units (identify/FORMAT.md)"
@@ -1246,8 +1293,18 @@ def _split(problem: Problem) -> tuple[Problem, list[Problem]]:
     L = problem.t.shape[0]
     per_log_y0 = [tuple(s for l, s in problem.y0_free if l == k) for k in range(L)]
     per_log_off = [tuple(c for l, c in problem.offset_free if l == k) for k in range(L)]
-    if len(set(per_log_y0)) > 1 or len(set(per_log_off)) > 1:
-        raise ValueError("fit_independent: every log must estimate the same initial-state entries and offsets")
+    for what, per_log, names in (
+        ("fit_initial", per_log_y0, state_names(problem.chain)),
+        ("offsets", per_log_off, problem.channels),
+    ):
+        for k in range(1, L):
+            if per_log[k] != per_log[0]:
+                first, other = ([names[i] for i in per_log[j]] for j in (0, k))
+                raise ValueError(
+                    f"fit_independent: the logs are fitted in one vmapped batch, so each must estimate the same "
+                    f"{what} entries; log {problem.log_names[0]!r} has {what} {first}, "
+                    f"log {problem.log_names[k]!r} has {other}"
+                )
     fields = ("t", "valid", "measured", "present", "torque_t", "torque_v", "y0_known", "onset")
     singles = []
     for k in range(L):
@@ -1282,8 +1339,10 @@ def fit_independent(
 ) -> list[FitResult]:
     """Independent fits of every log of `problem` (each log its own parameter values), all
     in one `vmap`ped call per stage: the batch runs in lockstep, each log with its own
-    integration step. The noise levels are those of `problem` (not re-estimated); the
-    first stage starts with the damping `first_damping` (as in `fit` with one start).
+    integration step. So every log must estimate the same `fit_initial` entries and
+    `offsets` (a `ValueError` names the first two logs that differ). The noise levels
+    are those of `problem` (not re-estimated); the first stage starts with the damping
+    `first_damping` (as in `fit` with one start).
     `frequency_init`: each log's free `link<i>.EI` guess from its own flexural spectrum,
     as in `fit` (`identify.frequency_init`), all logs' simulations batched.
     `restart_poor_fit`: when some logs end with a channel above

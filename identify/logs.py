@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
+import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -204,10 +205,12 @@ def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibrati
                 channel=w.channel,
             )
     if written is None:
-        raise LogError(
-            f"{where}: no unit; expected the unit in brackets, e.g. '{w.source} [{_si(w.channel)}]'",
-            channel=w.channel,
-        )
+        paren = re.match(r"^(?P<name>.*?)\s*\((?P<unit>[^()]+)\)\s*$", w.source)
+        if paren and u.normalise_unit(paren["unit"]) is not None:
+            example = f"'{paren['name']} [{paren['unit']}]', not '{w.source}'"
+        else:
+            example = f"e.g. '{w.source} [{_si(w.channel)}]'"
+        raise LogError(f"{where}: no unit; expected the unit in square brackets, {example}", channel=w.channel)
     unit = u.normalise_unit(written)
     if unit is None:
         raise LogError(f"{where}: unknown unit [{written}]; known units: {u.known_units()}", channel=w.channel)
@@ -224,9 +227,8 @@ def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibrati
         return unit, cal
     if dim_unit != dim:
         raise LogError(
-            f"{where}: {w.channel} is a{'n' if dim[0] in 'aeiou' else ''} {dim} but [{written}] is a "
-            f"{dim_unit} unit; expected one of {_units_of(dim)}"
-            + ("" if dim == u.TIME else " or [V] with a calibration"),
+            f"{where}: {w.channel} is {u.article(dim)} but [{written}] is {u.article(dim_unit)} "
+            f"unit; expected one of {_units_of(dim)}" + ("" if dim == u.TIME else " or [V] with a calibration"),
             channel=w.channel,
         )
     if cal is not None:
@@ -278,7 +280,7 @@ def check_calibration(channel: str, spec, where: str) -> Calibration:
         if not isinstance(unit, str) or u.normalise_unit(unit) is None:
             raise LogError(f"{where}.unit: unknown unit {unit!r}; known units: {u.known_units()}")
         if u.unit_dimension(u.normalise_unit(unit)) != dim:
-            raise LogError(f"{where}.unit: [{unit}] is not a {dim} unit; expected one of {_units_of(dim)}")
+            raise LogError(f"{where}.unit: [{unit}] is not {u.article(dim)} unit; expected one of {_units_of(dim)}")
     return Calibration(float(spec["scale"]), float(spec.get("offset", 0.0)), unit)
 
 
@@ -436,6 +438,14 @@ def _read_csv(path: Path, wanted, cals, strict, context):
 
     if wanted is None:  # identity mapping: columns named like channels
         wanted = [_Wanted(n, n, None) for n, unit in zip(names, file_units) if u.channel_dimension(n) is not None]
+        for c, name in enumerate(names, start=1):
+            near = u.near_channel(name)
+            if near is not None and near not in names:
+                raise LogError(
+                    f"{path}, line {hline}, column {c}: {header[c - 1]!r} is not a channel name, but "
+                    f"{near!r} is; rename the column '{near} [...]', or map the columns in the experiment "
+                    f'file (columns = {{ {near} = "{header[c - 1]}", ... }})'
+                )
         if not any(w.channel == "time" for w in wanted):
             raise LogError(
                 f"{path}, line {hline}: no 'time' column among {names}; expected a column 'time [s]', "

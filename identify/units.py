@@ -77,6 +77,14 @@ ALIASES = {
     "μs": "us",
     "degree": "deg",
     "degrees": "deg",
+    "Deg": "deg",
+    "DEG": "deg",
+    "Degree": "deg",
+    "Degrees": "deg",
+    "Rad": "rad",
+    "RAD": "rad",
+    "SEC": "s",
+    "Sec": "s",
     "°": "deg",
     "µm": "um",
     "μm": "um",
@@ -162,6 +170,20 @@ def channel_dimension(channel: str) -> str | None:
     return _PLAIN.get(channel)
 
 
+def near_channel(name: str) -> str | None:
+    """The channel a column name spells differently, ignoring case, spaces, `_` and `-`
+    (`'Tip_1'` -> `'tip1'`, `'THETA 1'` -> `'theta1'`), or None (also for a channel name
+    itself). Found in review: a header `tip_1 [mm]` was ignored as an unused column and
+    the log's tip gauge dropped in silence."""
+    folded = re.sub(r"[\s_\-]", "", name).lower()
+    for plain in (*_PLAIN, "time"):
+        if folded == plain.replace("_", ""):
+            folded = plain
+    if folded == name or channel_dimension(folded) is None:
+        return None
+    return folded
+
+
 def channel_kind_index(channel: str) -> tuple[str, int | None]:
     """`'tip2'` -> `('tip', 2)`, `'end_x'` -> `('end_x', None)`."""
     m = _INDEXED.match(channel)
@@ -184,26 +206,32 @@ _QUANTITY = re.compile(r"^\s*(?P<value>[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)\s*
 
 
 def parse_quantity(text: str, dimension: str) -> float:
-    """`'0.5 deg'` -> 0.008726... (SI) for a quantity of the given dimension. A bare
-    number is taken as SI. Raises `ValueError` saying what was expected."""
+    """`'0.5 deg'` -> 0.008726... (SI) for a quantity of the given dimension. Raises
+    `ValueError` saying what was expected. A string must carry its unit: `'0.03'` is
+    refused (found in review: meant as degrees, it was read as 0.03 rad, 57 times the
+    intended noise, in silence); a number in SI units is written as a number."""
     m = _QUANTITY.match(text)
     if m is None:
         raise ValueError(f"expected a number with a unit, e.g. '0.5 {_example_unit(dimension)}', got {text!r}")
     value = float(m["value"])
     if m["unit"] is None:
-        return value
+        raise ValueError(
+            f"{text!r} has no unit; write it with one (e.g. '{m['value']} {_example_unit(dimension)}'), "
+            f"or as a number without quotes in SI units ({SI_UNIT[dimension]})"
+        )
     unit = normalise_unit(m["unit"])
     if unit is None:
         raise ValueError(f"unknown unit {m['unit']!r} in {text!r}; known units: {known_units()}")
     if unit_dimension(unit) != dimension:
         raise ValueError(
-            f"{text!r} is {_article(unit_dimension(unit))}; expected {_article(dimension)} "
+            f"{text!r} is {article(unit_dimension(unit))}; expected {article(dimension)} "
             f"(e.g. '{m['value']} {_example_unit(dimension)}')"
         )
     return value * unit_factor(unit)
 
 
-def _article(word: str) -> str:
+def article(word: str) -> str:
+    """`'angle'` -> `'an angle'`."""
     return f"{'an' if word[:1] in 'aeiou' else 'a'} {word}"
 
 

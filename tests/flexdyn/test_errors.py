@@ -169,6 +169,13 @@ def test_single_precision_is_warned_about():
         assert traj.Q.dtype == jnp.float32
 
 
+def test_a_parameter_given_as_a_jax_array_is_shown_as_a_number():
+    # found in review: "got Array(-0.003, dtype=float64)"
+    chain = fd.rigs.rigid_pendulum()
+    with pytest.raises(ValueError, match=r"RigidJoint.damping: expected a value >= 0, got -0.003$"):
+        fd.with_parameters(chain, {"joint1.damping": jnp.asarray(-3e-3)})
+
+
 def test_angles_that_look_like_degrees_are_warned_about():
     """flexdyn takes radians: a start or goal angle above a turn (90, meant as degrees)
     warns, naming the argument and the value in radians it may have meant; angles within

@@ -289,3 +289,21 @@ def test_the_set_up_checks_name_gravity_and_an_implausible_time_unit():
     fast = dataclasses.replace(spec, log=dataclasses.replace(spec.log, sampling=_sampling(1e-6 * np.arange(50))))
     lines = _set_up_checks(dataclasses.replace(exp, logs=[fast, *exp.logs[1:]]))
     assert lines[1].startswith(f"warning: log {spec.name!r}: 1e+06 Hz") and "labelled [ms]" in lines[1], lines
+
+
+def test_residual_table_notes_coloured_fit_residuals():
+    """Found in review: a fit whose residuals failed the whiteness test (p = 4.5e-280, an
+    initial angle held at a noisy first sample) printed intervals 10 standard errors off
+    with no note; the note now follows the table for fit logs (not validation logs)."""
+    from identify.cli import _residual_lines
+
+    def item(white):
+        return {"rms": 1e-3, "whiteness": {"white": white, "p_value": 0.5 if white else 1e-9}, "input_correlation": {}}
+
+    report = {"run_a": {"theta1": item(False), "tip1": item(True)}, "run_v": {"theta1": item(False)}}
+    roles = {"run_a": "fit", "run_v": "validation"}
+    text = "\n".join(_residual_lines(report, {}, roles))
+    assert "note: the residuals of run_a theta1 (fit logs) are not white" in text
+    assert "run_v theta1" not in text.split("note:")[1]
+    white = {"run_a": {"theta1": item(True)}}
+    assert "note:" not in "\n".join(_residual_lines(white, {}, roles))

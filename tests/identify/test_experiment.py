@@ -450,6 +450,29 @@ def test_noise_errors(tmp_path):
     path = experiment(tmp_path, RIG + '[noise]\ntip1 = "0.1 deg"\n' + LOG)
     with pytest.raises(ExperimentError, match=msg("noise.tip1", "'0.1 deg' is an angle; expected a length", "mm")):
         load_experiment(path)
+    # found in review: a string without a unit was read as SI (0.03 meant as degrees became 0.03 rad)
+    path = experiment(tmp_path, RIG + '[noise]\ntheta1 = "0.03"\n' + LOG)
+    with pytest.raises(ExperimentError, match=msg("line 6: noise.theta1", "'0.03' has no unit", "'0.03 deg'", "(rad)")):
+        load_experiment(path)
+    assert load_experiment(experiment(tmp_path, RIG + '[noise]\ntheta1 = "0.03 Deg"\n' + LOG)).noise[
+        "theta1"
+    ] == pytest.approx(math.radians(0.03), rel=1e-14)
+
+
+def test_an_initial_value_held_at_a_noisy_first_sample_is_warned_about(tmp_path):
+    """Found in review: `theta1 = "measured"` without `fit_initial` holds one noisy sample
+    as exact and biases the fit beyond its intervals, in silence."""
+    held = LOG + 'initial = { theta1 = "measured" }\n'
+    exp = load_experiment(experiment(tmp_path, RIG + held))
+    assert exp.logs[0].measured == ("theta1",)
+    assert "warning: log 'drop': theta1 = \"measured\" holds the first sample" in exp.summary()
+    assert "add theta1 to fit_initial" in exp.summary()
+    fitted = load_experiment(experiment(tmp_path, RIG + held + 'fit_initial = ["theta1"]\n', name="b.toml"))
+    assert fitted.logs[0].warnings() == [] and "warning" not in fitted.summary()
+    # the noise is shown with its unit
+    assert "noise theta1: estimate" in exp.summary()
+    with_noise = load_experiment(experiment(tmp_path, RIG + '[noise]\ntip1 = "20 um"\n' + LOG, name="c.toml"))
+    assert "noise tip1: 2e-05 m" in with_noise.summary()
 
 
 def test_log_file_missing(tmp_path):

@@ -673,6 +673,67 @@ def test_make_problem_rejects_bad_nuisances_naming_the_log(field, value, message
         identify.make_problem(chain, [identify.Parameter("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
 
 
+def _nan_at(values, i):
+    values = np.array(values, dtype=float)
+    values[i] = np.nan
+    return values
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"t": np.r_[0.0, 0.01, 0.01, np.arange(3, 11) / 100.0]}, r"t must be strictly increasing; t\[2\] = 0.01 s"),
+        ({"t": _nan_at(np.arange(11) / 100.0, 4)}, r"t\[4\] is nan"),
+        (
+            {"outputs": {"theta1": _nan_at(np.zeros(11), 3)}},
+            r"outputs\['theta1'\] is not finite at sample 3 \(t = 0.03 s\)",
+        ),
+        ({"outputs": {"theta1": np.zeros(9)}}, r"outputs\['theta1'\] has shape \(9,\); expected \(11,\)"),
+        ({"torque": _nan_at(np.zeros(11), 5)}, r"torque is not finite at sample 5"),
+        ({"torque": np.zeros(10)}, r"torque has shape \(10,\)"),
+        ({"outputs": {}}, r"no output channels"),
+    ],
+)
+def test_make_problem_checks_log_data_naming_the_log(change, message):
+    """Found in review: a LogData built in Python skipped the CSV loader's checks, and the
+    fit failed far from the cause ("SVD did not converge" for a NaN output)."""
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(11) / 100.0
+    log = identify.LogData(**{"t": t, "outputs": {"theta1": np.zeros_like(t)}, "name": "drop_7", **change})
+    with pytest.raises(ValueError, match=f"log 'drop_7': {message}"):
+        identify.make_problem(chain, [identify.Parameter("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
+
+
+def test_make_problem_refuses_two_logs_of_one_name_and_a_bad_noise():
+    """Found in review: two logs named alike were accepted and one's fitted initial state
+    was lost from `result.initial_states` (a dict by name)."""
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(11) / 100.0
+    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7")
+    params = [identify.Parameter("joint1.damping", 1e-3)]
+    with pytest.raises(ValueError, match="two logs are named 'drop_7'"):
+        identify.make_problem(chain, params, [log, log], {"theta1": 1e-3})
+    with pytest.raises(ValueError, match=r"noise\['theta1'\] expected a standard deviation > 0"):
+        identify.make_problem(chain, params, [log], {"theta1": -1e-3})
+
+
+def test_fit_independent_names_the_logs_whose_nuisances_differ():
+    """Found in review: "every log must estimate the same initial-state entries and
+    offsets", naming neither the logs nor the entries."""
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(11) / 100.0
+    logs = [
+        identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="a", fit_initial=("theta1",)),
+        identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="b", fit_initial=("theta1", "theta1_rate")),
+    ]
+    params = [identify.Parameter("joint1.damping", 1e-3)]
+    problem = identify.make_problem(chain, params, logs, {"theta1": 1e-3})
+    with pytest.raises(
+        ValueError, match=r"log 'a' has fit_initial \['theta1'\], log 'b' has \['theta1', 'theta1_rate'\]"
+    ):
+        identify.fit_independent(problem, params)
+
+
 def _tiny_problem():
     """A rigid pendulum's 11-sample log and its joint damping free: for argument checks."""
     chain = fd.rigs.rigid_pendulum()
@@ -903,4 +964,6 @@ def test_a_gross_misfit_points_at_the_set_up_first():
 
     assert "check the set-up first" in summary(2.5e4) and "gravity" in summary(2.5e4)
     assert "check the set-up first" not in summary(46.0) and "times its noise floor" in summary(46.0)
+    # in the table's units (found in review: "RMS 9.91" in rad beside a table in deg)
+    assert "(RMS 2.64 deg) is 46 times its noise floor (0.0573 deg," in summary(46.0)
     assert 46.0 < GROSS_MISFIT < 2.5e4

@@ -157,6 +157,36 @@ def test_missing_unit(tmp_path):
         load_log(path, {"time": "time", "theta1": "theta1", "tip1": "tip1"})
 
 
+def test_a_unit_in_parentheses_is_pointed_at_square_brackets(tmp_path):
+    # found in review: 'enc (deg)' got the suggestion "e.g. 'enc (deg) [rad]'"
+    path = write_csv(tmp_path / "p.csv", ["time [s]", "enc (deg)", "tip1 [mm]"], good_rows())
+    with pytest.raises(
+        LogError, match=msg("p.csv, line 1, column 2", "square brackets", "'enc [deg]', not 'enc (deg)'")
+    ):
+        load_log(path, {"time": "time [s]", "theta1": "enc (deg)", "tip1": "tip1 [mm]"})
+    wrong = write_csv(tmp_path / "w.csv", ["time [s]", "theta1 [mm]", "tip1 [mm]"], good_rows())
+    with pytest.raises(LogError, match=msg("theta1 is an angle but [mm] is a length unit")):
+        load_log(wrong)
+
+
+@pytest.mark.parametrize("typo", ["tip_1", "Tip1", "TIP 1"])
+def test_a_header_that_misspells_a_channel_is_an_error(tmp_path, typo):
+    """Found in review: with the header naming the channels, 'tip_1 [mm]' was ignored as an
+    unused column and the log's tip gauge dropped in silence."""
+    path = write_csv(
+        tmp_path / "t.csv", ["time [s]", "theta1 [deg]", f"{typo} [mm]", "status"], [r + ["1"] for r in good_rows()]
+    )
+    with pytest.raises(
+        LogError, match=msg("t.csv, line 1, column 3", f"'{typo} [mm]' is not a channel name", "'tip1'")
+    ):
+        load_log(path)
+    # an unrelated extra column is still ignored and listed
+    ok = write_csv(
+        tmp_path / "ok.csv", ["time [s]", "theta1 [deg]", "tip1 [mm]", "status"], [r + ["1"] for r in good_rows()]
+    )
+    assert load_log(ok).ignored == ("status",)
+
+
 def test_mapping_unit_disagrees_with_header(tmp_path):
     path = write_csv(tmp_path / "dis.csv", HEADER, good_rows())
     with pytest.raises(LogError, match=msg("dis.csv, line 1, column 2", "[deg]", "theta1 [rad]", "agree")):
