@@ -108,7 +108,9 @@ class Log:
 
     - `name`: a label (the file's stem unless the experiment names it).
     - `path`: the file it was read from.
-    - `t`: sample times, s, as in the file (absolute); `t_relative` starts at 0.
+    - `t`: sample times, s, as in the file (absolute).
+    - `t_relative`: sample times from the first sample, s, differenced before the unit
+      conversion (exact for an absolute clock, where `t - t[0]` loses digits).
     - `outputs`: measured channels, e.g. `{'theta1': rad, 'tip1': m}`.
     - `inputs`: applied torques, e.g. `{'torque1': N m}`.
     - `sampling`: a `Sampling` summary.
@@ -119,16 +121,12 @@ class Log:
     name: str
     path: Path
     t: np.ndarray = dataclasses.field(repr=False)
+    t_relative: np.ndarray = dataclasses.field(repr=False)
     outputs: dict[str, np.ndarray] = dataclasses.field(repr=False)
     inputs: dict[str, np.ndarray] = dataclasses.field(repr=False)
     sampling: Sampling
     sources: dict[str, str] = dataclasses.field(repr=False)
     ignored: tuple[str, ...] = ()
-
-    @property
-    def t_relative(self) -> np.ndarray:
-        """Sample times from the first sample, s."""
-        return self.t - self.t[0]
 
     @property
     def channels(self) -> list[str]:
@@ -335,21 +333,22 @@ def load_log(
                 f"{path}: a .mat log needs a column mapping (.mat variables carry no units); expected "
                 'columns = { time = "t [s]", theta1 = "enc [deg]", ... } naming each variable and its unit'
             )
-        t, channels, sources, ignored = _read_mat(path, wanted, cals, strict, context)
+        t, t_relative, channels, sources, ignored = _read_mat(path, wanted, cals, strict, context)
     elif suffix in CSV_SUFFIXES:
-        t, channels, sources, ignored = _read_csv(path, wanted, cals, strict, context)
+        t, t_relative, channels, sources, ignored = _read_csv(path, wanted, cals, strict, context)
     else:
         raise LogError(f"{path}: unknown log type {path.suffix!r}; expected {', '.join(CSV_SUFFIXES + MAT_SUFFIXES)}")
     n = t.shape[0]
     if n < max(min_samples, 2):
         raise LogError(f"{path}: {n} samples; expected at least {min_samples} to fit a model")
-    sampling = _sampling(t)
-    for arr in [t, *channels.values()]:
+    sampling = _sampling(t_relative, t[0])
+    for arr in [t, t_relative, *channels.values()]:
         arr.flags.writeable = False
     return Log(
         name=path.stem if name is None else name,
         path=path,
         t=t,
+        t_relative=t_relative,
         outputs={k: v for k, v in channels.items() if u.is_output(k)},
         inputs={k: v for k, v in channels.items() if u.is_input(k)},
         sampling=sampling,
@@ -358,7 +357,15 @@ def load_log(
     )
 
 
-def _sampling(t: np.ndarray) -> Sampling:
+def _relative_time(raw: np.ndarray, unit: str) -> np.ndarray:
+    """Times from the first sample (s), differenced in the file's unit before scaling: an
+    absolute clock (ms since 1970, ~1.7e12) scaled to seconds first keeps only ~2e-7 s of
+    resolution, which showed as a 500 Hz log's intervals varying by 1e-4 (review)."""
+    return (raw - raw[0]) * u.unit_factor(unit)
+
+
+def _sampling(t: np.ndarray, start: float) -> Sampling:
+    """`t`: times from the first sample (s); `start`: the first sample's time in the file (s)."""
     dt = np.diff(t)
     median = float(np.median(dt))
     k = int(np.argmax(dt))
@@ -368,7 +375,7 @@ def _sampling(t: np.ndarray) -> Sampling:
         median_dt=median,
         min_dt=float(dt.min()),
         max_dt=float(dt[k]),
-        largest_gap_at=float(t[k]),
+        largest_gap_at=float(start + t[k]),
         n_gaps=int(np.sum(dt > GAP_FACTOR * median)),
     )
 
@@ -380,14 +387,16 @@ def _check_samples(path, channel: str, values: np.ndarray, where: Callable[[int]
         raise LogError(f"{path}, {where(j)}: {values[j]} in {channel}; expected a finite number")
 
 
-def _check_time(path, t: np.ndarray, where: Callable[[int], str]):
+def _check_time(path, t: np.ndarray, where: Callable[[int], str], shown: np.ndarray):
+    """Strictly increasing `t` (relative times, compared exactly); `shown`: the same times
+    as in the file (s), for the message."""
     dt = np.diff(t)
     bad = dt <= 0
     if bad.any():
         j = int(np.argmax(bad)) + 1
         what = "duplicate time stamp" if dt[j - 1] == 0 else "time goes backwards"
         raise LogError(
-            f"{path}, {where(j)}: {what} (t = {t[j]:.9g} after t = {t[j - 1]:.9g} at {where(j - 1)}); "
+            f"{path}, {where(j)}: {what} (t = {shown[j]:.9g} after t = {shown[j - 1]:.9g} at {where(j - 1)}); "
             "expected strictly increasing times"
         )
 
@@ -493,11 +502,13 @@ def _read_csv(path: Path, wanted, cals, strict, context):
         _check_samples(path, w.channel, raw, where_for(c))
         channels[w.channel] = _to_si(raw, unit, cal, w.channel)
         sources[w.channel] = f"column {c} {header[c - 1]!r}" + (" (calibrated)" if cal else "")
+        if w.channel == "time":
+            t_relative = _relative_time(raw, unit)
     t = channels.pop("time")
     if t.shape[0] >= 2:
-        _check_time(path, t, where_for(seen[next(w.source for w in wanted if w.channel == "time")]))
+        _check_time(path, t_relative, where_for(seen[next(w.source for w in wanted if w.channel == "time")]), t)
     sources.pop("time")
-    return t, channels, sources, ignored
+    return t, t_relative, channels, sources, ignored
 
 
 def _parse_floats(path, texts: list[str], decimal_comma: bool, where) -> np.ndarray:
@@ -571,10 +582,12 @@ def _read_mat(path: Path, wanted, cals, strict, context):
         _check_samples(path, w.channel, raw, where)
         channels[w.channel] = _to_si(raw, unit, cal, w.channel)
         sources[w.channel] = f"variable {w.source!r} [{w.unit}]" + (" (calibrated)" if cal else "")
+        if w.channel == "time":
+            t_relative = _relative_time(raw, unit)
     t = channels.pop("time")
     sources.pop("time")
-    _check_time(path, t, lambda j: f"variable {time_w.source!r}, sample {j + 1}")
-    return t, channels, sources, ignored
+    _check_time(path, t_relative, lambda j: f"variable {time_w.source!r}, sample {j + 1}", t)
+    return t, t_relative, channels, sources, ignored
 
 
 __all__ = [

@@ -14,7 +14,7 @@ def log_data(spec: LogSpec, n_joints: int) -> LogData:
     """The `LogData` of one experiment log (times start at the log's first sample)."""
     log = spec.log
     return LogData(
-        t=np.asarray(log.t, float) - float(log.t[0]),
+        t=np.asarray(log.t_relative, float),
         outputs={c: np.asarray(v, float) for c, v in spec.outputs.items()},
         torque=spec.torque(n_joints),
         initial=dict(spec.initial),

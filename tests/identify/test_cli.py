@@ -286,7 +286,7 @@ def test_the_set_up_checks_name_gravity_and_an_implausible_time_unit():
     assert lines[0].startswith("gravity [0, -9.81] m/s^2: the first link hangs at theta1 = -90 deg"), lines
     assert not any(line.startswith("warning") for line in lines)
     spec = exp.logs[0]
-    fast = dataclasses.replace(spec, log=dataclasses.replace(spec.log, sampling=_sampling(1e-6 * np.arange(50))))
+    fast = dataclasses.replace(spec, log=dataclasses.replace(spec.log, sampling=_sampling(1e-6 * np.arange(50), 0.0)))
     lines = _set_up_checks(dataclasses.replace(exp, logs=[fast, *exp.logs[1:]]))
     assert lines[1].startswith(f"warning: log {spec.name!r}: 1e+06 Hz") and "labelled [ms]" in lines[1], lines
 

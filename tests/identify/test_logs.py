@@ -57,6 +57,21 @@ def test_csv_units_converted_to_si(tmp_path):
         log.t[0] = 1.0  # read-only
 
 
+def test_an_absolute_millisecond_clock_keeps_its_intervals_exact(tmp_path):
+    """Found in review: a DAQ clock in ms since 1970 (~1.7e12), scaled to seconds before
+    the first sample was subtracted, kept ~2e-7 s of resolution: a 500 Hz log read as
+    intervals of 0.00199986-0.00200009 s. The relative times are differenced in ms first."""
+    start = 1_733_300_000_000  # ms since 1970
+    rows = [[str(start + 2 * k), "1.0", "2.0"] for k in range(400)]
+    log = load_log(write_csv(tmp_path / "daq.csv", ["time [ms]", "theta1 [deg]", "tip1 [mm]"], rows))
+    assert np.array_equal(log.t_relative, 2e-3 * np.arange(400))  # exact: integers times 1e-3
+    # intervals to rounding (before: 1e-4 relative)
+    assert log.sampling.min_dt == pytest.approx(2e-3, rel=1e-12) and log.sampling.max_dt == pytest.approx(
+        2e-3, rel=1e-12
+    )
+    assert log.t[0] == pytest.approx(start * 1e-3, rel=1e-15)  # absolute, as in the file
+
+
 def test_header_mapping_by_default_and_absolute_time(tmp_path):
     rows = [[f"{100 + 0.001 * k:.3f}", "1.0", "2.0", "ok"] for k in range(12)]
     path = write_csv(tmp_path / "a.csv", ["time [ms]", "theta1 [mrad]", "tip1 [um]", "status"], rows)
@@ -371,5 +386,5 @@ def test_an_implausible_sampling_rate_asks_about_the_time_unit(dt, hint):
     so the loader cannot refuse them); its summary asks about the unit."""
     from identify.logs import _sampling
 
-    sampling = _sampling(dt * np.arange(100))
+    sampling = _sampling(dt * np.arange(100), 0.0)
     assert (hint in str(sampling)) if hint else sampling.time_unit_hint == ""
