@@ -1,8 +1,9 @@
 """The `identify` command line (also `python -m identify`).
 
     identify fit EXPERIMENT.toml [--out DIR] [--stages N] [--no-frequency-init] [--max-restarts N]
-                 [--no-restart-poor-fit] [--quiet] [--force]
+                 [--no-restart-poor-fit] [--quiet] [--force] [--any-rate]
     identify diagnose EXPERIMENT.toml [--out DIR] [--only NAME,...] [--max-effects N] [--quiet] [--force]
+                      [--any-rate]
 
 `diagnose` fits the experiment's model, shows what it gets wrong, tries the catalogue of
 model extensions (`identify.catalogue`), names the cause(s) whose gain is significant and
@@ -26,8 +27,12 @@ and, unless `--force`, into an existing folder that holds files other than ours 
 previous run did not mark. `--force` only lets it write its own file names next to other
 files; it never deletes anything and never writes over an input.
 
+A log sampled below 1 Hz is refused (exit code 2) unless `--any-rate`: on a rig it is
+almost always a time column in milliseconds labelled [s], and simulating its 1000-fold
+span would take hours.
+
 Exit codes: 0 done (see `converged` in `result.json`), 1 the fit failed, 2 a usage
-error, an unreadable experiment or log, or a refused output folder.
+error, an unreadable experiment or log, a refused output folder or sampling rate.
 """
 
 from __future__ import annotations
@@ -97,6 +102,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("--quiet", action="store_true", help="print no progress, only the results")
     fit.add_argument(
+        "--any-rate",
+        action="store_true",
+        help="fit logs sampled below 1 Hz too (refused by default: most often a time column in ms labelled [s])",
+    )
+    fit.add_argument(
         "--force",
         action="store_true",
         help="write our files into --out even if it holds other files (they are never deleted or overwritten)",
@@ -123,6 +133,7 @@ def _parser() -> argparse.ArgumentParser:
     dg.add_argument("--max-effects", type=int, default=3, metavar="N", help="effects to stack at most (default 3)")
     dg.add_argument("--quiet", action="store_true", help="print no progress, only the results")
     dg.add_argument("--force", action="store_true", help="as for fit")
+    dg.add_argument("--any-rate", action="store_true", help="as for fit")
     return parser
 
 
@@ -377,6 +388,17 @@ def _experiment_and_folder(args, suffix: str):
         exp = load_experiment(args.experiment)
     except (ExperimentError, LogError) as e:
         raise _Refused(str(e)) from None
+    from .logs import PLAUSIBLE_RATE_HZ
+
+    slow = [spec for spec in exp.logs if spec.log.sampling.rate < PLAUSIBLE_RATE_HZ[0]]
+    if slow and not args.any_rate:
+        spec = slow[0]
+        raise _Refused(
+            f"refusing to fit: log {spec.name!r} ({spec.file}) is sampled at {spec.log.sampling.rate:.3g} Hz over "
+            f"{spec.log.sampling.duration:.4g} s, below any rig's log ({PLAUSIBLE_RATE_HZ[0]:g} Hz): is its time "
+            "column in milliseconds but labelled [s]? (simulating such a span takes hours) Fix the unit in the "
+            "header or the experiment's columns, or pass --any-rate to fit it as it is"
+        )
     inputs = [Path(exp.path)] + [Path(spec.file) for spec in exp.logs]
     out = args.out if args.out is not None else Path.cwd() / f"{Path(exp.path).stem}-{suffix}"
     check_output_folder(out, inputs, args.force)

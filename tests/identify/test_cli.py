@@ -146,6 +146,24 @@ def test_bad_log_is_exit_2_naming_the_log(tmp_path, capsys):
     assert "drop_m45deg.csv" in err and "line 11" in err
 
 
+def test_a_log_in_milliseconds_labelled_seconds_is_refused(tmp_path, capsys):
+    """Found in review: a time column in ms labelled [s] (0.2 Hz, a 1000-fold span) was
+    warned about, then the fit ran on for longer than the reviewer waited."""
+    exp = _copy_example(tmp_path / "example")
+    log = tmp_path / "example" / "logs" / "drop_m45deg.csv"
+    lines = log.read_text().splitlines()
+    rows = [k for k, line in enumerate(lines) if line[:1].isdigit() or line[:1] == "-"]
+    for k in rows:
+        t, rest = lines[k].split(",", 1)
+        lines[k] = f"{1000 * float(t):.6g},{rest}"
+    log.write_text("\n".join(lines) + "\n")
+    for command in ("fit", "diagnose"):
+        assert main([command, str(exp), "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        assert "refusing to fit: log 'drop_m45deg'" in err and "milliseconds but labelled [s]" in err, err
+        assert "--any-rate" in err and not (tmp_path / "out").exists()
+
+
 def test_missing_experiment_is_exit_2(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "nope.toml")]) == 2
     assert "nope.toml" in capsys.readouterr().err
