@@ -672,7 +672,7 @@ class FitResult:
         ]
         for i, n in enumerate(self.names):
             change = (self.values[i] - self.guesses[i]) / abs(self.guesses[i]) if self.guesses[i] else float("nan")
-            ci = covariance.interval_text(self.ci_low[i], self.ci_high[i])
+            ci = covariance.interval_text(self.ci_low[i], self.ci_high[i], self.std_errors[i])
             d = max(5, covariance.digits(self.values[i], self.std_errors[i]))
             unit = "" if self.problem is None else parameter_unit(self.problem, n)
             lines.append(

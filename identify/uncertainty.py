@@ -79,7 +79,7 @@ class ClusteredUncertainty:
             f"{'parameter':<28} {'value':>12} {'std err':>10} {pct + ' CI':>25}",
         ]
         for i, n in enumerate(self.names):
-            ci = covariance.interval_text(self.ci_low[i], self.ci_high[i])
+            ci = covariance.interval_text(self.ci_low[i], self.ci_high[i], self.std_errors[i])
             d = max(5, covariance.digits(self.values[i], self.std_errors[i]))
             lines.append(f"{n:<28} {self.values[i]:>12.{d}g} {self.std_errors[i]:>10.3g} {ci:>25}")
         return "\n".join(lines)

@@ -129,6 +129,10 @@ def test_a_parameter_on_an_exact_null_direction_has_no_standard_error():
     assert np.isfinite(cov).all()
     assert covariance.interval_text(-np.inf, np.inf) == "not determined"
     assert covariance.interval_text(0.0, np.inf) == "not determined"
+    # a log-space parameter whose interval overflowed, with a finite standard error (review: "not determined"
+    # beside SE 0.0341 read as a contradiction)
+    assert covariance.interval_text(0.0, np.inf, 0.0341) == "[0, inf)"
+    assert covariance.interval_text(0.0, np.inf, np.inf) == "not determined"
 
 
 def test_no_nuisances_and_no_shared_parameters():
