@@ -447,6 +447,7 @@ def _fit_command(args) -> int:
 
     from . import evidence, report as plots
     from .fit import fitted_outputs
+    from .noise_floor import declared_noise_warnings
     from .run import fit_experiment, residual_report
     from .uncertainty import clustered_uncertainty
 
@@ -509,6 +510,8 @@ def _fit_command(args) -> int:
     print()
     print(f"Fitted parameters ({exp.name}):")
     print(result.summary())
+    for line in declared_noise_warnings(exp.noise, result.fit_quality):
+        print(f"warning: {line}")
     if not result.identifiability:
         sv = np.asarray(result.singular_values)
         ratio = float(sv[-1] / sv[0]) if sv.size and sv[0] > 0 else float("nan")

@@ -157,3 +157,35 @@ def score(residual_ms, floor, count) -> float:
     ms, f2 = pooled(residual_ms, count), pooled(np.square(floor), count)
     used = ~np.isnan(ms)
     return float(np.mean(ms[used] / np.maximum(f2[used], np.finfo(float).tiny)))
+
+
+#: `declared_noise_warnings`: a declared noise this many times above or below the floor is
+#: questioned. Generous: filtered sensor noise puts the floor below the noise (0.42x for a
+#: first-order filter at a twentieth of the sampling rate) and a fast signal's leakage
+#: puts it above.
+NOISE_MISMATCH = 10.0
+
+
+def declared_noise_warnings(declared: dict, quality: dict) -> list[str]:
+    """Warnings for channels whose declared noise (`declared`: channel -> standard
+    deviation, SI, or None when estimated) is more than `NOISE_MISMATCH` times its floor
+    (`quality`: `goodness`' dict, e.g. `FitResult.fit_quality`), or less than 1 /
+    `NOISE_MISMATCH` of it. Found in review: `"0.03"` meant as degrees and read as
+    0.03 rad (57 times the floor) widened every interval 7x in silence; a declared noise
+    in the wrong unit is the usual cause."""
+    from .report import display_unit
+
+    out = []
+    for c, sigma in declared.items():
+        q = quality.get(c)
+        if sigma is None or q is None or not q["noise_floor"] > 0:
+            continue
+        ratio = sigma / q["noise_floor"]
+        if ratio > NOISE_MISMATCH or ratio < 1.0 / NOISE_MISMATCH:
+            scale, unit = display_unit(c)
+            out.append(
+                f"the declared noise of {c} ({scale * sigma:.3g} {unit}) is {ratio:.3g} times the noise floor "
+                f"estimated from the data ({scale * q['noise_floor']:.3g} {unit}): check its unit in [noise] "
+                "(the fit weighs the channel, and sizes the intervals, by the declared value)"
+            )
+    return out

@@ -143,3 +143,20 @@ def test_bad_samples_are_refused_with_a_message():
         nf.noise_floor([0.0, 1.0, 1.0, 2.0, 3.0, 4.0], [0.0, 1.0, 2.0, 3.0, 4.0, 5.0])
     with pytest.raises(ValueError, match="same length"):
         nf.noise_floor([0.0, 1.0, 2.0], [0.0, 1.0])
+
+
+def test_a_declared_noise_in_the_wrong_unit_is_questioned():
+    """0.03 deg of white noise on a swing: declared as 0.03 (rad, the review's mistake) it is
+    ~57 times the floor and questioned; declared right (0.03 deg), or estimated, it is not."""
+    from identify.noise_floor import declared_noise_warnings, series_floor
+
+    rng = np.random.default_rng(3)
+    t = np.arange(2000) * 5e-3
+    sigma = np.deg2rad(0.03)
+    y = 0.5 * np.sin(2 * np.pi * 1.3 * t) + sigma * rng.normal(size=t.size)
+    quality = {"theta1": {"noise_floor": series_floor(t, y)}}
+    (warning,) = declared_noise_warnings({"theta1": 0.03}, quality)
+    assert warning.startswith("the declared noise of theta1 (1.72 deg) is 5") and "check its unit" in warning
+    assert declared_noise_warnings({"theta1": sigma}, quality) == []
+    assert declared_noise_warnings({"theta1": None}, quality) == []
+    assert len(declared_noise_warnings({"theta1": sigma / 20}, quality)) == 1  # too small, too
