@@ -169,14 +169,14 @@ def _same(a: Path, b: Path) -> bool:
         return False
 
 
-def check_output_folder(out: Path, inputs: list[Path], force: bool) -> None:
+def check_output_folder(out: Path, inputs: list[Path], force: bool, suffix: str = "fit") -> None:
     """Raise `_Refused` unless we may write our files into `out`. `inputs`: the
     experiment file and its logs."""
     for p in inputs:
         if _same(out, p.parent):
             raise _Refused(
                 f"refusing to write into {out}: it holds an input of the experiment ({p.name}). "
-                "Choose another folder with --out (by default the command writes ./<experiment stem>-fit "
+                f"Choose another folder with --out (by default the command writes ./<experiment stem>-{suffix} "
                 "in the current folder)."
             )
     if out.exists() and not out.is_dir():
@@ -401,7 +401,7 @@ def _experiment_and_folder(args, suffix: str):
         )
     inputs = [Path(exp.path)] + [Path(spec.file) for spec in exp.logs]
     out = args.out if args.out is not None else Path.cwd() / f"{Path(exp.path).stem}-{suffix}"
-    check_output_folder(out, inputs, args.force)
+    check_output_folder(out, inputs, args.force, suffix)
     return exp, inputs, out
 
 
@@ -653,7 +653,7 @@ def _diagnose_command(args) -> int:
     print()
     print(diag.summary())
     try:
-        check_output_folder(out, inputs, args.force)
+        check_output_folder(out, inputs, args.force, "diagnosis")
     except _Refused as e:
         return error(str(e))
     out.mkdir(parents=True, exist_ok=True)

@@ -1864,8 +1864,14 @@ def diagnose(experiment, *, progress=None, **options) -> Diagnosis:
     """Diagnose an `Experiment` (see the module docstring); `options` go to `diagnose_logs`.
     The baseline fit starts from the experiment's `[[starts]]` too (`fit_options`'
     `extra_starts`, unless the caller gives them)."""
+    from .experiment import Experiment
     from .run import log_data, parameters
 
+    if not isinstance(experiment, Experiment):
+        raise TypeError(
+            f"diagnose: expected an Experiment (identify.load_experiment(path)), got {type(experiment).__name__} "
+            f"{experiment!r}"
+        )
     options["fit_options"] = {"extra_starts": experiment.starts, **(options.get("fit_options") or {})}
 
     n = experiment.chain.n_links

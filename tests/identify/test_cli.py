@@ -325,3 +325,18 @@ def test_residual_table_notes_coloured_fit_residuals():
     assert "run_v theta1" not in text.split("note:")[1]
     white = {"run_a": {"theta1": item(True)}}
     assert "note:" not in "\n".join(_residual_lines(white, {}, roles))
+
+
+def test_diagnose_refusing_the_experiment_folder_names_its_own_default(tmp_path, capsys):
+    # found in review: the message named the fit command's default folder (-fit)
+    exp = _copy_example(tmp_path / "example")
+    assert main(["diagnose", str(exp), "--out", str(exp.parent), "--force"]) == 2
+    err = capsys.readouterr().err
+    assert "it holds an input of the experiment" in err and "<experiment stem>-diagnosis" in err, err
+
+
+def test_diagnose_from_python_given_a_path_says_what_it_expects():
+    import identify
+
+    with pytest.raises(TypeError, match=r"expected an Experiment \(identify.load_experiment\(path\)\), got str"):
+        identify.diagnose(str(EXAMPLE / "experiment.toml"))
