@@ -131,6 +131,12 @@ def _parser() -> argparse.ArgumentParser:
         "sensor_highpass, actuator_lag, backlash, base_tilt, geometric_stiffening",
     )
     dg.add_argument("--max-effects", type=int, default=3, metavar="N", help="effects to stack at most (default 3)")
+    dg.add_argument(
+        "--fit-all",
+        action="store_true",
+        help="fit every candidate in full (default: one Gauss-Newton step screens them and the 3 most "
+        "promising are fitted; slower)",
+    )
     dg.add_argument("--quiet", action="store_true", help="print no progress, only the results")
     dg.add_argument("--force", action="store_true", help="as for fit")
     dg.add_argument("--any-rate", action="store_true", help="as for fit")
@@ -646,7 +652,13 @@ def _diagnose_command(args) -> int:
         last[0] = now
 
     try:
-        diag = diagnose(exp, catalogue=catalogue, max_effects=args.max_effects, progress=progress)
+        diag = diagnose(
+            exp,
+            catalogue=catalogue,
+            max_effects=args.max_effects,
+            progress=progress,
+            **({"n_fit": None} if args.fit_all else {}),
+        )
     except (RuntimeError, ValueError) as e:
         print(f"identify diagnose: failed: {e}", file=sys.stderr, flush=True)
         return 1

@@ -401,7 +401,10 @@ class Score:
     held_out_gain: float
     accepted: bool
     k: int
-    screened: bool = False  # not fitted: its predicted cost (one Gauss-Newton step) ranked it out
+    # not fitted: its cost and dBIC are those one Gauss-Newton step predicts (`_screen`), and
+    # `screen_reason` says why that ranked it out
+    screened: bool = False
+    screen_reason: str = ""
     # structural candidates (a model of their own): name -> {std_error, ci95} of the new
     # parameters, from that model's fit (continuous ones get theirs from the joint model)
     intervals: dict = dataclasses.field(default_factory=dict)
@@ -541,7 +544,7 @@ class Diagnosis:
             for s in scores:
                 if s.screened:
                     lines.append(
-                        f"  {s.label:<{w}} {s.delta_bic:>10.1f}   (screened out: predicted by one Gauss-Newton step)"
+                        f"  {s.label:<{w}} {s.delta_bic:>10.1f}   (predicted; screened out: {s.screen_reason})"
                     )
                     continue
                 lines.append(
@@ -863,10 +866,26 @@ def diagnose_logs(
             ]
             # ... and among those, the ones promising at least 10 % of the best one's reduction
             # (a second, smaller effect is searched for in the next round)
+            why_out = {lab: "predicted not to lower the BIC" for lab in predicted if lab not in promising}
             if promising:
                 best_drop = current["cost"] - min(predicted[lab] for lab in promising)
-                promising = [lab for lab in promising if current["cost"] - predicted[lab] >= 0.1 * best_drop]
+                small = [lab for lab in promising if current["cost"] - predicted[lab] < 0.1 * best_drop]
+                why_out.update(
+                    {
+                        lab: "predicted to take off under 10 % of what the best candidate does "
+                        "(a smaller effect: screened again once a larger one is accepted)"
+                        for lab in small
+                    }
+                )
+                promising = [lab for lab in promising if lab not in small]
             keep = sorted(promising, key=predicted.get)[:n_fit]
+            why_out.update(
+                {
+                    lab: f"ranked below the {n_fit} most promising (n_fit={n_fit})"
+                    for lab in promising
+                    if lab not in keep
+                }
+            )
             say(
                 "  screening (one Gauss-Newton step per start), predicted costs: "
                 + ", ".join(f"{lab} {predicted[lab]:.6g}" for lab in sorted(predicted, key=predicted.get))
@@ -882,7 +901,7 @@ def diagnose_logs(
             idx, logf, xe = idx[sel_i], logf[sel_i], xe[sel_i]
             remaining = [c for c in remaining if c.label in keep]
         else:
-            screened_out, predicted = [], {}
+            screened_out, predicted, why_out = [], {}, {}
         B = len(owners)
         scores = []
         fits = None
@@ -987,6 +1006,7 @@ def diagnose_logs(
                     False,
                     k,
                     screened=True,
+                    screen_reason=why_out[c.label],
                     members=tuple(m.label for m in c.members),
                 )
             )
@@ -1138,7 +1158,7 @@ def diagnose_logs(
         width = max([32] + [len(s.label) for s in scores[:5]])
         for s in scores[:5]:
             outcome = (
-                "(screened out: predicted by one Gauss-Newton step)"
+                f"(predicted by one Gauss-Newton step; screened out: {s.screen_reason})"
                 if s.screened
                 else f"held-out gain {s.held_out_gain:6.3f}x {'ACCEPTED' if s.accepted else ''}"
             )
@@ -1446,8 +1466,9 @@ def _fits_but_does_not_predict(scores, bic_threshold: float, min_gain: float, of
     if not (s.delta_bic < -bic_threshold and s.held_out_gain < 1.0 / min_gain):
         return ""
     text = (
-        f"{s.label} fits the fit logs far better (dBIC {s.delta_bic:.1f}) but predicts the held-out logs worse "
-        f"({s.held_out_gain:.3f}x): it absorbs something particular to the fit logs"
+        f"{s.label} fits the fit logs better (dBIC {s.delta_bic:.1f}) but predicts the held-out logs worse "
+        f"({s.held_out_gain:.3f}x), so it is not named: what it fits does not carry over to other logs "
+        "(something particular to the fit logs, or a small error of the model that it makes up for there)"
     )
     for label in s.members or (s.label,):
         name, _, channel = label.partition(":")

@@ -253,11 +253,19 @@ def markdown(diag, title: str = "") -> str:
         lines.append("| --- | --- | ---: | ---: | ---: | --- |")
         for s in scores:
             params = ", ".join(f"`{n}` = {v:.5g}" for n, v in s.params.items()) or (  # a gain near 1: 5 digits
-                "(screened out)" if s.screened else ""
+                f"(not fitted: {s.screen_reason})" if s.screened else ""
             )
             gain = "" if s.screened else f"{s.held_out_gain:.3f}x"
             p = "" if s.screened else f"{s.p_value:.2g}"
-            lines.append(f"| {s.label} | {params} | {s.delta_bic:.1f} | {p} | {gain} | {'yes' if s.accepted else ''} |")
+            dbic = f"({s.delta_bic:.1f})" if s.screened else f"{s.delta_bic:.1f}"
+            lines.append(f"| {s.label} | {params} | {dbic} | {p} | {gain} | {'yes' if s.accepted else ''} |")
+        if any(s.screened for s in scores):
+            lines.append("")
+            lines.append(
+                "A dBIC in parentheses is a prediction, not a fit: one Gauss-Newton step from the current model "
+                "(exact Jacobian) screens the candidates and only the most promising are fitted in full. "
+                "`diagnose_logs(..., n_fit=None)` (`identify diagnose --fit-all`) fits them all."
+            )
     if diag.notes:
         lines.append("")
         lines.extend(f"- {note_text(n)[:1].upper()}{note_text(n)[1:]}" for n in diag.notes)

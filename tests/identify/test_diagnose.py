@@ -144,6 +144,14 @@ def test_quadratic_damping_hidden_and_told_apart_from_dry_friction(monkeypatch):
     ratios = {k: diag.held_out[k]["theta1"] / floor for k in ("baseline", "extended")}
     assert ratios["baseline"] > 2.0 and 0.8 < ratios["extended"] < 1.2, ratios
     assert diag.left_unexplained == [] and "floor" in diagnosis_report.markdown(diag)
+    # candidates screened out (one Gauss-Newton step) show their predicted dBIC as such, and
+    # why they were not fitted
+    screened = [s for s in diag.rounds[0] if s.screened]
+    assert screened and all(s.screen_reason for s in screened), diag.rounds[0]
+    for s in screened:
+        row = f"| {s.label} | (not fitted: {s.screen_reason}) | ({s.delta_bic:.1f}) |"
+        assert row in diagnosis_report.markdown(diag), row
+        assert f"(predicted; screened out: {s.screen_reason})" in diag.summary()
     # a true drag of 0.1-0.4 kg/m^2 is plausible (`catalogue.implausible`); a warning, had
     # there been one, reaches the summary, the JSON and the report
     assert diag.causes[0].warnings == []

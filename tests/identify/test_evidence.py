@@ -171,3 +171,39 @@ def test_no_decay_law_is_named_for_an_envelope_none_fits():
     x = sizes[np.floor(t * w / np.pi).astype(int)] * np.sin(w * t)
     law = ev.decay_law(t, x, noise=1e-3)
     assert law["best"] == "inconclusive" and max(law["r2"].values()) < ev.DECAY_R2_MIN, law
+
+
+def test_a_spectrum_peak_of_white_noise_is_within_the_noise_and_a_line_above_it_is_significant():
+    """Oracle: Fisher's test. Over 200 records of white Gaussian noise (2,000 samples), the
+    largest residual peak is called significant in about PEAK_FALSE_ALARM = 1 % of them
+    (binomial: at most 8 of 200 with probability > 0.999 if the rate is 1 %); a sinusoid of
+    amplitude 0.3 sigma at 37.3 Hz (power 0.045 sigma^2 over 2,000 samples: ~15x the
+    background of the Hann periodogram at its bin) is found at its frequency and called
+    significant in every record; so is one 6x larger on AR(1) noise (coefficient 0.95),
+    whose own steep spectrum is not called significant (at most 2 of 20 records)."""
+    n = 2000
+    t = np.arange(n) * 1e-3
+    false = 0
+    for seed in range(200):
+        peaks = ev.spectrum_peaks(t, np.random.default_rng(seed).normal(size=n), [40.0])
+        false += any(p["significant"] for p in peaks)
+        assert all(p["above_background"] is None or p["above_background"] > 0 for p in peaks)
+    assert false <= 8
+    line = 0.3 * np.sin(2 * np.pi * 37.3 * t)
+    ar_false = 0
+    for seed in range(20):
+        e = np.random.default_rng(seed).normal(size=n)
+        peak = ev.spectrum_peaks(t, e + line, [40.0])[0]
+        assert abs(peak["frequency_hz"] - 37.3) < 0.5 and peak["significant"] and peak["nearest_mode_hz"] == 40.0
+        ar = np.zeros(n)
+        for i in range(1, n):
+            ar[i] = 0.95 * ar[i - 1] + e[i]
+        ar_false += any(p["significant"] for p in ev.spectrum_peaks(t, ar, []))
+        # (the AR spectrum is 18x white noise's at 37.3 Hz and 400x near 0 Hz: a line 6x
+        # larger, among its 10 largest peaks)
+        on_ar = [p for p in ev.spectrum_peaks(t, ar + 6 * line, [], n_peaks=10) if p["significant"]]
+        assert any(abs(p["frequency_hz"] - 37.3) < 0.5 for p in on_ar)
+    assert ar_false <= 2
+    # a slow swing (3 periods in the log) is a trend: not judged, and said so
+    slow = ev.spectrum_peaks(t, np.sin(2 * np.pi * 1.5 * t), [])[0]
+    assert slow["significant"] is None and "a trend, not judged" in ev._peak_text(slow)
