@@ -543,9 +543,7 @@ class Diagnosis:
             lines.append(f"  {'candidate':<{w}} {'dBIC':>10} {'p-value':>9} {'held-out gain':>14}  accepted")
             for s in scores:
                 if s.screened:
-                    lines.append(
-                        f"  {s.label:<{w}} {s.delta_bic:>10.1f}   (predicted; screened out: {s.screen_reason})"
-                    )
+                    lines.append(f"  {s.label:<{w}} {s.delta_bic:>10.1f}   (predicted; not fitted: {s.screen_reason})")
                     continue
                 lines.append(
                     f"  {s.label:<{w}} {s.delta_bic:>10.1f} {s.p_value:>9.2g} {s.held_out_gain:>13.3f}x  "
@@ -654,7 +652,7 @@ def diagnose_logs(
     base = fit(base_problem, parameters, estimate_noise=estimate or False, progress=progress, **options)
     sigma = np.asarray([base.sigma[c] for c in base_problem.channels])
     sigma_j = jnp.asarray(sigma)
-    notes = _baseline_notes(base.names, base.std_errors)  # `Diagnosis.notes`
+    notes = _baseline_notes(base.names, base.std_errors, base.values)  # `Diagnosis.notes`
     for n in notes:
         say(f"  warning: {n['text']}")
     step = base.step
@@ -872,8 +870,7 @@ def diagnose_logs(
                 small = [lab for lab in promising if current["cost"] - predicted[lab] < 0.1 * best_drop]
                 why_out.update(
                     {
-                        lab: "predicted to take off under 10 % of what the best candidate does "
-                        "(a smaller effect: screened again once a larger one is accepted)"
+                        lab: "under 10 % of the best one's predicted drop; screened again once that is accepted"
                         for lab in small
                     }
                 )
@@ -1158,7 +1155,7 @@ def diagnose_logs(
         width = max([32] + [len(s.label) for s in scores[:5]])
         for s in scores[:5]:
             outcome = (
-                f"(predicted by one Gauss-Newton step; screened out: {s.screen_reason})"
+                f"(predicted by one Gauss-Newton step; not fitted: {s.screen_reason})"
                 if s.screened
                 else f"held-out gain {s.held_out_gain:6.3f}x {'ACCEPTED' if s.accepted else ''}"
             )
@@ -1437,19 +1434,44 @@ def _stuck_above_nested(c, cost: float, cost_current: float, bic_threshold: floa
     )
 
 
-def _baseline_notes(names, std_errors) -> list:
+#: `_baseline_notes`: a 95 % half-width above this fraction of the value marks a baseline
+#: parameter as poorly determined
+POORLY_DETERMINED = 0.5
+
+
+def _baseline_notes(names, std_errors, values=None) -> list:
     """`Diagnosis.notes` of the baseline fit (round 0): the parameters its fit logs do not
-    determine (no interval: `identify.covariance`). Its degeneracy is every candidate's,
-    whose fit then wanders along it."""
+    determine (no interval: `identify.covariance`; their degeneracy is every candidate's,
+    whose fit then wanders along it), and those they determine poorly (a 95 % half-width,
+    1.96 SE, above `POORLY_DETERMINED` of the value: the logs carry little information
+    (short, small motions, much noise), and an effect of similar size may go unnoticed:
+    naming no cause then does not say there is none)."""
+    notes = []
     undetermined = [n for n, se in zip(names, std_errors) if not np.isfinite(se)]
-    if not undetermined:
-        return []
-    text = (
-        f"the fit logs do not determine the baseline's {', '.join(undetermined)} (they see only a combination "
-        "of them; see the fit's identifiability warning): fix one parameter of each combination, or the "
-        "candidates' fits inherit the degeneracy"
-    )
-    return [{"round": 0, "text": text}]
+    if undetermined:
+        text = (
+            f"the fit logs do not determine the baseline's {', '.join(undetermined)} (they see only a "
+            "combination of them; see the fit's identifiability warning): fix one parameter of each combination, "
+            "or the candidates' fits inherit the degeneracy"
+        )
+        notes.append({"round": 0, "text": text})
+    if values is not None:
+        poor = [
+            f"{n} +-{100 * 1.96 * se / abs(v):.0f} %"
+            for n, v, se in zip(names, values, std_errors)
+            if np.isfinite(se) and 1.96 * se > POORLY_DETERMINED * abs(v)
+        ]
+        if poor:
+            notes.append(
+                {
+                    "round": 0,
+                    "text": f"the fit logs determine the baseline's {', '.join(poor)} only (95 %): unless such a "
+                    "value is negligible in the model, they carry little information (short logs, small "
+                    "motions or much noise), and a missing effect of comparable size can go undetected; longer "
+                    "or richer logs give the search more power",
+                }
+            )
+    return notes
 
 
 def _fits_but_does_not_predict(scores, bic_threshold: float, min_gain: float, offsets_fitted) -> str:

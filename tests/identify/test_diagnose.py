@@ -151,7 +151,7 @@ def test_quadratic_damping_hidden_and_told_apart_from_dry_friction(monkeypatch):
     for s in screened:
         row = f"| {s.label} | (not fitted: {s.screen_reason}) | ({s.delta_bic:.1f}) |"
         assert row in diagnosis_report.markdown(diag), row
-        assert f"(predicted; screened out: {s.screen_reason})" in diag.summary()
+        assert f"(predicted; not fitted: {s.screen_reason})" in diag.summary()
     # a true drag of 0.1-0.4 kg/m^2 is plausible (`catalogue.implausible`); a warning, had
     # there been one, reaches the summary, the JSON and the report
     assert diag.causes[0].warnings == []
@@ -364,6 +364,11 @@ def test_a_baseline_with_undetermined_parameters_is_noted_first():
     assert D.note_text(notes[0]).startswith("baseline: the fit logs do not determine")
     assert D.note_text({"round": 2, "text": "x"}) == "round 2: x"
     assert D._baseline_notes(["a"], np.array([0.1])) == []
+    # determined, but poorly (95 % half-width above half the value): the search's power is low
+    notes = D._baseline_notes(["a", "b"], np.array([0.3, 0.1]), np.array([1.0, 1.0]))
+    assert len(notes) == 1 and "a +-59 %" in notes[0]["text"] and "b +-" not in notes[0]["text"]
+    assert "can go undetected" in notes[0]["text"]
+    assert D._baseline_notes(["a"], np.array([0.25]), np.array([1.0])) == []  # +-49 %
 
 
 @pytest.mark.parametrize("optimism", [1.0, 10.0])
