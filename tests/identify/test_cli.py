@@ -340,3 +340,23 @@ def test_diagnose_from_python_given_a_path_says_what_it_expects():
 
     with pytest.raises(TypeError, match=r"expected an Experiment \(identify.load_experiment\(path\)\), got str"):
         identify.diagnose(str(EXAMPLE / "experiment.toml"))
+
+
+@pytest.mark.parametrize("flag, n_fit", [([], "default"), (["--fit-all"], None)])
+def test_diagnose_fit_all_fits_every_candidate(tmp_path, monkeypatch, capsys, flag, n_fit):
+    """`--fit-all` turns the screening off (`n_fit=None`); without it the library's
+    default holds. A stand-in records the options and fails (exit 1)."""
+    import importlib
+
+    module = importlib.import_module("identify.diagnose")  # (`identify.diagnose` is the function)
+    exp = _copy_example(tmp_path / "example")
+    seen = {}
+
+    def stand_in(experiment, **options):
+        seen.update(options)
+        raise RuntimeError("stand-in diagnose")
+
+    monkeypatch.setattr(module, "diagnose", stand_in)
+    assert main(["diagnose", str(exp), "--out", str(tmp_path / "out"), "--quiet", *flag]) == 1
+    assert ("n_fit" not in seen) if n_fit == "default" else (seen["n_fit"] is None), seen
+    assert "stand-in diagnose" in capsys.readouterr().err
