@@ -13,7 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from . import covariance, evidence as ev  # noqa: E402
-from .diagnose import note_text  # noqa: E402
+from .diagnose import DETECTION_LIMITS_MEANING, note_text  # noqa: E402
 from .report import display_unit, jsonable, wrapped_title  # noqa: E402
 
 JSON_FILE = "diagnosis.json"
@@ -269,6 +269,13 @@ def markdown(diag, title: str = "") -> str:
     if diag.notes:
         lines.append("")
         lines.extend(f"- {note_text(n)[:1].upper()}{note_text(n)[1:]}" for n in diag.notes)
+    if diag.detection_limits:
+        lines.append("")
+        lines.append("## Detection limits")
+        lines.append("")
+        lines.append(f"What the search could have found: {DETECTION_LIMITS_MEANING}.")
+        lines.append("")
+        lines.extend(f"- {text}" for text in diag.detection_limit_lines())
     if diag.not_tried:
         lines.append("")
         lines.append("Not tried:")
