@@ -99,6 +99,44 @@ class Modes(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
 
 
+#: `symmetric_eigh`: eigenvalues closer than this many `n eps max|lambda|` count as one
+#: (degenerate) in the derivative
+DEGENERATE_ROUNDOFF = 100.0
+
+
+@jax.custom_jvp
+def symmetric_eigh(A):
+    """`jnp.linalg.eigh` of a symmetric matrix, with a derivative that stays finite where
+    eigenvalues coincide.
+
+    The derivative of an eigenvector, `dv_i = sum_{j != i} v_j (v_j^T dA v_i) / (lambda_i
+    - lambda_j)` (first-order perturbation theory), is undefined inside a degenerate
+    eigenspace, where any rotation of the basis is an eigenbasis: JAX's own rule divides
+    by zero there, and a reverse pass multiplies the resulting inf by a zero cotangent,
+    which makes the gradient of every shape NaN, not only the degenerate ones (seen: an
+    arm with two free joints has two rigid-body modes at omega^2 = 0, and the gradient
+    of its flexible mode's tip deflection w.r.t. the payload came out NaN; the finite
+    difference is -2.58). Here the pairs closer than `DEGENERATE_ROUNDOFF n eps
+    max|lambda|` get no mixing term: a vector outside the degenerate space has its exact
+    derivative; one inside it, the derivative of one admissible choice of basis."""
+    w, V = jnp.linalg.eigh(A)
+    return w, V
+
+
+@symmetric_eigh.defjvp
+def _symmetric_eigh_jvp(primals, tangents):
+    (A,), (dA,) = primals, tangents
+    w, V = jnp.linalg.eigh(A)
+    n = w.shape[-1]
+    dA = 0.5 * (dA + dA.T)
+    X = V.T @ dA @ V
+    gap = w[None, :] - w[:, None]  # gap[i, j] = lambda_j - lambda_i
+    tol = DEGENERATE_ROUNDOFF * n * jnp.finfo(w.dtype).eps * jnp.max(jnp.abs(w))
+    apart = jnp.abs(gap) > tol
+    F = jnp.where(apart, 1.0 / jnp.where(apart, gap, 1.0), 0.0)
+    return (w, V), (jnp.diagonal(X), V @ (F * X))
+
+
 @eqx.filter_jit
 def stiffness_matrix(chain: Chain | AssembledChain, Q0) -> Float[Array, "n n"]:
     """Tangent stiffness `K = -d(F - dV/dQ)/dQ` at rest (bending, joint springs, gravity)."""
@@ -130,7 +168,7 @@ def modal_analysis(chain: Chain | AssembledChain, Q0=None) -> Modes:
     K = 0.5 * (K + K.T)
     L = jnp.linalg.cholesky(M)
     Linv = jax.scipy.linalg.solve_triangular(L, jnp.eye(n), lower=True)
-    w2, V = jnp.linalg.eigh(Linv @ K @ Linv.T)
+    w2, V = symmetric_eigh(Linv @ K @ Linv.T)
     # A rigid-body mode's omega^2 is zero only up to the eigensolver's round-off, about
     # n eps max|omega^2| (it came out as ~3e-6 Hz); below that it is reported as exactly 0.
     tol = n * jnp.finfo(w2.dtype).eps * jnp.max(jnp.abs(w2))

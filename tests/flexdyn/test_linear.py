@@ -86,3 +86,38 @@ def test_derivatives_from_rest_need_dtmax():
         # (~4 ms): the states are right, their derivatives blow up (documented in simulate).
         assert float(jnp.max(jnp.abs(grad(Y0, fn, None)))) > 1e10
         np.testing.assert_allclose(grad(Y0, fn, h / 4), want, rtol=1e-6, err_msg=fn.__name__)
+
+
+def test_mode_shape_gradients_are_finite_with_two_rigid_body_modes():
+    """Found in a new-user review: an arm with two free joints has two rigid-body modes
+    (omega^2 = 0 twice), where JAX's eigenvector derivative divides by zero; the reverse
+    pass then made the gradient of every mode shape NaN. Oracle: central differences of
+    the squared tip deflection of the first flexible mode (sign-free) w.r.t. the payload
+    mass and the inertia of the hub between the links (not EI: a uniform link's
+    mass-normalised shapes do not depend on it)."""
+    import equinox as eqx
+
+    arm = fd.Chain(
+        links=[
+            fd.RigidLink(length=0.3, mass=0.4),
+            fd.FlexibleLink(length=0.5, rho=0.3, EI=1.0, n_modes=3, damping_ratio=0.01),
+        ],
+        hubs=[fd.Hub(inertia=0.01), fd.Hub(mass=0.3, inertia=0.002)],
+        payload=fd.Payload(mass=0.2),
+        gravity=(0.0, 0.0),
+    )
+
+    def tip_squared(p, where):
+        chain = eqx.tree_at(where, arm, p)
+        modes = fd.modal_analysis(chain)
+        return fd.tip_deflections(chain, modes.shapes[:, 2])[1] ** 2
+
+    f = np.asarray(fd.modal_analysis(arm).natural_frequency)
+    assert f[0] == f[1] == 0.0 and f[2] > 0.0  # two rigid-body modes, then the flexible one
+    for where, p0 in ((lambda c: c.payload.mass, 0.2), (lambda c: c.hubs[1].inertia, 0.002)):
+        g = float(jax.grad(tip_squared)(jnp.asarray(p0), where))
+        h = 1e-6 * p0
+        fdiff = (float(tip_squared(jnp.asarray(p0 + h), where)) - float(tip_squared(jnp.asarray(p0 - h), where))) / (
+            2 * h
+        )
+        assert np.isfinite(g) and abs(g - fdiff) <= 1e-6 * abs(fdiff), (g, fdiff)
