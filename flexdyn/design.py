@@ -38,6 +38,8 @@ controller on the same move and the same `T`.
 
 from __future__ import annotations
 
+import warnings
+
 import diffrax
 import equinox as eqx
 import jax
@@ -46,7 +48,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._checks import as_float_array, warn_if_degrees
+from ._checks import _is_concrete, as_float_array, check_parameter, warn_if_degrees
 from .chain import Chain
 from .inputs import AbstractInput
 from .simulate import observe, simulate
@@ -92,7 +94,14 @@ class BSplineTorque(AbstractInput):
                 f"BSplineTorque.control_points: expected shape (n_control, n_joints), got {self.control_points.shape}"
             )
         self.duration = as_float_array(duration)
-        self.tau_max = jnp.broadcast_to(as_float_array(tau_max), self.control_points.shape[1:])
+        check_parameter("BSplineTorque", "duration", self.duration, positive=True, shape=())
+        tau = as_float_array(tau_max)
+        if tau.ndim > 1 or (tau.ndim == 1 and tau.shape != self.control_points.shape[1:]):
+            raise ValueError(
+                f"BSplineTorque.tau_max: expected a scalar or one limit per joint (shape "
+                f"{self.control_points.shape[1:]}, the control points' columns), got shape {tau.shape}"
+            )
+        self.tau_max = jnp.broadcast_to(tau, self.control_points.shape[1:])
         if not isinstance(self.tau_max, jax.core.Tracer) and np.any(np.asarray(self.tau_max) <= 0):
             raise ValueError(f"BSplineTorque.tau_max: expected torque limits > 0 N m, got {tau_max!r}")
 
@@ -164,14 +173,37 @@ class RestToRestMove(eqx.Module):
                 f"RestToRestMove: expected {n} start and goal angles, got {self.start_angles.shape} "
                 f"and {self.goal_angles.shape}"
             )
+        check_parameter("RestToRestMove", "start_angles", self.start_angles, signed=True)
+        check_parameter("RestToRestMove", "goal_angles", self.goal_angles, signed=True)
         warn_if_degrees("RestToRestMove", "start_angles", self.start_angles)
         warn_if_degrees("RestToRestMove", "goal_angles", self.goal_angles)
         self.duration = as_float_array(duration)
-        self.tau_max = jnp.broadcast_to(as_float_array(tau_max), (n,))
+        tau = as_float_array(tau_max)
+        if tau.ndim > 1 or (tau.ndim == 1 and tau.shape != (n,)):
+            raise ValueError(
+                f"RestToRestMove.tau_max: expected a scalar or one limit per joint (shape ({n},)), got shape "
+                f"{tau.shape}"
+            )
+        self.tau_max = jnp.broadcast_to(tau, (n,))
         self.settle = as_float_array(settle)
         self.length_scale = as_float_array(length_scale)
         self.rate_time_scale = as_float_array(rate_time_scale)
+        for name in ("duration", "tau_max", "settle", "length_scale", "rate_time_scale"):
+            value = getattr(self, name)
+            check_parameter("RestToRestMove", name, value, positive=True, shape=() if name != "tau_max" else (n,))
+        if _is_concrete(self.duration) and float(self.duration) > 60.0:
+            warnings.warn(
+                f"RestToRestMove.duration = {float(self.duration):g} s is over a minute; flexdyn takes seconds "
+                f"(if {float(self.duration):g} is in ms, pass {float(self.duration) / 1e3:g})",
+                UserWarning,
+                stacklevel=2,
+            )
+        if isinstance(n_window, bool) or int(n_window) != n_window or n_window < 2:
+            raise ValueError(
+                f"RestToRestMove.n_window: expected an integer >= 2 (samples from T to T + settle), got {n_window!r}"
+            )
         self.n_window = int(n_window)
+        check_parameter("RestToRestMove", "dt", dt, positive=True)
         self.dt = float(dt)
 
     def output_times(self):
@@ -308,6 +340,29 @@ def _move_solver(rtol: float, atol: float):
     return eqx.tree_at(lambda s: s.search, solver, MARQUARDT_TRUST_REGION)
 
 
+def _check_design_inputs(move: RestToRestMove, initial) -> None:
+    """`design_move`'s preconditions on the initial torque: a `BSplineTorque` over the
+    move's joints, duration and torque limits (the move's are the ones used)."""
+    if not isinstance(initial, BSplineTorque):
+        raise TypeError(
+            f"design_move: initial expected a BSplineTorque (e.g. BSplineTorque.fit of a bang-bang's samples), "
+            f"got {type(initial).__name__}"
+        )
+    n = move.chain.n_links
+    if initial.control_points.shape[1] != n:
+        raise ValueError(
+            f"design_move: initial has {initial.control_points.shape[1]} joint columns, the move's arm {n} joints"
+        )
+    for name in ("duration", "tau_max"):
+        mine, theirs = getattr(initial, name), getattr(move, name)
+        if _is_concrete(mine) and _is_concrete(theirs) and not np.allclose(np.asarray(mine), np.asarray(theirs)):
+            raise ValueError(
+                f"design_move: initial.{name} = {np.asarray(mine)} differs from the move's {np.asarray(theirs)}; the "
+                f"design uses the move's (build the initial torque with move.torque(control_points) or "
+                f"BSplineTorque.fit(..., duration=move.duration, tau_max=move.tau_max))"
+            )
+
+
 def design_move(
     move: RestToRestMove,
     initial: BSplineTorque,
@@ -327,7 +382,15 @@ def design_move(
     (`MARQUARDT_TRUST_REGION`). `throw=False` returns the best point found when `max_steps` is
     reached (check `result`)."""
 
+    _check_design_inputs(move, initial)
     masses = None if payload_masses is None else as_float_array(payload_masses)
+    if masses is not None:
+        if masses.ndim != 1 or masses.shape[0] < 1:
+            raise ValueError(
+                f"design_move.payload_masses: expected a 1-D array of payload masses (kg), e.g. [0.0, 0.05, 0.1], "
+                f"got shape {masses.shape}"
+            )
+        check_parameter("design_move", "payload_masses", masses)
     weight = as_float_array(payload_weight)
     if weight.ndim != 0 or (not isinstance(weight, jax.core.Tracer) and not float(weight) > 0):
         raise ValueError(f"design_move.payload_weight: expected one number > 0, got {payload_weight!r}")

@@ -65,6 +65,56 @@ def test_move_rejects_wrong_number_of_angles():
         design.RestToRestMove(fd.rigs.two_link_flexible_arm(), [0.0], [0.1, 0.2], T, 0.4)
 
 
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"goal_angles": [float("nan"), 0.0]}, r"RestToRestMove.goal_angles: expected a finite number, got \[nan"),
+        ({"duration": -0.8}, r"RestToRestMove.duration: expected a value > 0, got -0.8"),
+        ({"duration": 0.0}, r"RestToRestMove.duration: expected a value > 0, got 0"),
+        ({"settle": 0.0}, r"RestToRestMove.settle: expected a value > 0, got 0"),
+        ({"tau_max": [1.0, 1.0, 1.0]}, r"RestToRestMove.tau_max: expected a scalar or one limit per joint"),
+        ({"tau_max": 0.0}, r"RestToRestMove.tau_max: expected a value > 0"),
+        ({"n_window": 1}, r"RestToRestMove.n_window: expected an integer >= 2"),
+        ({"dt": 0.0}, r"RestToRestMove.dt: expected a value > 0"),
+    ],
+)
+def test_move_rejects_bad_arguments_naming_them(change, message):
+    """Found in a new-user review: these were accepted, and the design's cost or the move's
+    metrics came out NaN or meaningless (a negative duration, a one-sample window), or
+    the error came from deep inside (`simulate: ts expected ...`, a broadcasting error)."""
+    kwargs = {"start_angles": [0.0, 0.0], "goal_angles": [0.1, 0.5], "duration": 0.5, "tau_max": 0.4, **change}
+    with pytest.raises(ValueError, match=message):
+        design.RestToRestMove(fd.rigs.two_link_flexible_arm(), **kwargs)
+
+
+def test_move_warns_of_a_duration_in_milliseconds():
+    with pytest.warns(UserWarning, match=r"duration = 800 s is over a minute.*pass 0.8"):
+        design.RestToRestMove(fd.rigs.two_link_flexible_arm(), [0.0, 0.0], [0.1, 0.5], 800.0, 0.4)
+
+
+def test_design_rejects_an_initial_torque_that_does_not_fit_the_move():
+    """The design uses the move's duration and limits: an initial spline over another
+    duration, other limits or another number of joints is refused, as are payload masses
+    that are not a 1-D array of masses (review: a raw vmap rank error)."""
+    move = design.RestToRestMove(fd.rigs.two_link_flexible_arm(), [0.0, 0.0], [0.1, 0.5], 0.5, 0.4, n_window=5)
+    for initial, message in [
+        (design.BSplineTorque(jnp.zeros((4, 2)), 1.2, 0.4), r"initial.duration = 1.2 differs from the move's 0.5"),
+        (design.BSplineTorque(jnp.zeros((4, 2)), 0.5, 0.3), r"initial.tau_max = \[0.3 0.3\] differs"),
+        (design.BSplineTorque(jnp.zeros((4, 3)), 0.5, 0.4), r"initial has 3 joint columns, the move's arm 2"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            design.design_move(move, initial)
+    with pytest.raises(TypeError, match="initial expected a BSplineTorque"):
+        design.design_move(move, fd.BangBang([0.4, 0.4], 0.25))
+    for masses, message in [(0.2, r"payload_masses: expected a 1-D array"), ([-0.1, 0.2], r"payload_masses.*>= 0")]:
+        with pytest.raises(ValueError, match=message):
+            design.design_move(move, move.torque(jnp.zeros((4, 2))), payload_masses=masses)
+    with pytest.raises(ValueError, match=r"BSplineTorque.tau_max: expected a scalar or one limit per joint"):
+        design.BSplineTorque(jnp.zeros((4, 2)), 0.5, [1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match=r"BSplineTorque.duration: expected a value > 0"):
+        design.BSplineTorque(jnp.zeros((4, 2)), -0.5, 0.4)
+
+
 @pytest.mark.parametrize("weight", [0.0, -1.0, float("nan"), [1.0, 2.0]])
 def test_design_rejects_bad_payload_weight(weight):
     move = design.RestToRestMove(fd.rigs.two_link_flexible_arm(), [0.0, 0.0], [0.1, 0.5], 0.5, 0.4, n_window=5)
