@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import warn_if_degrees
+from ._checks import as_float_array, check_parameter, warn_if_degrees
 from .chain import (
     AssembledChain,
     Chain,
@@ -60,6 +60,13 @@ def as_initial_state(asm, y0, caller: str) -> Float[Array, " 2n"]:
             f"{caller}: y0 expected shape ({2 * n},) = [Q, Q_dot] for coordinates "
             f"{list(asm.layout.names)}, got {y0.shape}"
         )
+    if isinstance(y0, jax.core.Tracer):
+        return eqx.error_if(y0, ~jnp.all(jnp.isfinite(y0)), f"{caller}: y0 has a non-finite entry (NaN or inf)")
+    bad = np.flatnonzero(~np.isfinite(np.asarray(y0)))
+    if bad.size:
+        i = int(bad[0])
+        name = asm.layout.names[i] if i < n else f"{asm.layout.names[i - n]}_dot"
+        raise ValueError(f"{caller}: y0 expected finite values, got {float(y0[i])} at index {i} ({name})")
     return y0
 
 
@@ -110,6 +117,12 @@ def prepare(chain, y0, ts, torque, caller: str):
     ts = check_times(ts, caller)
     torque = as_input(torque, asm.chain.n_links)
     _check_torque_shape(torque, ts[0], y0, asm.chain.n_links)
+    # (a NaN torque makes the adaptive steps collapse until max_steps: said here instead)
+    y0 = eqx.error_if(
+        y0,
+        ~jnp.all(jnp.isfinite(torque(ts[0], y0))),
+        f"{caller}: the torque input is not finite (NaN or inf) at ts[0]: check its amplitudes, samples or function",
+    )
     return asm, y0, ts, torque
 
 
@@ -171,17 +184,17 @@ def initial_state(
     """Build `y0 = [Q, Q_dot]` from named parts (rad, rad/s, m, m/s).
 
     Rotor angles/rates of elastic joints default to the link angles/rates (unloaded
-    springs). `modal` is the concatenation of all links' modal coordinates.
+    springs). `modal` is the concatenation of all links' modal coordinates. Traceable
+    (e.g. `jax.vmap` over release angles); concrete values are checked to be finite.
     """
     lay = chain.layout
     n_links = chain.n_links
-    Q = np.zeros(lay.n_dof)
-    Qd = np.zeros(lay.n_dof)
 
     def vec(x, size, name):
-        x = np.zeros(size) if x is None else np.atleast_1d(np.asarray(x, dtype=float))
+        x = jnp.zeros(size) if x is None else jnp.atleast_1d(as_float_array(x))
         if x.shape != (size,):
             raise ValueError(f"initial_state: {name} expected shape ({size},), got {x.shape}")
+        check_parameter("initial_state", name, x, signed=True)
         return x
 
     theta, theta_d = vec(joint_angles, n_links, "joint_angles"), vec(joint_rates, n_links, "joint_rates")
@@ -189,16 +202,16 @@ def initial_state(
     if rotor_angles is not None:
         warn_if_degrees("initial_state", "rotor_angles", rotor_angles)
     n_modal = sum(len(m) for m in lay.modal)
-    modal_idx = [k for m in lay.modal for k in m]
-    Q[list(lay.theta)], Qd[list(lay.theta)] = theta, theta_d
-    Q[modal_idx] = vec(modal, n_modal, "modal")
-    Qd[modal_idx] = vec(modal_rates, n_modal, "modal_rates")
+    modal_idx = np.asarray([k for m in lay.modal for k in m], dtype=int)
+    theta_idx = np.asarray(lay.theta, dtype=int)
+    Q = jnp.zeros(lay.n_dof).at[theta_idx].set(theta).at[modal_idx].set(vec(modal, n_modal, "modal"))
+    Qd = jnp.zeros(lay.n_dof).at[theta_idx].set(theta_d).at[modal_idx].set(vec(modal_rates, n_modal, "modal_rates"))
     alpha = theta if rotor_angles is None else vec(rotor_angles, n_links, "rotor_angles")
     alpha_d = theta_d if rotor_rates is None else vec(rotor_rates, n_links, "rotor_rates")
     for i, k in enumerate(lay.rotor):
         if k is not None:
-            Q[k], Qd[k] = alpha[i], alpha_d[i]
-    return jnp.asarray(np.concatenate([Q, Qd]))
+            Q, Qd = Q.at[k].set(alpha[i]), Qd.at[k].set(alpha_d[i])
+    return jnp.concatenate([Q, Qd])
 
 
 def floats_as_arrays(tree):
@@ -328,7 +341,8 @@ def _simulate(
         sol.result == diffrax.RESULTS.max_steps_reached,
         f"simulate: the solver reached max_steps={max_steps} before the last output time; "
         + (
-            "raise max_steps, loosen rtol/atol, or use a larger fixed dt"
+            "raise max_steps, loosen rtol/atol, or use a larger fixed dt (a torque input that turns NaN "
+            "after ts[0] also ends this way: check the input)"
             if dt is None
             else "raise max_steps or use a larger dt; or the fixed step dt is above the "
             "stability limit of the stiffest mode or joint and the state blew up (the step control "
@@ -345,7 +359,8 @@ def _simulate(
         ys,
         ~jnp.all(jnp.isfinite(ys)),
         "simulate: the state became non-finite (NaN/inf); with a fixed step this usually means "
-        "dt is above the stability limit of the stiffest mode or joint: reduce dt or use the adaptive solver",
+        "dt is above the stability limit of the stiffest mode or joint: reduce dt or use the adaptive solver "
+        "(or the torque input turned NaN: check it)",
     )
     driven = not isinstance(torque, ZeroTorque)
     return Trajectory(ts, ys[:, :n], ys[:, n:], sol.stats["num_accepted_steps"], asm.layout.names, driven)

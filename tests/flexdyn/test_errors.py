@@ -135,6 +135,37 @@ def test_bad_simulation_arguments_are_rejected():
         fd.simulate(chain, jnp.zeros(2), ts, dt=0.0)
 
 
+def test_non_finite_initial_states_and_torques_are_named():
+    """Found in a new-user review: a NaN in `y0` or in the input ran until max_steps (4 s)
+    and then advised raising max_steps; `initial_state` took a NaN angle."""
+    chain = fd.rigs.two_link_flexible_arm()
+    ts = jnp.linspace(0.0, 0.2, 3)
+    y0 = fd.initial_state(chain, [0.1, 0.0])
+    for solve in ("simulate", "tsit5_trajectory"):
+        with pytest.raises(RUNTIME_ERRORS, match=rf"{solve}: y0 has a non-finite entry"):
+            getattr(fd, solve)(chain, y0.at[0].set(NAN), ts).Q.block_until_ready()
+        with pytest.raises(RUNTIME_ERRORS, match=rf"{solve}: the torque input is not finite \(NaN or inf\) at ts\[0\]"):
+            getattr(fd, solve)(chain, y0, ts, fd.BangBang([NAN, 0.1], 0.1)).Q.block_until_ready()
+    with pytest.raises(RUNTIME_ERRORS, match=r"simulate: the torque input is not finite"):
+        fd.simulate(chain, y0, ts, fd.BangBang([NAN, 0.1], 0.1), dt=1e-3).Q.block_until_ready()
+    from flexdyn.simulate import as_initial_state
+
+    with pytest.raises(ValueError, match=r"simulate: y0 expected finite values, got nan at index 0 \(theta1\)"):
+        as_initial_state(fd.assemble(chain), y0.at[0].set(NAN), "simulate")
+    with pytest.raises(ValueError, match=r"initial_state.joint_angles: expected a finite number, got \[nan"):
+        fd.initial_state(chain, [NAN, 0.0])
+
+
+def test_initial_state_can_be_traced():
+    """`jax.vmap` over release angles (review: a TracerArrayConversionError): the same
+    states as built one by one."""
+    chain = fd.rigs.flexible_link_joint_arm()
+    angles = jnp.asarray([[0.1, -0.2], [0.3, 0.0]])
+    batch = jax.vmap(lambda a: fd.initial_state(chain, a, joint_rates=2 * a))(angles)
+    for a, y in zip(angles, batch):
+        assert jnp.array_equal(y, fd.initial_state(chain, [float(a[0]), float(a[1])], joint_rates=2 * a))
+
+
 @pytest.mark.parametrize("solve", ["simulate", "tsit5_trajectory", "rk4_trajectory"])
 @pytest.mark.parametrize("ts", [[0.5, 0.4, 0.3], [0.0, 0.2, 0.1, 0.3], [0.0, math.nan, 0.3]])
 def test_times_that_are_not_finite_and_increasing_are_rejected(solve, ts):
