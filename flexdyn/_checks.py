@@ -98,6 +98,19 @@ def check_part(part) -> None:
             check_parameter(
                 owner, name, value, positive=kind == POSITIVE, signed=kind == SIGNED, shape=_shape(part, name)
             )
+    length = getattr(part, "length", None)
+    if length is not None and _is_concrete(length) and float(np.asarray(length)) > LONG_LINK:
+        value = float(np.asarray(length))
+        warnings.warn(
+            f"{owner}.length = {value:g} m is over {LONG_LINK:g} m; flexdyn takes lengths in metres "
+            f"(if {value:g} is in mm, pass {value / 1e3:g})",
+            UserWarning,
+            stacklevel=4,
+        )
+
+
+#: `check_part` warns of a link longer than this (m): a length in millimetres, most likely
+LONG_LINK = 50.0
 
 
 def checked_part(part, owner: str | None = None):

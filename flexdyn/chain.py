@@ -138,6 +138,12 @@ class Chain(eqx.Module):
     gravity: Float[Array, "2"]
 
     def __init__(self, links, joints=None, hubs=None, payload=None, gravity=(0.0, 0.0)):
+        for name, parts in (("links", links), ("joints", joints), ("hubs", hubs)):
+            if isinstance(parts, eqx.Module):
+                raise TypeError(
+                    f"Chain.{name}: expected a list of parts, one per link "
+                    f"(e.g. {name}=[{type(parts).__name__}(...)]), got a single {type(parts).__name__}"
+                )
         links = tuple(links)
         n = len(links)
         if n == 0:
@@ -755,10 +761,19 @@ def end_point(asm: AssembledChain | Chain, Q):
     return frames(asm, Q).end
 
 
+def _check_coordinates(lay, Q, caller: str) -> None:
+    if jnp.shape(Q) != (lay.n_dof,):
+        raise ValueError(
+            f"{caller}: Q expected shape ({lay.n_dof},), the coordinates {list(lay.names)} (a mode shape, or "
+            f"the first half of a state: y[:{lay.n_dof}]), got {jnp.shape(Q)}"
+        )
+
+
 def tip_deflections(asm: AssembledChain | Chain, Q):
     """Elastic tip deflection v_i(l_i) of every link, m (0 for rigid links)."""
     asm = assemble(asm)
     lay = asm.layout
+    _check_coordinates(lay, Q, "tip_deflections")
     return jnp.stack(
         [lm.tip_shape @ _modal(lay, Q, i) if lay.modal[i] else jnp.zeros(()) for i, lm in enumerate(asm.links)]
     )
@@ -769,6 +784,7 @@ def root_curvatures(asm: AssembledChain | Chain, Q):
     strain = curvature * half thickness)."""
     asm = assemble(asm)
     lay = asm.layout
+    _check_coordinates(lay, Q, "root_curvatures")
     return jnp.stack(
         [lm.root_curvature @ _modal(lay, Q, i) if lay.modal[i] else jnp.zeros(()) for i, lm in enumerate(asm.links)]
     )

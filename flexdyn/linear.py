@@ -287,7 +287,9 @@ def check_rk4_step(chain: Chain | AssembledChain, y0, torque0, dt, caller: str):
     return eqx.error_if(
         y0,
         unstable,
-        f"{caller}: the fixed step dt is above RK4's stability limit for the chain's stiffest mode at y0 "
+        f"{caller}: the fixed step dt"
+        + ("" if isinstance(dt, jax.core.Tracer) else f" = {float(dt):g} s")
+        + " is above RK4's stability limit for the chain's stiffest mode at y0 "
         "(fd.stable_step(chain, y0, solver='rk4') gives the limit): a mode would grow from round-off and "
         "the result be wrong; reduce dt or use the adaptive solver (dt=None)",
     )

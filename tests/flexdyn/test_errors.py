@@ -376,3 +376,31 @@ def test_every_parameter_set_after_construction_is_checked(case):
         as_float = eqx.tree_at(lambda c: getattr(part_of(c), name), chain, float(good))
         q = jnp.zeros(chain.n_dof)
         assert jnp.array_equal(fd.mass_matrix(fd.assemble(as_float), q), fd.mass_matrix(fd.assemble(chain), q))
+
+
+def test_review_mistakes_of_a_new_arm_get_clear_errors_and_warnings():
+    """Found in a new-user review of payload sweeps and move design: a single link passed
+    as `links=` failed with "'FlexibleLink' object is not iterable"; a mode shape of the
+    wrong length reached a raw dot_general error; lengths in mm passed without a word; a
+    tip deflection above the link's length came back without a word (the model
+    assumes small deflections)."""
+    link = fd.FlexibleLink(0.5, 0.3, 1.0, n_modes=2)
+    with pytest.raises(TypeError, match=r"Chain.links: expected a list of parts.*got a single FlexibleLink"):
+        fd.Chain(links=link)
+    with pytest.raises(TypeError, match=r"Chain.hubs: expected a list of parts.*got a single Hub"):
+        fd.Chain(links=[link], hubs=fd.Hub(inertia=0.01))
+    arm = fd.Chain([fd.RigidLink(0.3, 0.4), link], hubs=[fd.Hub(inertia=0.01), fd.Hub(mass=0.3, inertia=0.002)])
+    with pytest.raises(ValueError, match=r"tip_deflections: Q expected shape \(4,\).*got \(3,\)"):
+        fd.tip_deflections(arm, jnp.zeros(3))
+    with pytest.warns(UserWarning, match=r"RigidLink.length = 300 m is over 50 m.*pass 0.3"):
+        fd.RigidLink(300.0, 0.4)
+    y0 = fd.initial_state(arm, [0.0, 0.0])
+    ts = jnp.linspace(0.0, 1.0, 101)
+    small, large = fd.BangBang([0.3, 0.1], 0.3), fd.BangBang([5.0, 2.5], 0.3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fd.observe(arm, fd.simulate(arm, y0, ts, small), small)
+    with pytest.warns(
+        UserWarning, match=r"observe: link2's elastic tip deflection reaches [\d.]+ m, \d+ % of its 0.5 m length"
+    ):
+        fd.observe(arm, fd.simulate(arm, y0, ts, large), large)
