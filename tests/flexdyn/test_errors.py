@@ -239,7 +239,7 @@ def test_torque_of_the_wrong_size_is_rejected():
 # ---------------------------------------------------------------------------
 
 
-STABILITY = r"dt is above RK4's stability limit.*reduce dt"
+STABILITY = r"dt = \S+ s is above RK4's stability limit.*reduce dt"
 
 
 def test_unstable_fixed_step_raises_instead_of_returning_nan():

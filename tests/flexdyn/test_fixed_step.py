@@ -240,5 +240,5 @@ def test_rk4_trajectory_errors():
         jax.jit(lambda ts: fixed_step.rk4_trajectory(ARM, Y0, ts, TORQUE, dt=1e-3))(jnp.asarray(TS_1KHZ))
     with pytest.raises(ValueError, match=r"y0 expected shape \(8,\)"):
         fixed_step.rk4_trajectory(ARM, Y0[:4], TS_1KHZ, TORQUE, dt=1e-3)
-    with pytest.raises(Exception, match="rk4_trajectory: the fixed step dt is above RK4's stability limit"):
+    with pytest.raises(Exception, match=r"rk4_trajectory: the fixed step dt = 0.4 s is above RK4's stability limit"):
         jax.block_until_ready(fixed_step.rk4_trajectory(ARM, Y0, [0.0, 40.0], TORQUE, dt=0.4).Q)

@@ -108,6 +108,9 @@ SLOW_CONSERVATIVE_RIGS = ("flexible_pendulum_1_mode", "mixed_three_link_arm", "t
     "rig",
     [pytest.param(r, marks=pytest.mark.slow) if r in SLOW_CONSERVATIVE_RIGS else r for r in CONSERVATIVE_RIGS],
 )
+# (some of these motions bend a link far beyond the small deflections the model is meant
+# for, and `observe` says so; conservation is an identity of the equations at any size)
+@pytest.mark.filterwarnings("ignore:.*elastic tip deflection reaches:UserWarning")
 def test_undamped_unforced_motion_conserves_energy(rig):
     make, rtol, atol = CONSERVATIVE_RIGS[rig]
     chain, y0 = make()
