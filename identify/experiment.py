@@ -381,6 +381,16 @@ def load_experiment(path) -> Experiment:
                 f"log name {entry.name!r} is also used by logs[{seen[entry.name]}]; give each log a unique name",
             )
         seen[entry.name] = k
+    same: dict[tuple, int] = {}
+    for k, entry in enumerate(logs, start=1):
+        read = (entry.file, tuple(sorted(entry.columns.items())))
+        if read in same:
+            raise r.error(
+                ("logs", k, "file"),
+                f"logs[{same[read]}] already reads {entry.file.name} with the same columns: the same samples "
+                "would count twice (and the intervals come out too narrow); list each log once",
+            )
+        same[read] = k
     if not any(entry.role == "fit" for entry in logs):
         raise r.error(("logs",), 'every log has role = "validation"; expected at least one with role = "fit"')
 

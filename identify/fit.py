@@ -69,6 +69,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
@@ -84,6 +85,7 @@ from .block_lm import BlockLevenbergMarquardt, Layout, read_blocks
 from .channels import state_names  # noqa: F401  (re-exported)
 from .covariance import Covariance
 from .frequency_init import STIFFNESS, initialise_stiffness
+from .logs import PLAUSIBLE_RATE_HZ
 from .measurement import Measurement
 from .report import display_unit
 from .residuals import (  # noqa: F401  (re-exported: identify.predict, diagnose)
@@ -211,6 +213,15 @@ def _check_log_data(log: LogData) -> None:
         )
     if not log.outputs:
         raise ValueError(f"{where}: no output channels (outputs is empty)")
+    rate = 1.0 / float(np.median(np.diff(t)))
+    if rate < PLAUSIBLE_RATE_HZ[0]:
+        warnings.warn(
+            f"{where}: sampled at {rate:.3g} Hz over {t[-1] - t[0]:.4g} s, below any rig's log "
+            f"({PLAUSIBLE_RATE_HZ[0]:g} Hz): are its times in milliseconds? (in seconds: t / 1000); a fit of it "
+            "can run for hours (review: one such log among 20 stalled the fit)",
+            UserWarning,
+            stacklevel=4,
+        )
     series = [(f"outputs[{c!r}]", v, (t.size,)) for c, v in log.outputs.items()]
     if log.torque is not None:
         tq = np.asarray(log.torque, dtype=float)

@@ -14,6 +14,7 @@ import csv
 import dataclasses
 import math
 import re
+import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -418,7 +419,8 @@ def _skip(line: str) -> bool:
 
 
 def _read_csv(path: Path, wanted, cals, strict, context):
-    lines = _read_text(path).splitlines()
+    text = _read_text(path)
+    lines = text.splitlines()
     header_at = next((i for i, line in enumerate(lines) if not _skip(line)), None)
     if header_at is None:
         raise LogError(f"{path}: no header row; expected a first row like 'time [s],theta1 [rad],tip1 [mm]'")
@@ -492,6 +494,9 @@ def _read_csv(path: Path, wanted, cals, strict, context):
         line_numbers.append(i + 1)
         for c in used:
             cells[c].append(row[c - 1])
+    if not line_numbers:
+        raise LogError(f"{path}: no data rows after the header on line {hline}; expected one row per sample")
+    _warn_if_cut_off(path, text, lines, line_numbers)
 
     def where_for(c):
         return lambda j: f"line {line_numbers[j]}, column {c} ({header[c - 1]!r})"
@@ -509,6 +514,24 @@ def _read_csv(path: Path, wanted, cals, strict, context):
         _check_time(path, t_relative, where_for(seen[next(w.source for w in wanted if w.channel == "time")]), t)
     sources.pop("time")
     return t, t_relative, channels, sources, ignored
+
+
+def _warn_if_cut_off(path, text: str, lines: list[str], line_numbers: list[int]) -> None:
+    """Warn when the file ends without a newline in a data row shorter than every other:
+    the mark of a write interrupted mid-number (review: `1.9950,-51.` read as -51.0 deg,
+    the sample written as -51.90, and nothing noticed it). A file that merely lacks the
+    final newline has a last row as long as the others."""
+    last = line_numbers[-1]
+    if text.endswith(("\n", "\r")) or last != len(lines) or len(line_numbers) < 3:
+        return
+    others = min(len(lines[n - 1].strip()) for n in line_numbers[:-1])
+    if len(lines[last - 1].strip()) < others:
+        warnings.warn(
+            f"{path}, line {last}: the file ends without a newline in a row shorter than every other "
+            f"({lines[last - 1].strip()!r}): it may have been cut off mid-write; check that row, or delete it",
+            UserWarning,
+            stacklevel=2,
+        )
 
 
 def _parse_floats(path, texts: list[str], decimal_comma: bool, where) -> np.ndarray:

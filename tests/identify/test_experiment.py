@@ -589,6 +589,20 @@ def test_duplicate_log_names_and_no_fit_log(tmp_path):
         load_experiment(path)
 
 
+def test_the_same_file_listed_twice_is_refused(tmp_path):
+    """Review: one file under two names counted its samples twice and narrowed the
+    intervals without a word. With other columns (another channel) it is two logs."""
+    path = experiment(
+        tmp_path, RIG + LOG + LOG.replace('file = "logs/drop.csv"', 'file = "logs/drop.csv"\nname = "again"')
+    )
+    with pytest.raises(ExperimentError, match=msg("exp.toml", "logs[2].file", "logs[1] already reads drop.csv")):
+        load_experiment(path)
+    other = LOG.replace(', tip1 = "tip1 [mm]"', "").replace(
+        'file = "logs/drop.csv"', 'file = "logs/drop.csv"\nname = "b"'
+    )
+    assert len(load_experiment(experiment(tmp_path, RIG + LOG + other)).logs) == 2
+
+
 def test_no_rig_or_no_logs(tmp_path):
     path = experiment(tmp_path, LOG)
     with pytest.raises(ExperimentError, match=msg("exp.toml", "missing [rig]", "base")):

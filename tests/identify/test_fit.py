@@ -704,6 +704,16 @@ def test_make_problem_checks_log_data_naming_the_log(change, message):
         identify.make_problem(chain, [identify.Parameter("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
 
 
+def test_make_problem_warns_of_a_log_sampled_below_one_hertz():
+    """Review: a log whose times were in ms, read as s (0.2 Hz over 4,000 s), stalled a
+    Python fit for minutes without a word (the command line refuses it)."""
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(11) * 5.0
+    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7")
+    with pytest.warns(UserWarning, match=r"log 'drop_7': sampled at 0.2 Hz over 50 s.*in milliseconds"):
+        identify.make_problem(chain, [identify.Parameter("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
+
+
 def test_make_problem_refuses_two_logs_of_one_name_and_a_bad_noise():
     """Found in review: two logs named alike were accepted and one's fitted initial state
     was lost from `result.initial_states` (a dict by name)."""

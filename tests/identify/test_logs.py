@@ -3,6 +3,7 @@ kind of malformed log (file, line, column or variable, and what was expected).""
 
 import math
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -40,6 +41,28 @@ COLUMNS = {"time": "time [s]", "theta1": "theta1 [deg]", "tip1": "tip1 [mm]"}
 # ---------------------------------------------------------------------------
 # Valid logs
 # ---------------------------------------------------------------------------
+
+
+def test_a_header_without_rows_is_an_error_naming_the_file(tmp_path):
+    # review: an IndexError from inside the loader
+    path = write_csv(tmp_path / "empty.csv", HEADER, [])
+    with pytest.raises(LogError, match=msg("empty.csv", "no data rows after the header on line 1")):
+        load_log(path, COLUMNS)
+
+
+def test_a_last_row_cut_off_mid_write_is_warned_about(tmp_path):
+    """Review: `1.9950,-51.` (the write interrupted inside -51.90) loaded as -51.0 without a
+    word. A file that merely lacks the final newline is not warned about."""
+    rows = good_rows()
+    path = tmp_path / "cut.csv"
+    text = "\n".join([",".join(HEADER)] + [",".join(r) for r in rows])
+    path.write_text(text[:-3])  # cut inside the last number, no final newline
+    with pytest.warns(UserWarning, match=msg("cut.csv, line 21", "ends without a newline", "cut off mid-write")):
+        load_log(path, COLUMNS)
+    path.write_text(text)  # complete, no final newline: quiet
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(load_log(path, COLUMNS).t) == 20
 
 
 def test_csv_units_converted_to_si(tmp_path):
