@@ -1405,7 +1405,11 @@ def fit_independent(
         for k_stage, h in enumerate(horizons):
             step, ok, _ = grid(stacked, z, jnp.asarray(h), grid_safety)
             if not bool(jnp.all(ok)):
-                raise RuntimeError("fit_independent: a simulation at the current parameters failed")
+                failed = [singles[k].log_names[0] for k in range(L) if not bool(ok[k])]
+                raise RuntimeError(
+                    f"fit_independent: the simulation of log(s) {failed} at their current parameters failed "
+                    f"(stage {k_stage + 1}, horizon {float(h):g} s)"
+                )
             # each log's step aligned with its torque samples (`aligned_step`); padding
             # entries repeat the last log
             step = jnp.asarray(

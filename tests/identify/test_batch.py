@@ -43,3 +43,28 @@ def test_independent_vmapped_fits_recover_each_logs_own_damping():
         assert res.initial_states[name]["theta1"][0] == pytest.approx(np.radians(deg), abs=5e-4)
     # log 1 (not 0: each log's own linearisation is picked out of the batch)
     assert_standard_errors_match(results[1], fresh_covariance(results[1]))
+
+
+def test_a_failed_simulation_names_its_log(monkeypatch):
+    """Review: the error said "a simulation at the current parameters failed" without
+    naming the log. Here the stage's simulation is made to fail for every log."""
+    import sys
+
+    F = sys.modules["identify.fit"]
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(0.0, 0.5, 1e-2)
+    logs = [
+        identify.simulate_log(chain, t, initial={"theta1": a}, channels=("theta1",), name=f"drop{k}")
+        for k, a in enumerate((0.1, 0.2))
+    ]
+    params = [identify.Parameter("joint1.damping", 1e-3, 1e-6, 1e-1)]
+    problem = identify.make_problem(chain, params, logs, noise={"theta1": 1e-3})
+    grid_step = F._grid_step
+
+    def failing(problem, z, horizon, safety):
+        step, ok, out = grid_step(problem, z, horizon, safety)
+        return step, ok & False, out
+
+    monkeypatch.setattr(F, "_grid_step", failing)
+    with pytest.raises(RuntimeError, match=r"the simulation of log\(s\) \['drop0', 'drop1'\] .*failed \(stage 1"):
+        identify.fit_independent(problem, params, n_stages=1, frequency_init=False)
