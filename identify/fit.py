@@ -708,7 +708,8 @@ class FitResult:
             scale, unit = display_unit(c)
             lines.append(
                 f"warning: the residual of {c} (RMS {scale * q['residual_rms']:.3g} {unit}) is {q['ratio']:.3g} times "
-                f"its noise floor ({scale * q['noise_floor']:.3g} {unit}, estimated from the data alone): the fit "
+                f"its noise floor ({scale * q['noise_floor']:.3g} {unit}, estimated from the data alone, pooled "
+                "over the logs: `identify fit`'s residual table and identify.residual_report give each log's): the fit "
                 "ended in a wrong basin or the model misses an effect (try other guesses, or `identify diagnose`), "
                 "unless the sensor's noise is low-pass filtered (a first-order filter at a twentieth of the "
                 "sampling rate makes the floor 0.42 of the noise: identify.noise_floor)"
