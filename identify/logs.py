@@ -419,8 +419,8 @@ def _skip(line: str) -> bool:
 
 
 def _read_csv(path: Path, wanted, cals, strict, context):
-    text = _read_text(path)
-    lines = text.splitlines()
+    content = _read_text(path)
+    lines = content.splitlines()
     header_at = next((i for i, line in enumerate(lines) if not _skip(line)), None)
     if header_at is None:
         raise LogError(f"{path}: no header row; expected a first row like 'time [s],theta1 [rad],tip1 [mm]'")
@@ -496,7 +496,7 @@ def _read_csv(path: Path, wanted, cals, strict, context):
             cells[c].append(row[c - 1])
     if not line_numbers:
         raise LogError(f"{path}: no data rows after the header on line {hline}; expected one row per sample")
-    _warn_if_cut_off(path, text, lines, line_numbers)
+    _warn_if_cut_off(path, content, lines, line_numbers)
 
     def where_for(c):
         return lambda j: f"line {line_numbers[j]}, column {c} ({header[c - 1]!r})"

@@ -63,6 +63,10 @@ def test_a_last_row_cut_off_mid_write_is_warned_about(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert len(load_log(path, COLUMNS).t) == 20
+        # a short last row in a file that ends with its newline is complete (the real
+        # single pendulum's vad1.csv ends '55,3.17389,-1.928')
+        path.write_text(text[:-3] + "\n")
+        assert len(load_log(path, COLUMNS).t) == 20
 
 
 def test_csv_units_converted_to_si(tmp_path):
