@@ -88,8 +88,8 @@ def triton_ir(case: str, block: int, warps: int) -> tuple[str, int]:
     from jax.experimental import pallas as pl
 
     chains, y0, torque = batch(case)
-    flat, asm = fused._assembled_scalars(chains)
-    columns = fused._columns(flat)
+    flat, first, same, asm = fused._assembled_scalars(chains)
+    columns = fused._columns(first, same)
     plan = fused._plan(asm, torque, 0.0, T_END, DT, y0, columns, "rsqrt")
     original = pl.pallas_call
     pl.pallas_call = functools.partial(original, debug=True)

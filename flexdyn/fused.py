@@ -166,26 +166,26 @@ class _Plan:
 
 @eqx.filter_jit
 def _assembled_scalars(chains):
-    """The batch assembled, and its array leaves flattened to one (B, K) array."""
+    """The batch assembled; its array leaves flattened to one (B, K) array; the first
+    entry's row (K,) and which of the K scalars are the same in every entry (K,): one
+    program, so that a call's host work is one dispatch and one small transfer."""
     asm = eqx.filter_vmap(assemble)(chains)
     dynamic, static = eqx.partition(asm, eqx.is_array)
     leaves = jax.tree_util.tree_leaves(dynamic)
     flat = jnp.concatenate([leaf.reshape(leaf.shape[0], -1) for leaf in leaves], axis=1)
-    return flat, asm
+    return flat, flat[0], jnp.all(flat == flat[:1], axis=0), asm
 
 
-def _columns(flat) -> tuple:
+def _columns(first, same) -> tuple:
     """Per assembled scalar: ("const", value) where it is the same in every entry of the
     batch (when the values are concrete), else ("row", k), k numbering the varying ones."""
-    try:
-        values = np.asarray(flat)
-    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        return tuple(("row", k) for k in range(flat.shape[1]))
-    same = np.all(values == values[:1], axis=0)
+    if isinstance(first, jax.core.Tracer) or isinstance(same, jax.core.Tracer):
+        return tuple(("row", k) for k in range(first.shape[0]))
+    first, same = jax.device_get((first, same))
     columns, k = [], 0
-    for j in range(values.shape[1]):
-        if same[j]:
-            columns.append(("const", float(values[0, j])))
+    for value, fixed in zip(first.tolist(), same.tolist()):
+        if fixed:
+            columns.append(("const", value))
         else:
             columns.append(("row", k))
             k += 1
@@ -194,13 +194,16 @@ def _columns(flat) -> tuple:
 
 def _structure_key(asm, torque, t0, t1, dt, n_state, columns):
     """A hashable key of everything the scalar program depends on but the varying values;
-    None if some part is not hashable (then nothing is cached)."""
-    one = jax.tree_util.tree_map(lambda x: x[0] if eqx.is_array(x) else x, asm)
-    dynamic, static = eqx.partition(one, eqx.is_array)
+    None if some part is not hashable (then nothing is cached). The batched `asm` has the
+    same tree structure and static part as one of its entries."""
+    dynamic, static = eqx.partition(asm, eqx.is_array)
     torque_leaves, torque_def = jax.tree_util.tree_flatten(torque)
+    if any(isinstance(x, jax.core.Tracer) for x in torque_leaves):
+        return None  # a traced input: its values are not known, nothing to key on
+    values = jax.device_get([x if eqx.is_array_like(x) else None for x in torque_leaves])
     torque_bytes = tuple(
-        (np.asarray(x).dtype.str, np.asarray(x).shape, np.asarray(x).tobytes()) if eqx.is_array_like(x) else x
-        for x in torque_leaves
+        (np.asarray(v).dtype.str, np.asarray(v).shape, np.asarray(v).tobytes()) if eqx.is_array_like(x) else x
+        for x, v in zip(torque_leaves, values)
     )
     key = (jax.tree_util.tree_structure(dynamic), static, torque_def, torque_bytes, t0, t1, dt, n_state, columns)
     try:
@@ -282,6 +285,36 @@ def _pallas_runner(plan: _Plan, block: int, num_warps: int | None, interpret: bo
     return run
 
 
+_NON_FINITE = (
+    "rk4_sweep_final: a final state is non-finite (NaN/inf): dt is probably above the stability limit "
+    "of the stiffest mode or joint (reduce dt), or a parameter is invalid (a NaN or negative mass/stiffness?)"
+)
+
+
+def _program(plan: _Plan, integrate: Callable, block: int | None) -> Callable:
+    """The whole sweep as one jitted program of `(flat, y0)`: the varying scalars gathered
+    from the assembled `flat` (B, K), the batch padded to whole programs of `block`
+    (repeating the last entry: a valid input, dropped afterwards), `integrate(P, Y)` on
+    the transposed arrays, and the finiteness check. One dispatch per call: on a GPU each
+    eager operation is a launch, and the host work around the kernel used to take longer
+    than the kernel (`benchmarks/README.md`)."""
+    varying = np.array([j for j, (kind, _) in enumerate(plan.columns) if kind == "row"], dtype=int)
+
+    @jax.jit
+    def run(flat, y0):
+        n_batch = flat.shape[0]
+        Y = jnp.broadcast_to(y0, (n_batch, plan.n_state)).T
+        P = flat[:, varying].T if varying.size else jnp.zeros((1, n_batch), Y.dtype)
+        n_padded = n_batch if block is None else -(-n_batch // block) * block
+        if n_padded != n_batch:
+            P = jnp.concatenate([P, jnp.repeat(P[:, -1:], n_padded - n_batch, axis=1)], axis=1)
+            Y = jnp.concatenate([Y, jnp.repeat(Y[:, -1:], n_padded - n_batch, axis=1)], axis=1)
+        out = integrate(P, Y)[:, :n_batch].T
+        return eqx.error_if(out, ~jnp.all(jnp.isfinite(out)), _NON_FINITE)
+
+    return run
+
+
 def _runner(key, make_plan: Callable[[], _Plan], backend, block, num_warps, interpret) -> Callable:
     key = None if key is None else (key, backend, block, num_warps, interpret)
     if key is not None and key in _cache:
@@ -289,9 +322,9 @@ def _runner(key, make_plan: Callable[[], _Plan], backend, block, num_warps, inte
         return _cache[key]
     plan = make_plan()
     if backend == "xla":
-        run = _xla_runner(plan)
+        run = _program(plan, _xla_runner(plan), None)
     else:
-        run = _pallas_runner(plan, block, num_warps, interpret)
+        run = _program(plan, _pallas_runner(plan, block, num_warps, interpret), block)
     if key is not None:
         _cache[key] = run
         while len(_cache) > _CACHE_SIZE:
@@ -362,45 +395,27 @@ def rk4_sweep_final(
     n_batch = int(leaves[0].shape[0])
     if any(int(leaf.shape[0]) != n_batch for leaf in leaves):
         raise ValueError("rk4_sweep_final: the chains' array leaves have different leading (batch) sizes")
-    flat, asm = _assembled_scalars(chains)
-    one = jax.tree_util.tree_map(lambda x: x[0] if eqx.is_array(x) else x, asm)
-    torque = as_input(torque, one.chain.n_links)
-    n_state = 2 * one.layout.n_dof
+    flat, first, same, asm = _assembled_scalars(chains)
+    torque = as_input(torque, asm.chain.n_links)
+    n_state = 2 * asm.layout.n_dof
     y0 = jnp.asarray(y0, dtype=jnp.result_type(float))
-    if y0.shape == (n_state,):
-        y0 = jnp.broadcast_to(y0, (n_batch, n_state))
-    if y0.shape != (n_batch, n_state):
+    if y0.shape not in ((n_state,), (n_batch, n_state)):
         raise ValueError(
             f"rk4_sweep_final: y0 expected shape ({n_state},) or ({n_batch}, {n_state}) = [Q, Q_dot] "
-            f"with Q = {list(one.layout.names)}, got {tuple(y0.shape)}"
+            f"with Q = {list(asm.layout.names)}, got {tuple(y0.shape)}"
         )
-    _check_torque_shape(torque, t0, y0[0], one.chain.n_links)
-    columns = _columns(flat)
+    columns = _columns(first, same)
     key = _structure_key(asm, torque, t0, t1, dt, n_state, columns)
-    run = _runner(
-        None if key is None else (key, solve),
-        lambda: _plan(asm, torque, t0, t1, dt, y0[0], columns, solve),
-        backend,
-        block,
-        num_warps,
-        interpret,
-    )
-    varying = np.array([j for j, (kind, _) in enumerate(columns) if kind == "row"], dtype=int)
-    P = flat[:, varying].T if varying.size else jnp.zeros((1, n_batch), y0.dtype)
-    n_padded = -(-n_batch // block) * block if backend == "pallas" else n_batch
-    Y = y0.T
-    if n_padded != n_batch:  # repeat the last entry: a valid input, dropped afterwards
-        P = jnp.concatenate([P, jnp.repeat(P[:, -1:], n_padded - n_batch, axis=1)], axis=1)
-        Y = jnp.concatenate([Y, jnp.repeat(Y[:, -1:], n_padded - n_batch, axis=1)], axis=1)
+
+    def make_plan():  # on a cache miss only: the key fixes the input's structure and values, and n_state
+        template = jnp.zeros((n_state,), y0.dtype)
+        _check_torque_shape(torque, t0, template, asm.chain.n_links)
+        return _plan(asm, torque, t0, t1, dt, template, columns, solve)
+
     try:
-        out = run(P, Y)[:, :n_batch].T
+        run = _runner(None if key is None else (key, solve), make_plan, backend, block, num_warps, interpret)
+        return run(flat, y0)
     except NotImplementedError as e:
         raise NotImplementedError(
             f"rk4_sweep_final: {e}. Use jax.vmap of flexdyn.fixed_step.rk4_final for this chain and input"
         ) from e
-    return eqx.error_if(
-        out,
-        ~jnp.all(jnp.isfinite(out)),
-        "rk4_sweep_final: a final state is non-finite (NaN/inf): dt is probably above the stability limit "
-        "of the stiffest mode or joint (reduce dt), or a parameter is invalid (a NaN or negative mass/stiffness?)",
-    )
