@@ -3,12 +3,13 @@
 `bench_gpu_sweep.py` times `flexdyn.fused.rk4_sweep_final` as a user calls it. This
 script splits that call, on chains assembled beforehand:
 
-- **kernel alone**: the compiled runner (`pallas_call` and its padding) on the prepared
-  (P, Y) arrays, at two horizons: time = a + b x steps gives the per-step cost b and the
-  fixed cost a of one launch;
-- **prologue**: the whole call minus the kernel (the batch's scalars flattened, checked for
-  constant columns on the host, the structure key, the gather of the varying columns, the
-  final `eqx.error_if`);
+- **kernel**: the compiled program that `rk4_sweep_final` dispatches, on the arguments
+  it was given (since commit bc94d01: the gather of the varying scalars, the padding, the
+  Pallas kernel and the finiteness check; before it, in the 2026-12-04 run
+  `results/gpu_sweep_split_h200_2026-12-04.json`, the padding and the kernel alone), at two
+  horizons: time = a + b x steps gives the per-step cost b and the fixed cost a;
+- **prologue**: the whole call minus that program: the host work of the call (the batch
+  assembled and flattened, its constant columns read, the program looked up);
 - **occupancy**: the kernel at block sizes 32, 16, 8, 4 (trajectories per program, one warp
   each). At 4,096 trajectories and block 32 there is one warp per multiprocessor (132 on an
   H100/H200); smaller blocks give each multiprocessor several warps, each with fewer

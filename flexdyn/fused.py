@@ -30,21 +30,16 @@ CPU, paper 004's arm x 256 payloads x 5 s took 6.2 s, against 9.3 s for
 `vmap(rk4_final)`. `backend="pallas", interpret=True` runs the kernel through Pallas's
 interpreter on any device; it is slow, and meant for tests.
 
-**Measured on an H200** (2026-11-26, 4,096 trajectories x 5 s at 1 ms, float64,
-`benchmarks/results/gpu_sweep_fused_h200_2026-11-26.json`), timed from the parameter grid:
-- The rigid pendulum: 36 ms warm. This is within the issue's 150 ms.
-- Paper 004's arm: 20.6 s, no better than the vmapped scan (24 s) or the XLA form of the
-  scalar program (22 s). **That time includes the assembly of the batch**, whose
-  clamped-mass roots were then found on the host, in a Python loop over the links: 22.7 s
-  for the 4,096 arms on the 2-core development CPU (now 0.54 s there; in JAX on a GPU). How much of
-  the 20.6 s the kernel itself took was not measured; `benchmarks/bench_gpu_sweep.py` now
-  times the two apart.
-- Offline (`benchmarks/ptxas_fused.py`, no GPU needed): compiled for `sm_90a`, the arm's
-  kernel uses all 255 registers of a thread and spills (a 344-byte stack frame); the
-  pendulum's uses 54 and does not. At 4,096 trajectories the kernel has one warp per SM,
-  with little to hide the latency of those spills. The division-free solve (2026-12-03)
-  took the arm's kernel from 5,552 to 4,184 instructions and from 81 calls to 30; its
-  spills are unchanged.
+**Measured on an H200** (2026-12-04, float64, `benchmarks/README.md`, section "GPU"):
+4,096 of paper 004's arms x 5 s at 1 ms in 51 ms warm, one call on chains already
+assembled (the kernel 46 ms: 9.2 us per RK4 step; the host work around it 4.6 ms);
+16,384 arms in the same 46 ms of kernel time. At 4,096 there is about one warp per SM,
+and each warp runs at the latency of its own instruction stream (the arm's right-hand side
+uses all 255 registers of a thread and spills: `benchmarks/ptxas_fused.py`), so larger
+batches are nearly free up to ~4 warps per SM. The rigid pendulum: 36 ms (2026-11-26).
+The call is one dispatch of one jitted program (gather of the varying scalars, padding,
+kernel, finiteness check) after the batch's assembly: on a GPU each eager operation is a
+launch, and before this (61-73 ms of host work) the call took 2.4x the kernel.
 
 Inputs: any whose evaluation is arithmetic on the time and the state, e.g. `BangBang`,
 `PDTracking` (state feedback), `ZeroTorque`, or a `FunctionInput` of such formulas. A
