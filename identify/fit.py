@@ -656,6 +656,9 @@ class FitResult:
     # (`jacobian_blocks_at`: `(r, S, U, slots, used)`), what the covariance came from; reused
     # by `identify.clustered_uncertainty` (None: it computes them afresh)
     jacobian_blocks: tuple | None = dataclasses.field(repr=False, default=None)
+    # logs fitted together in one vmapped batch (`fit_independent`): `wall_time` is then the
+    # batch's time divided among them
+    batch_size: int = 1
 
     @property
     def value(self) -> dict:
@@ -678,9 +681,14 @@ class FitResult:
         return [c for c, q in self.fit_quality.items() if q["poor"]]
 
     def summary(self) -> str:
-        lines = [
+        lines = []
+        if self.problem is not None:  # which logs: a per-log result of `fit_independent` names its own
+            names = self.problem.log_names
+            shown = ", ".join(names) if len(names) <= 6 else ", ".join(names[:5]) + f", ... ({len(names) - 5} more)"
+            lines.append(f"fit to {len(names)} log{'s' if len(names) != 1 else ''}: {shown}")
+        lines.append(
             f"{'parameter':<28} {'value':>12} {'std err':>10} {'95% CI':>25} {'guess':>12} {'change':>8}  unit",
-        ]
+        )
         for i, n in enumerate(self.names):
             change = (self.values[i] - self.guesses[i]) / abs(self.guesses[i]) if self.guesses[i] else float("nan")
             ci = covariance.interval_text(self.ci_low[i], self.ci_high[i], self.std_errors[i])
@@ -693,7 +701,9 @@ class FitResult:
         its = sum(s["iterations"] for s in self.stages)
         lines.append(
             f"cost {self.cost:.6g} over {self.n_residuals} residuals, residual variance {self.residual_variance:.4g}, "
-            f"{its} LM iterations in {len(self.stages)} horizon stages, {self.wall_time:.1f} s, "
+            f"{its} LM iterations in {len(self.stages)} horizon stages, {self.wall_time:.1f} s"
+            + (f" (its share of {self.batch_size} logs fitted in one batch)" if self.batch_size > 1 else "")
+            + ", "
             f"{'converged' if self.converged else 'NOT converged'}"
         )
         if self.fit_quality:
@@ -772,6 +782,7 @@ class FitResult:
             "fit_quality": self.fit_quality,
             "singular_values": self.singular_values.tolist(),
             "wall_time_s": self.wall_time,
+            "batch_size": self.batch_size,
         }
 
 
@@ -1503,14 +1514,14 @@ def fit_independent(
                 )
             )
         except _SimulationFailed:
-            failed.append(k)
+            failed.append(problem.log_names[k])
     if failed:
         raise RuntimeError(
             f"fit_independent: the simulation of log(s) {failed} at the fitted parameters failed; "
             "check bounds and solver settings"
         )
     wall = (time.perf_counter() - start) / L
-    return [
+    results = [
         _finish(
             singles[k],
             parameters,
@@ -1526,6 +1537,7 @@ def fit_independent(
         )
         for k in range(L)
     ]
+    return [dataclasses.replace(r, batch_size=L) for r in results]
 
 
 def _result_name(result) -> str:

@@ -41,6 +41,12 @@ def test_independent_vmapped_fits_recover_each_logs_own_damping():
         assert res.values[0] == pytest.approx(d, rel=0.01)
         (name,) = res.initial_states
         assert res.initial_states[name]["theta1"][0] == pytest.approx(np.radians(deg), abs=5e-4)
+    # Review: a per-log summary did not say which log it was, and its time was the batch's
+    # divided among the logs without saying so.
+    for k, res in enumerate(results):
+        head, *rest = res.summary().splitlines()
+        assert head == f"fit to 1 log: log{k}"
+        assert res.batch_size == 3 and "(its share of 3 logs fitted in one batch)" in res.summary()
     # log 1 (not 0: each log's own linearisation is picked out of the batch)
     assert_standard_errors_match(results[1], fresh_covariance(results[1]))
 
