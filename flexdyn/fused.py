@@ -55,7 +55,9 @@ sweep over other values of the *same* swept parameters reuses it, while changing
 folded parameter compiles anew.
 
 Raises if any final state is non-finite, as `rk4_final` does. This happens when a step
-is above the stability limit of the stiffest mode, or when a parameter is invalid.
+is above the stability limit of the stiffest mode, or when a parameter is invalid. The
+`ValueError` names the batch entries (called inside a `jax.jit`, where the values are not
+known on the host, `eqx.error_if` raises without naming them).
 """
 
 from __future__ import annotations
@@ -281,7 +283,7 @@ def _pallas_runner(plan: _Plan, block: int, num_warps: int | None, interpret: bo
 
 
 _NON_FINITE = (
-    "rk4_sweep_final: a final state is non-finite (NaN/inf): dt is probably above the stability limit "
+    "rk4_sweep_final: {which} non-finite (NaN/inf): dt is probably above the stability limit "
     "of the stiffest mode or joint (reduce dt), or a parameter is invalid (a NaN or negative mass/stiffness?)"
 )
 
@@ -305,9 +307,23 @@ def _program(plan: _Plan, integrate: Callable, block: int | None) -> Callable:
             P = jnp.concatenate([P, jnp.repeat(P[:, -1:], n_padded - n_batch, axis=1)], axis=1)
             Y = jnp.concatenate([Y, jnp.repeat(Y[:, -1:], n_padded - n_batch, axis=1)], axis=1)
         out = integrate(P, Y)[:, :n_batch].T
-        return eqx.error_if(out, ~jnp.all(jnp.isfinite(out)), _NON_FINITE)
+        return out, ~jnp.all(jnp.isfinite(out), axis=1)
 
     return run
+
+
+def _checked(out, bad):
+    """`out` if every entry is finite. Concrete: a `ValueError` naming the entries (one
+    transfer of B booleans); traced (inside the caller's `jit`): `eqx.error_if`, which
+    cannot name them."""
+    if isinstance(bad, jax.core.Tracer):
+        return eqx.error_if(out, jnp.any(bad), _NON_FINITE.format(which="a final state is"))
+    bad = np.flatnonzero(np.asarray(bad))
+    if bad.size:
+        shown = ", ".join(str(k) for k in bad[:10]) + (f", ... ({bad.size} in all)" if bad.size > 10 else "")
+        which = f"the final state of batch entr{'y' if bad.size == 1 else 'ies'} {shown} (of {out.shape[0]}) is"
+        raise ValueError(_NON_FINITE.format(which=which))
+    return out
 
 
 def _runner(key, make_plan: Callable[[], _Plan], backend, block, num_warps, interpret) -> Callable:
@@ -409,8 +425,9 @@ def rk4_sweep_final(
 
     try:
         run = _runner(None if key is None else (key, solve), make_plan, backend, block, num_warps, interpret)
-        return run(flat, y0)
+        out, bad = run(flat, y0)
     except NotImplementedError as e:
         raise NotImplementedError(
             f"rk4_sweep_final: {e}. Use jax.vmap of flexdyn.fixed_step.rk4_final for this chain and input"
         ) from e
+    return _checked(out, bad)

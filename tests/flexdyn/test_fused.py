@@ -122,5 +122,15 @@ def test_errors():
     with pytest.raises(NotImplementedError, match="'scan'.*rk4_final"):
         fused.rk4_sweep_final(chains, Y0, 0.0, 0.1, sampled, dt=1e-2)
     # A step far above the stability limit of the link's mode: a clear error, not NaN.
-    with pytest.raises(Exception, match="non-finite"):
+    with pytest.raises(ValueError, match=r"batch entries 0, 1 \(of 2\) is non-finite"):
         jax.block_until_ready(fused.rk4_sweep_final(chains, Y0, 0.0, 2.0, TORQUE, dt=0.2, backend="xla"))
+    # One bad entry among good ones is named (review: the error did not say which); here
+    # its initial state (a NaN parameter is refused earlier, by the assembly's checks).
+    y0 = jnp.stack([Y0, Y0.at[3].set(jnp.nan), Y0])
+    with pytest.raises(ValueError, match=r"batch entry 1 \(of 3\)"):
+        fused.rk4_sweep_final(arms(PAYLOADS[:3]), y0, 0.0, 0.01, TORQUE, dt=1e-3, backend="xla")
+    # Inside jit the values are not known on the host: the check still raises.
+    with pytest.raises(Exception, match="a final state is non-finite"):
+        jax.block_until_ready(
+            jax.jit(lambda c: fused.rk4_sweep_final(c, Y0, 0.0, 2.0, TORQUE, dt=0.2, backend="xla"))(chains)
+        )
