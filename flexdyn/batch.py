@@ -25,6 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from .chain import AssembledChain, Chain, check_batch
+
 BATCH_AXIS = "batch"
 
 try:  # jax >= 0.6 exports shard_map at the top level (`check_vma`); older ones under experimental
@@ -131,6 +133,9 @@ def sweep(fn: Callable, batch, *shared: Any, devices: Sequence[jax.Device] | Non
     (a `jax.Array`; `np.asarray` gathers it). The same values as `jax.vmap(fn)` up to
     rounding: each device runs the same program on its share.
     """
+    for leaf in jax.tree_util.tree_leaves(batch, is_leaf=lambda x: isinstance(x, (Chain, AssembledChain))):
+        if isinstance(leaf, (Chain, AssembledChain)):  # a bad entry named, not "must be finite" under vmap
+            check_batch(leaf.chain if isinstance(leaf, AssembledChain) else leaf, "sweep")
     mesh = batch_mesh(devices)
     sharded, n = shard_batch(batch, mesh)
     shared = tuple(shared)

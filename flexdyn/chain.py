@@ -110,7 +110,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import as_float_array, checked_part
+from ._checks import NONNEGATIVE, POSITIVE, as_float_array, checked_part
 from .modes import GAUSS_W, GAUSS_X, evaluate_shapes, mode_shapes
 from .nonlinear import backlash_energy, has_nonlinear_forces, nonlinear_forces
 from .parts import ElasticJoint, FlexibleLink, Hub, Payload, RigidJoint, RigidLink
@@ -405,6 +405,42 @@ def checked_chain(chain: Chain) -> Chain:
         payload=checked_part(chain.payload, "payload"),
         gravity=chain.gravity,
     )
+
+
+def check_batch(chain: Chain, caller: str) -> None:
+    """Check a concrete batch of chains (parameters with a leading batch axis) on the host,
+    with the rules `checked_chain` applies inside the computation, and raise a `ValueError`
+    naming the parameter and the batch entries: under `vmap` the assembly's `eqx.error_if`
+    can say only "payload.mass must be finite and >= 0" (found in review). Parameters
+    without a batch axis, and traced ones, are left to `checked_chain`."""
+    parts = (
+        [(f"link{i + 1}", p) for i, p in enumerate(chain.links)]
+        + [(f"joint{i + 1}", p) for i, p in enumerate(chain.joints)]
+        + [(f"hub{i + 1}", p) for i, p in enumerate(chain.hubs)]
+        + [("payload", chain.payload)]
+    )
+    for owner, part in parts:
+        for name, kind in part.PARAMETERS:
+            value = getattr(part, name)
+            batched = np.ndim(value) >= (2 if name == "damping_ratio" else 1)
+            if value is None or isinstance(value, jax.core.Tracer) or not batched:
+                continue
+            arr = np.asarray(value, dtype=float)
+            rows = arr.reshape(arr.shape[0], -1)
+            bad = ~np.isfinite(rows)
+            if kind == POSITIVE:
+                bad |= rows <= 0
+            elif kind == NONNEGATIVE:
+                bad |= rows < 0
+            entries = np.flatnonzero(bad.any(axis=1))
+            if entries.size:
+                shown = ", ".join(f"{k} ({np.array2string(arr[k], precision=6)})" for k in entries[:5])
+                more = f", ... ({entries.size} in all)" if entries.size > 5 else ""
+                expected = {POSITIVE: "finite and > 0", NONNEGATIVE: "finite and >= 0"}.get(kind, "finite")
+                raise ValueError(
+                    f"{caller}: {owner}.{name} expected {expected} in every batch entry; "
+                    f"entr{'y' if entries.size == 1 else 'ies'} {shown}{more} of {arr.shape[0]}"
+                )
 
 
 # ---------------------------------------------------------------------------

@@ -73,7 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .chain import AssembledChain, Chain, assemble
+from .chain import AssembledChain, Chain, assemble, check_batch
 from .fixed_step import _breaks, _pieces, vector_field
 from .scalarize import eval_elementwise, is_constant, object_array
 from .simulate import _check_torque_shape, as_input
@@ -406,6 +406,7 @@ def rk4_sweep_final(
     n_batch = int(leaves[0].shape[0])
     if any(int(leaf.shape[0]) != n_batch for leaf in leaves):
         raise ValueError("rk4_sweep_final: the chains' array leaves have different leading (batch) sizes")
+    check_batch(chains.chain if isinstance(chains, AssembledChain) else chains, "rk4_sweep_final")
     flat, first, same, asm = _assembled_scalars(chains)
     torque = as_input(torque, asm.chain.n_links)
     n_state = 2 * asm.layout.n_dof

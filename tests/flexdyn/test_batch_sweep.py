@@ -103,3 +103,24 @@ def test_mismatched_batch_sizes_are_an_error():
         fb.batch_size({"a": jnp.zeros(3), "b": jnp.zeros(4)})
     with pytest.raises(ValueError, match="scalar leaf"):
         fb.batch_size({"a": jnp.zeros(3), "b": jnp.zeros(())})
+
+
+def test_an_invalid_chain_in_the_batch_is_named_with_its_entries():
+    # Review: under vmap the assembly's check can only say "payload.mass must be finite and
+    # >= 0"; a concrete batch is checked on the host first, naming the entries.
+    base = fd.rigs.flexible_link_joint_arm()
+    masses = jnp.asarray([0.1, -0.2, 0.1, jnp.nan])
+    chains = jax.vmap(lambda m: eqx.tree_at(lambda c: c.payload.mass, base, m))(masses)
+    with pytest.raises(
+        ValueError, match=r"sweep: payload.mass expected finite and >= 0 .* entries 1 \(-0.2\), 3 \(nan\) of 4"
+    ):
+        fb.sweep(lambda c: fd.assemble(c).chain.payload.mass, chains)
+    ratios = jax.vmap(lambda z: eqx.tree_at(lambda c: c.links[0].damping_ratio, base, z))(
+        jnp.asarray([[0.01, 0.02], [0.01, -0.02]])
+    )
+    with pytest.raises(ValueError, match=r"link1.damping_ratio .* entry 1 \(\[ 0.01 -0.02\]\) of 2"):
+        fb.sweep(lambda c: fd.assemble(c).chain.payload.mass, ratios)
+    # valid batches pass, and shared (unbatched) parameters are not mistaken for a batch axis
+    good = jax.vmap(lambda m: eqx.tree_at(lambda c: c.payload.mass, base, m))(jnp.asarray([0.1, 0.2]))
+    out = fb.sweep(lambda c: fd.assemble(c).chain.payload.mass, good)
+    np.testing.assert_allclose(np.asarray(out), [0.1, 0.2])
