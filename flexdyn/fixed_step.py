@@ -76,20 +76,24 @@ def vector_field(asm: AssembledChain, torque: AbstractInput, solve: str = "unrol
     return f
 
 
-def _breaks(torque: AbstractInput, t0: float, t1: float, caller: str = "rk4_final") -> list[float]:
+def _jump_values(torque: AbstractInput, caller: str) -> list[float]:
+    """The input's jump times as Python floats (none: `[]`)."""
     try:
         with jax.ensure_compile_time_eval():  # concrete inputs stay concrete inside jit
             jumps = torque.jump_times()
             if jumps is None:
-                return [t0, t1]
-            values = [float(j) for j in np.ravel(np.asarray(jumps))]
+                return []
+            return [float(j) for j in np.ravel(np.asarray(jumps))]
     except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError) as e:
         raise ValueError(
             f"{caller}: the input's jump_times() must be concrete numbers (the steps are laid out "
             "when the function is traced); pass the input as a closed-over constant, not a traced "
             "argument, or use fd.simulate"
         ) from e
-    inner = sorted({j for j in values if t0 < j < t1})
+
+
+def _breaks(torque: AbstractInput, t0: float, t1: float, caller: str = "rk4_final") -> list[float]:
+    inner = sorted({j for j in _jump_values(torque, caller) if t0 < j < t1})
     return [t0, *inner, t1]
 
 
@@ -177,7 +181,7 @@ def _output_table(ts: np.ndarray, jumps: list[float], dt: float):
     and input jump, each piece `[a, b]` in `ceil((b - a) / dt)` equal steps. Returns the
     per-step start time, step and last admissible input time (`b^-` if an input jumps at
     `b`, else `b`), and the index of each output time among the `N + 1` step boundaries."""
-    jumps = {j for j in jumps if ts[0] < j < ts[-1]}
+    jumps = {j for j in jumps if ts[0] < j <= ts[-1]}  # one at the end: read before it too
     breaks = sorted(set(ts.tolist()) | jumps)
     starts, steps, lasts, boundary = [], [], [], [0]
     for a, h, n, last in _pieces(breaks, dt, jumps):
@@ -407,7 +411,7 @@ def rk4_trajectory(
     y0 = as_initial_state(asm, y0, "rk4_trajectory")
     _check_torque_shape(torque, ts_np[0], y0, asm.chain.n_links)
     y0 = check_rk4_step(asm, y0, torque(ts_np[0], y0), dt, "rk4_trajectory")
-    jumps = _breaks(torque, float(ts_np[0]), float(ts_np[-1]), "rk4_trajectory")[1:-1]
+    jumps = [j for j in _jump_values(torque, "rk4_trajectory") if ts_np[0] < j <= ts_np[-1]]
     table, index = _output_table(ts_np, jumps, dt)
     table = tuple(jnp.asarray(x) for x in table)
     dynamic, static = eqx.partition((asm, torque), eqx.is_inexact_array)

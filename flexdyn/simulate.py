@@ -144,15 +144,23 @@ def adaptive_controller(torque: AbstractInput, rtol: float, atol: float, dtmax: 
 
 
 class ChainVectorField(eqx.Module):
-    """The first-order vector field `y_dot = [Q_dot, Q_ddot(Q, Q_dot, torque(t, y))]`."""
+    """The first-order vector field `y_dot = [Q_dot, Q_ddot(Q, Q_dot, torque(t, y))]`.
+
+    `t_last` (s, optional): the input is read at `min(t, t_last)`. The fixed-step solve of
+    `simulate` passes `t1^-`, the last float before the span's end, so that a step ending on
+    an input jump at `t1` reads the torque before it, as steps ending on interior jumps do
+    (found in review: with a bang-bang ending exactly at `t1`, RK4's last stage read the
+    far side and the final rates were off by `h dtau / (6 J)`)."""
 
     model: AssembledChain
     torque: AbstractInput
+    t_last: Array | None = None
 
     def __call__(self, t, y, args):
         n = y.shape[0] // 2
         Q, Qd = y[:n], y[n:]
-        return jnp.concatenate([Qd, accelerations(self.model, Q, Qd, self.torque(t, y))])
+        t_input = t if self.t_last is None else jnp.minimum(t, self.t_last)
+        return jnp.concatenate([Qd, accelerations(self.model, Q, Qd, self.torque(t_input, y))])
 
 
 class Trajectory(eqx.Module):
@@ -309,6 +317,7 @@ def _simulate(
             y0 = check_rk4_step(asm, y0, torque(ts[0], y0), dt, "simulate")
         solver = RK4() if solver is None else solver
         dt0 = dt
+        field = ChainVectorField(asm, torque, t_last=jnp.nextafter(ts[-1], ts[0]))
         jumps = torque.jump_times()
         if jumps is None:
             controller = diffrax.ConstantStepSize()

@@ -93,6 +93,25 @@ def test_rk4_final_steps_not_aligned_with_jumps(reference):
     assert 12.0 < errs[0] / errs[1] < 20.0, errs
 
 
+def test_fixed_step_paths_ending_on_a_jump_stay_fourth_order():
+    """Review: with the span ending exactly on an input jump (t1 = 0.5 s), `simulate(dt=...)`
+    and `rk4_trajectory` read the torque after the jump in the last step's final stage: the
+    final rates were off by h dtau / (6 J) (first order; 1.7e-3 rad/s on paper 004's arm at
+    1 ms). Oracle: Dopri8 at rtol 1e-12 with 0.5 s an interior output time."""
+    import diffrax
+
+    ref = fd.simulate(ARM, Y0, jnp.array([0.0, 0.5, T1]), TORQUE, solver=diffrax.Dopri8(), rtol=1e-12, atol=1e-14)
+    ref = np.asarray(ref.y[1])
+    paths = {
+        "simulate": lambda dt: fd.simulate(ARM, Y0, jnp.array([0.0, 0.5]), TORQUE, dt=dt).y[-1],
+        "rk4_trajectory": lambda dt: fd.rk4_trajectory(ARM, Y0, np.array([0.0, 0.5]), TORQUE, dt=dt).y[-1],
+        "rk4_final": lambda dt: fixed_step.rk4_final(ARM, Y0, 0.0, 0.5, TORQUE, dt=dt),
+    }
+    for name, run in paths.items():
+        errs = [np.max(np.abs(np.asarray(run(dt)) - ref)) for dt in (1 / 400, 1 / 800)]
+        assert errs[1] < 1e-7 and 12.0 < errs[0] / errs[1] < 20.0, (name, errs)
+
+
 def test_rk4_final_conserves_energy_undamped():
     chain = fd.rigs.flexible_pendulum(n_modes=2, joint_damping=0.0, damping_ratio=0.0)
     y0 = fd.initial_state(chain, [-0.5], [1.0], modal=[1e-4, 0.0])
