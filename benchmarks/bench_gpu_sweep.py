@@ -186,9 +186,9 @@ def fused_rhs_operations() -> int:
     from flexdyn import fused as fz
 
     chains = _build(jnp.asarray(grid(16)))
-    _, first, same, asm = fz._assembled_scalars(chains)
-    columns = fz._columns(first, same)
     torque = as_input(TORQUE, BASE.n_links)
+    _, first, same, _, asm = fz._assembled_scalars(chains, Y0, torque, 0.0, DT)
+    columns = fz._columns(first, same)
     plan = fz._plan(asm, torque, 0.0, T_END, DT, Y0, columns, "rsqrt")
     rows = [jnp.zeros(4) for _ in range(plan.n_rows)]
     y = [jnp.zeros(4) for _ in range(plan.n_state)]

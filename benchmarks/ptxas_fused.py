@@ -88,7 +88,7 @@ def triton_ir(case: str, block: int, warps: int) -> tuple[str, int]:
     from jax.experimental import pallas as pl
 
     chains, y0, torque = batch(case)
-    flat, first, same, asm = fused._assembled_scalars(chains)
+    flat, first, same, _, asm = fused._assembled_scalars(chains, y0, torque, 0.0, DT)
     columns = fused._columns(first, same)
     plan = fused._plan(asm, torque, 0.0, T_END, DT, y0, columns, "rsqrt")
     original = pl.pallas_call

@@ -54,10 +54,15 @@ The compiled program is cached on the structure and the folded constants. So a s
 sweep over other values of the *same* swept parameters reuses it, while changing a
 folded parameter compiles anew.
 
-Raises if any final state is non-finite, as `rk4_final` does. This happens when a step
-is above the stability limit of the stiffest mode, or when a parameter is invalid. The
-`ValueError` names the batch entries (called inside a `jax.jit`, where the values are not
-known on the host, `eqx.error_if` raises without naming them).
+Checks, each a `ValueError` naming the batch entries (called inside a `jax.jit`, where
+the values are not known on the host, `eqx.error_if` raises without naming them):
+- every parameter of every entry, before anything is assembled (`chain.check_batch`);
+- `dt` against RK4's stability limit of every entry about its initial state, as
+  `simulate` checks one chain (`linear.rk4_growth`: one `2n x 2n` eigenproblem per
+  entry, ~90 ms for 4,096 of paper 004's arms on one CPU core, ~0.2 % of their 5 s
+  sweep there; not yet measured on a GPU). Above the limit a mode grows from round-off
+  and the final state can be finite but wrong;
+- every final state finite.
 """
 
 from __future__ import annotations
@@ -75,8 +80,9 @@ from jaxtyping import Array, Float
 
 from .chain import AssembledChain, Chain, assemble, check_batch
 from .fixed_step import _breaks, _pieces, vector_field
+from .linear import RK4_MARGIN, rk4_growth
 from .scalarize import eval_elementwise, is_constant, object_array
-from .simulate import _check_torque_shape, as_input
+from .simulate import as_input
 
 __all__ = ["rk4_sweep_final"]
 
@@ -162,15 +168,27 @@ class _Plan:
 
 
 @eqx.filter_jit
-def _assembled_scalars(chains):
-    """The batch assembled; its array leaves flattened to one (B, K) array; the first
-    entry's row (K,) and which of the K scalars are the same in every entry (K,): one
-    program, so that a call's host work is one dispatch and one small transfer."""
+def _assembled_scalars(chains, y0, torque, t0: float, dt: float):
+    """One program for what a call needs before the kernel: the batch assembled; its array
+    leaves flattened to one (B, K) array; the first entry's row (K,) and which of the K
+    scalars are the same in every entry (K,); and each entry's RK4 growth factor at `dt`
+    (`linear.rk4_growth` about its initial state, > 1: unstable). The input's shape is
+    checked when this is traced (once per structure)."""
     asm = eqx.filter_vmap(assemble)(chains)
+    n_state = 2 * asm.layout.n_dof
+    n_batch = jax.tree_util.tree_leaves(eqx.filter(asm, eqx.is_array))[0].shape[0]
+    y0 = jnp.broadcast_to(y0, (n_batch, n_state))
+    tau0 = jax.vmap(lambda y: torque(t0, y))(y0)
+    if tau0.shape[1:] != (asm.chain.n_links,):
+        raise ValueError(
+            f"torque: the input returns shape {tau0.shape[1:]}, expected ({asm.chain.n_links},): one torque [N m] "
+            f"per joint (e.g. BangBang(amplitude=[...] with {asm.chain.n_links} value(s)))"
+        )
+    growth = eqx.filter_vmap(lambda a, y, t: rk4_growth(a, y, t, dt / RK4_MARGIN))(asm, y0, tau0)
     dynamic, static = eqx.partition(asm, eqx.is_array)
     leaves = jax.tree_util.tree_leaves(dynamic)
     flat = jnp.concatenate([leaf.reshape(leaf.shape[0], -1) for leaf in leaves], axis=1)
-    return flat, flat[0], jnp.all(flat == flat[:1], axis=0), asm
+    return flat, flat[0], jnp.all(flat == flat[:1], axis=0), growth, asm
 
 
 def _columns(first, same) -> tuple:
@@ -178,7 +196,6 @@ def _columns(first, same) -> tuple:
     batch (when the values are concrete), else ("row", k), k numbering the varying ones."""
     if isinstance(first, jax.core.Tracer) or isinstance(same, jax.core.Tracer):
         return tuple(("row", k) for k in range(first.shape[0]))
-    first, same = jax.device_get((first, same))
     columns, k = [], 0
     for value, fixed in zip(first.tolist(), same.tolist()):
         if fixed:
@@ -312,6 +329,29 @@ def _program(plan: _Plan, integrate: Callable, block: int | None) -> Callable:
     return run
 
 
+def _checked_step(flat, growth, dt: float):
+    """`flat` if `dt` is within RK4's stability limit of every entry (`linear.rk4_growth`
+    about its initial state, with `linear.RK4_MARGIN`, as `simulate` checks one chain).
+    Above it a mode grows from round-off and the final state can be finite but wrong
+    (found in review: 1.2 ms on the lightest payload of a sweep, limit 1.01 ms: its hub
+    angle off by 0.8 rad, no error). Concrete: a `ValueError` naming the entries; traced:
+    `eqx.error_if`."""
+    message = (
+        "rk4_sweep_final: the fixed step dt = {dt:g} s is above RK4's stability limit for the stiffest mode "
+        "at y0 of {which} (fd.stable_step(chain, y0, solver='rk4') gives the limit of one entry): a mode would "
+        "grow from round-off and the result be wrong; reduce dt"
+    )
+    unstable = growth > 1.0 + 1e-9
+    if isinstance(growth, jax.core.Tracer):
+        return eqx.error_if(flat, jnp.any(unstable), message.format(dt=dt, which="an entry of the batch"))
+    bad = np.flatnonzero(np.asarray(unstable))
+    if bad.size:
+        shown = ", ".join(str(k) for k in bad[:10]) + (f", ... ({bad.size} in all)" if bad.size > 10 else "")
+        which = f"batch entr{'y' if bad.size == 1 else 'ies'} {shown} (of {growth.shape[0]})"
+        raise ValueError(message.format(dt=dt, which=which))
+    return flat
+
+
 def _checked(out, bad):
     """`out` if every entry is finite. Concrete: a `ValueError` naming the entries (one
     transfer of B booleans); traced (inside the caller's `jit`): `eqx.error_if`, which
@@ -406,23 +446,25 @@ def rk4_sweep_final(
     n_batch = int(leaves[0].shape[0])
     if any(int(leaf.shape[0]) != n_batch for leaf in leaves):
         raise ValueError("rk4_sweep_final: the chains' array leaves have different leading (batch) sizes")
-    check_batch(chains.chain if isinstance(chains, AssembledChain) else chains, "rk4_sweep_final")
-    flat, first, same, asm = _assembled_scalars(chains)
-    torque = as_input(torque, asm.chain.n_links)
-    n_state = 2 * asm.layout.n_dof
+    chain = chains.chain if isinstance(chains, AssembledChain) else chains
+    check_batch(chain, "rk4_sweep_final")
+    torque = as_input(torque, chain.n_links)
+    n_state = 2 * chain.layout.n_dof
     y0 = jnp.asarray(y0, dtype=jnp.result_type(float))
     if y0.shape not in ((n_state,), (n_batch, n_state)):
         raise ValueError(
             f"rk4_sweep_final: y0 expected shape ({n_state},) or ({n_batch}, {n_state}) = [Q, Q_dot] "
-            f"with Q = {list(asm.layout.names)}, got {tuple(y0.shape)}"
+            f"with Q = {list(chain.layout.names)}, got {tuple(y0.shape)}"
         )
+    flat, first, same, growth, asm = _assembled_scalars(chains, y0, torque, t0, dt)
+    if not isinstance(first, jax.core.Tracer):
+        first, same, growth = jax.device_get((first, same, growth))  # one transfer
+    flat = _checked_step(flat, growth, dt)
     columns = _columns(first, same)
     key = _structure_key(asm, torque, t0, t1, dt, n_state, columns)
 
-    def make_plan():  # on a cache miss only: the key fixes the input's structure and values, and n_state
-        template = jnp.zeros((n_state,), y0.dtype)
-        _check_torque_shape(torque, t0, template, asm.chain.n_links)
-        return _plan(asm, torque, t0, t1, dt, template, columns, solve)
+    def make_plan():  # on a cache miss only
+        return _plan(asm, torque, t0, t1, dt, jnp.zeros((n_state,), y0.dtype), columns, solve)
 
     try:
         run = _runner(None if key is None else (key, solve), make_plan, backend, block, num_warps, interpret)

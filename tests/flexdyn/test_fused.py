@@ -122,7 +122,7 @@ def test_errors():
     with pytest.raises(NotImplementedError, match="'scan'.*rk4_final"):
         fused.rk4_sweep_final(chains, Y0, 0.0, 0.1, sampled, dt=1e-2)
     # A step far above the stability limit of the link's mode: a clear error, not NaN.
-    with pytest.raises(ValueError, match=r"batch entries 0, 1 \(of 2\) is non-finite"):
+    with pytest.raises(ValueError, match=r"dt = 0.2 s is above RK4's stability limit .* batch entries 0, 1 \(of 2\)"):
         jax.block_until_ready(fused.rk4_sweep_final(chains, Y0, 0.0, 2.0, TORQUE, dt=0.2, backend="xla"))
     # One bad entry among good ones is named (review: the error did not say which); here
     # its initial state (a NaN parameter is refused earlier, by the assembly's checks).
@@ -132,8 +132,19 @@ def test_errors():
     # A NaN parameter in one entry: named with its entry before anything is assembled.
     with pytest.raises(ValueError, match=r"rk4_sweep_final: payload.mass expected finite .* entry 1 \(nan\) of 2"):
         fused.rk4_sweep_final(arms(jnp.asarray([0.05, jnp.nan])), Y0, 0.0, 0.01, TORQUE, dt=1e-3, backend="xla")
+    # A step above RK4's stability limit of one entry only (the lightest payload's stiffest
+    # mode): named, not a finite but wrong final state (review). Oracle: fd.stable_step.
+    light = arms(jnp.asarray([0.005, 0.12]))
+    limit = [
+        fd.stable_step(eqx.tree_at(lambda c: c.payload.mass, ARM, m), Y0, solver="rk4", safety=1.0)
+        for m in (0.005, 0.12)
+    ]
+    dt = 1.1 * limit[0]
+    assert dt < limit[1]  # the heavier entry is stable at this step
+    with pytest.raises(ValueError, match=r"above RK4's stability limit .* batch entry 0 \(of 2\)"):
+        fused.rk4_sweep_final(light, Y0, 0.0, 0.01, TORQUE, dt=dt, backend="xla")
     # Inside jit the values are not known on the host: the check still raises.
-    with pytest.raises(Exception, match="a final state is non-finite"):
+    with pytest.raises(Exception, match="stability limit .* an entry of the batch"):
         jax.block_until_ready(
             jax.jit(lambda c: fused.rk4_sweep_final(c, Y0, 0.0, 2.0, TORQUE, dt=0.2, backend="xla"))(chains)
         )
