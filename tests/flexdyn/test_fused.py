@@ -129,6 +129,8 @@ def test_errors():
     y0 = jnp.stack([Y0, Y0.at[3].set(jnp.nan), Y0])
     with pytest.raises(ValueError, match=r"batch entry 1 \(of 3\)"):
         fused.rk4_sweep_final(arms(PAYLOADS[:3]), y0, 0.0, 0.01, TORQUE, dt=1e-3, backend="xla")
+    with pytest.raises(ValueError, match=r"torque: the input returns shape \(1,\), expected \(2,\)"):
+        fused.rk4_sweep_final(chains, Y0, 0.0, 0.01, fd.BangBang([0.3], 0.25), dt=1e-3, backend="xla")
     # A NaN parameter in one entry: named with its entry before anything is assembled.
     with pytest.raises(ValueError, match=r"rk4_sweep_final: payload.mass expected finite .* entry 1 \(nan\) of 2"):
         fused.rk4_sweep_final(arms(jnp.asarray([0.05, jnp.nan])), Y0, 0.0, 0.01, TORQUE, dt=1e-3, backend="xla")
