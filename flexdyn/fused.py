@@ -39,7 +39,8 @@ uses all 255 registers of a thread and spills: `benchmarks/ptxas_fused.py`), so 
 batches are nearly free up to ~4 warps per SM. The rigid pendulum: 36 ms (2026-11-26).
 The call is one dispatch of one jitted program (gather of the varying scalars, padding,
 kernel, finiteness check) after the batch's assembly: on a GPU each eager operation is a
-launch, and before this (61-73 ms of host work) the call took 2.4x the kernel.
+launch, and before this (61-73 ms of host work) the call took 2.4x the kernel. (The
+per-entry checks below were added after these runs; their GPU cost is not measured.)
 
 Inputs: any whose evaluation is arithmetic on the time and the state, e.g. `BangBang`,
 `PDTracking` (state feedback), `ZeroTorque`, or a `FunctionInput` of such formulas. A
