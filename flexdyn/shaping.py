@@ -30,9 +30,10 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import as_float_array
+from ._checks import _is_concrete, as_float_array, check_parameter
 from .inputs import AbstractInput, QuinticReference
 
 
@@ -61,9 +62,19 @@ class Shaper(eqx.Module):
         return jnp.exp(-zeta * wn * self.times[-1]) * jnp.sqrt(C**2 + S**2)
 
 
-def _k_and_half_period(natural_frequency, damping_ratio):
-    wn = 2 * jnp.pi * as_float_array(natural_frequency)
-    zeta = as_float_array(damping_ratio)
+def _k_and_half_period(natural_frequency, damping_ratio, caller: str):
+    """`K` and the damped half period (s). Concrete arguments are checked (found in review:
+    a NaN or zero frequency gave impulse times of NaN or inf, a negative one a time before
+    0 and a command of the wrong size, a damping ratio of 1.5 NaN amplitudes); traced ones
+    (under jit/vmap/grad) are left as they are."""
+    frequency, zeta = as_float_array(natural_frequency), as_float_array(damping_ratio)
+    if _is_concrete(frequency):
+        check_parameter(caller, "natural_frequency", frequency, positive=True)
+    if _is_concrete(zeta):
+        value = np.asarray(zeta, dtype=float)
+        if not (np.all(np.isfinite(value)) and np.all(value >= 0) and np.all(value < 1)):
+            raise ValueError(f"{caller}.damping_ratio: expected 0 <= zeta < 1 (an underdamped mode), got {value}")
+    wn = 2 * jnp.pi * frequency
     root = jnp.sqrt(1 - zeta**2)
     return jnp.exp(-zeta * jnp.pi / root), jnp.pi / (wn * root)
 
@@ -72,7 +83,7 @@ def zv_shaper(natural_frequency, damping_ratio=0.0) -> Shaper:
     """Zero-vibration shaper (Singer & Seering 1990) for a mode of `natural_frequency`
     (Hz, undamped) and `damping_ratio` (0 <= zeta < 1): `A = [1, K] / (1 + K)` at
     `t = [0, pi / omega_d]`."""
-    K, half = _k_and_half_period(natural_frequency, damping_ratio)
+    K, half = _k_and_half_period(natural_frequency, damping_ratio, "zv_shaper")
     return Shaper(jnp.stack([1.0, K]) / (1 + K), jnp.stack([jnp.zeros_like(half), half]))
 
 
@@ -80,7 +91,7 @@ def zvd_shaper(natural_frequency, damping_ratio=0.0) -> Shaper:
     """Zero-vibration-and-derivative shaper (Singer & Seering 1990) for a mode of
     `natural_frequency` (Hz, undamped) and `damping_ratio`: `A = [1, 2K, K^2] / (1 + K)^2`
     at `t = [0, pi / omega_d, 2 pi / omega_d]`."""
-    K, half = _k_and_half_period(natural_frequency, damping_ratio)
+    K, half = _k_and_half_period(natural_frequency, damping_ratio, "zvd_shaper")
     return Shaper(jnp.stack([1.0, 2 * K, K**2]) / (1 + K) ** 2, jnp.stack([jnp.zeros_like(half), half, 2 * half]))
 
 

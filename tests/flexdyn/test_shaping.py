@@ -133,3 +133,19 @@ def test_shaped_reference_reaches_the_same_goal():
     # velocity is the derivative of position
     dpos = jax.jacfwd(shaped.position)(jnp.asarray(1.3))
     np.testing.assert_allclose(np.asarray(dpos), np.asarray(shaped.velocity(1.3)), rtol=1e-12)
+
+
+@pytest.mark.parametrize("make", [shaping.zv_shaper, shaping.zvd_shaper])
+def test_shaper_arguments_checked(make):
+    # Review: NaN / zero / negative frequencies gave NaN or inf or negative impulse times
+    # (a negative one broke "ascending, first 0" and applied the full step at t = 0), and a
+    # damping ratio outside [0, 1) NaN amplitudes or was accepted.
+    for f in (np.nan, 0.0, -5.8):
+        with pytest.raises(ValueError, match="natural_frequency"):
+            make(f)
+    for zeta in (np.nan, -0.1, 1.0, 1.5):
+        with pytest.raises(ValueError, match=r"damping_ratio: expected 0 <= zeta < 1"):
+            make(3.0, zeta)
+    # traced values pass through (jit/vmap/grad over the design frequency)
+    times = jax.vmap(lambda f: make(f).times)(jnp.asarray([2.0, 4.0]))
+    np.testing.assert_allclose(np.asarray(times)[:, 1], [0.25, 0.125])
