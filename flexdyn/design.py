@@ -49,7 +49,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from ._checks import _is_concrete, as_float_array, check_parameter, warn_if_degrees
-from .chain import Chain
+from .chain import Chain, assemble, generalised_forces
 from .inputs import AbstractInput
 from .simulate import observe, simulate
 
@@ -93,9 +93,11 @@ class BSplineTorque(AbstractInput):
             raise ValueError(
                 f"BSplineTorque.control_points: expected shape (n_control, n_joints), got {self.control_points.shape}"
             )
+        check_parameter("BSplineTorque", "control_points", self.control_points, signed=True)
         self.duration = as_float_array(duration)
         check_parameter("BSplineTorque", "duration", self.duration, positive=True, shape=())
         tau = as_float_array(tau_max)
+        check_parameter("BSplineTorque", "tau_max", tau, positive=True)
         if tau.ndim > 1 or (tau.ndim == 1 and tau.shape != self.control_points.shape[1:]):
             raise ValueError(
                 f"BSplineTorque.tau_max: expected a scalar or one limit per joint (shape "
@@ -117,6 +119,16 @@ class BSplineTorque(AbstractInput):
         """The `BSplineTorque` whose spline is the least-squares fit of sampled torques
         `(T, n_joints)` (clipped to 0.95 `tau_max` and passed through `artanh`, so that the
         saturated torque matches them): e.g. an initial guess from a bang-bang."""
+        check_parameter("BSplineTorque.fit", "tau_max", np.asarray(tau_max, dtype=float), positive=True)
+        check_parameter("BSplineTorque.fit", "duration", np.asarray(duration, dtype=float), positive=True, shape=())
+        late = np.asarray(times, dtype=float) > float(duration)
+        if np.any(late):
+            warnings.warn(
+                f"BSplineTorque.fit: {int(np.sum(late))} of the {late.size} samples lie after duration = "
+                f"{float(duration):g} s, where the spline is zero; they are not fitted",
+                UserWarning,
+                stacklevel=2,
+            )
         tau_max = np.broadcast_to(np.asarray(tau_max, dtype=float), np.shape(torques)[1:])
         target = tau_max * np.arctanh(np.clip(np.asarray(torques) / tau_max, -0.95, 0.95))
         basis = np.asarray(bspline_basis(jnp.asarray(times), n_control, jnp.asarray(float(duration))))
@@ -196,7 +208,7 @@ class RestToRestMove(eqx.Module):
                 f"RestToRestMove.duration = {float(self.duration):g} s is over a minute; flexdyn takes seconds "
                 f"(if {float(self.duration):g} is in ms, pass {float(self.duration) / 1e3:g})",
                 UserWarning,
-                stacklevel=2,
+                stacklevel=4,  # the user's RestToRestMove(...) line (through equinox's __call__)
             )
         if isinstance(n_window, bool) or int(n_window) != n_window or n_window < 2:
             raise ValueError(
@@ -205,6 +217,12 @@ class RestToRestMove(eqx.Module):
         self.n_window = int(n_window)
         check_parameter("RestToRestMove", "dt", dt, positive=True)
         self.dt = float(dt)
+        if _is_concrete(self.duration) and self.dt >= float(self.duration):
+            raise ValueError(
+                f"RestToRestMove.dt: expected a step shorter than the move's duration {float(self.duration):g} s, "
+                f"got {self.dt:g} s"
+            )
+        _warn_if_not_at_rest(chain, self.start_angles, self.goal_angles, self.tau_max)
 
     def output_times(self):
         """`[0, T, ..., T + settle]` (s): start, then the window samples."""
@@ -221,10 +239,55 @@ class RestToRestMove(eqx.Module):
         return jnp.concatenate([Q, jnp.zeros(lay.n_dof)])
 
     def with_payload(self, payload_mass) -> RestToRestMove:
-        return eqx.tree_at(lambda m: m.chain.payload.mass, self, as_float_array(payload_mass))
+        """The move with the chain's `payload.mass` (kg) replaced; the payload's rotary
+        inertia `payload.inertia` is kept (so a mass of 0 still carries it)."""
+        mass = as_float_array(payload_mass)
+        check_parameter("RestToRestMove.with_payload", "payload_mass", mass, shape=())
+        return eqx.tree_at(lambda m: m.chain.payload.mass, self, mass)
 
     def torque(self, control_points) -> BSplineTorque:
         return BSplineTorque(control_points, self.duration, self.tau_max)
+
+
+#: `RestToRestMove` warns when gravity's torque on a joint at the start or goal, at rest,
+#: exceeds this fraction of the joint's torque limit
+HOLDING_TORQUE_FRACTION = 1e-3
+
+
+def _warn_if_not_at_rest(chain: Chain, start, goal, tau_max) -> None:
+    """Warn when the start or goal angles are not an equilibrium of the unforced arm
+    (gravity's torque on a joint, links undeformed, above `HOLDING_TORQUE_FRACTION` of its
+    limit). The designed torque is zero from `T` on (`BSplineTorque`), so under gravity
+    the arm can stay only where gravity exerts no torque: found in review, a move of a
+    vertical pendulum from hanging to 0.5 rad off was designed without a word and ended
+    2 rad from its goal."""
+    values = (chain, start, goal, tau_max)
+    if not all(_is_concrete(x) for x in jax.tree_util.tree_leaves(values)):
+        return
+    if not np.any(np.asarray(chain.gravity, dtype=float)):
+        return
+    asm = assemble(chain)
+    lay = asm.layout
+    for label, angles in (("start", start), ("goal", goal)):
+        Q = jnp.zeros(lay.n_dof).at[jnp.asarray(lay.theta)].set(angles)
+        for i, k in enumerate(lay.rotor):
+            if k is not None:
+                Q = Q.at[k].set(angles[i])
+        F = generalised_forces(asm, Q, jnp.zeros(lay.n_dof), jnp.zeros(chain.n_links))
+        hold = np.abs(np.asarray(F)[list(lay.theta)])
+        limit = np.asarray(tau_max, dtype=float)
+        if np.any(hold > HOLDING_TORQUE_FRACTION * limit):
+            j = int(np.argmax(hold / limit))
+            warnings.warn(
+                f"RestToRestMove: the {label} angles are not an equilibrium of the unforced arm: at rest there, "
+                f"gravity exerts {hold[j]:.3g} N m on joint {j + 1} (its limit {limit[j]:.3g} N m), and the "
+                "designed torque is zero after T, so the arm cannot "
+                + ("stay at its goal" if label == "goal" else "start at rest")
+                + "; choose angles where the links hang or stand upright, or a chain in a horizontal plane "
+                "(gravity=(0, 0))",
+                UserWarning,
+                stacklevel=5,  # the user's RestToRestMove(...) line (through equinox's __call__)
+            )
 
 
 def move_residuals(control_points, move: RestToRestMove, *, at_goal: bool = True):

@@ -1,6 +1,9 @@
 """flexdyn.design: the B-spline torque (fast, no ODE solves), the move residuals' derivatives and their elastic-joint
 blocks (slow)."""
 
+import re
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -76,6 +79,7 @@ def test_move_rejects_wrong_number_of_angles():
         ({"tau_max": 0.0}, r"RestToRestMove.tau_max: expected a value > 0"),
         ({"n_window": 1}, r"RestToRestMove.n_window: expected an integer >= 2"),
         ({"dt": 0.0}, r"RestToRestMove.dt: expected a value > 0"),
+        ({"dt": 0.5}, r"RestToRestMove.dt: expected a step shorter than the move's duration 0.5 s, got 0.5 s"),
     ],
 )
 def test_move_rejects_bad_arguments_naming_them(change, message):
@@ -85,6 +89,43 @@ def test_move_rejects_bad_arguments_naming_them(change, message):
     kwargs = {"start_angles": [0.0, 0.0], "goal_angles": [0.1, 0.5], "duration": 0.5, "tau_max": 0.4, **change}
     with pytest.raises(ValueError, match=message):
         design.RestToRestMove(fd.rigs.two_link_flexible_arm(), **kwargs)
+
+
+def test_spline_and_payload_arguments_checked_when_given():
+    """Review: NaN control points or limits, and a NaN or negative payload, were accepted
+    and failed later inside an equinox traceback; samples after `duration` were dropped
+    from a fit without a word."""
+    with pytest.raises(ValueError, match=r"BSplineTorque.control_points: expected a finite number"):
+        design.BSplineTorque(jnp.full((4, 1), jnp.nan), T, 0.4)
+    with pytest.raises(ValueError, match=r"BSplineTorque.tau_max: expected a finite number"):
+        design.BSplineTorque(jnp.zeros((4, 1)), T, float("nan"))
+    with pytest.raises(ValueError, match=r"BSplineTorque.fit.tau_max: expected a finite number"):
+        design.BSplineTorque.fit(np.linspace(0, T, 11), np.zeros((11, 1)), 4, T, float("nan"))
+    with pytest.warns(UserWarning, match=r"4 of the 15 samples lie after duration = 0.5 s"):
+        design.BSplineTorque.fit(np.linspace(0, 0.7, 15), np.zeros((15, 1)), 4, 0.5, 0.4)
+    move = design.RestToRestMove(fd.rigs.two_link_flexible_arm(), [0.0, 0.0], [0.1, 0.5], 0.5, 0.4, n_window=5)
+    for bad in (float("nan"), -1.0):
+        with pytest.raises(ValueError, match=r"RestToRestMove.with_payload.payload_mass: expected"):
+            move.with_payload(bad)
+
+
+def test_move_warns_when_gravity_would_pull_the_arm_off_its_goal():
+    """Review: a vertical pendulum's move from hanging to 0.5 rad off was designed without
+    a word; the torque is zero after T, so the arm swung back (2 rad from the goal). Oracle:
+    the warning reports the uniform strip's static moment, rho L g (L / 2) cos(theta)."""
+    chain = fd.rigs.flexible_pendulum()
+    hang = -np.pi / 2
+    with pytest.warns(UserWarning, match=r"goal angles are not an equilibrium .* gravity exerts ([0-9.]+) N m") as w:
+        design.RestToRestMove(chain, [hang], [hang + 0.5], 1.0, 0.3, n_window=5)
+    assert len(w) == 1
+    stated = float(re.search(r"gravity exerts ([0-9.eE+-]+) N m", str(w[0].message)).group(1))
+    link = chain.links[0]
+    moment = float(link.rho) * float(link.length) * 9.81 * float(link.length) / 2 * np.cos(hang + 0.5)
+    assert float(chain.payload.mass) == 0.0 and stated == pytest.approx(abs(moment), rel=2e-3)
+    # hanging to upright: both equilibria, no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        design.RestToRestMove(chain, [hang], [np.pi / 2], 1.0, 0.3, n_window=5)
 
 
 def test_move_warns_of_a_duration_in_milliseconds():
