@@ -364,13 +364,48 @@ class MoveDesign(eqx.Module):
     nominal move, the cost still fell by ~1 % a step after 55 steps (1.45e-10 -> 1.41e-10),
     each step moving the residuals by more than optimistix's `atol` (1e-10). Judge a
     design by `cost` against `initial_cost` and by `move_metrics` (residual vibration,
-    goal error), not by `result` alone."""
+    goal error), not by `result` alone.
+
+    `goal_error` (rad): the largest |theta - theta_goal| of the nominal chain over the
+    window `[T, T + settle]`, from the residuals at the optimum; `reached_goal`: whether
+    it is within `GOAL_TOLERANCE` of the move's largest joint travel. `summary()` says both
+    in words, and what to try when the goal is not reached (found in review: an infeasible
+    move, 3 rad in 0.5 s at 0.05 N m, returned the same `result` as a good design, and
+    ended 2.8 rad from its goal)."""
 
     torque: BSplineTorque
     cost: Array
     initial_cost: Array
     result: optx.RESULTS
     num_steps: Array
+    goal_error: Array
+    travel: Array  # rad: the largest |goal - start| over the joints
+
+    @property
+    def reached_goal(self) -> bool:
+        return bool(float(self.goal_error) <= GOAL_TOLERANCE * max(float(self.travel), 1e-12))
+
+    def summary(self) -> str:
+        cost, cost0 = float(self.cost), float(self.initial_cost)
+        lines = [
+            f"cost {cost0:.4g} -> {cost:.4g} ({cost / cost0 if cost0 > 0 else float('nan'):.3g} of the initial) in "
+            f"{int(self.num_steps)} Levenberg-Marquardt steps",
+            f"largest joint-angle error over [T, T + settle] (nominal payload): {float(self.goal_error):.3g} rad "
+            f"({100 * float(self.goal_error) / max(float(self.travel), 1e-12):.3g} % of the move's "
+            f"{float(self.travel):.3g} rad)",
+        ]
+        if not self.reached_goal:
+            lines.append(
+                f"warning: the arm does not stop at its goal (more than {100 * GOAL_TOLERANCE:g} % of the move off): "
+                "the move may be infeasible with this duration and torque limit (try a longer duration or a larger "
+                "tau_max), gravity may pull the arm off its goal (RestToRestMove warns of that), or the design needs "
+                "more steps (max_steps); move_metrics gives the details"
+            )
+        return "\n".join(lines)
+
+
+#: `MoveDesign.reached_goal`: the goal error allowed, as a fraction of the move's travel
+GOAL_TOLERANCE = 0.01
 
 
 def _residuals(control_points, args):
@@ -446,6 +481,8 @@ def design_move(
     reached (check `result`)."""
 
     _check_design_inputs(move, initial)
+    if isinstance(max_steps, bool) or int(max_steps) != max_steps or max_steps < 1:
+        raise ValueError(f"design_move.max_steps: expected an integer >= 1, got {max_steps!r}")
     masses = None if payload_masses is None else as_float_array(payload_masses)
     if masses is not None:
         if masses.ndim != 1 or masses.shape[0] < 1:
@@ -469,8 +506,12 @@ def design_move(
         max_steps=max_steps,
         throw=throw,
     )
-    cost = 0.5 * jnp.sum(_residuals(sol.value, args) ** 2)
-    return MoveDesign(move.torque(sol.value), cost, cost0, sol.result, sol.stats["num_steps"])
+    r = _residuals(sol.value, args)
+    cost = 0.5 * jnp.sum(r**2)
+    # the first block of the nominal residuals: (theta - goal) / sqrt(n_window) over the window
+    goal_error = jnp.max(jnp.abs(r[: move.n_window * move.chain.n_links])) * jnp.sqrt(float(move.n_window))
+    travel = jnp.max(jnp.abs(move.goal_angles - move.start_angles))
+    return MoveDesign(move.torque(sol.value), cost, cost0, sol.result, sol.stats["num_steps"], goal_error, travel)
 
 
 def move_metrics(

@@ -221,3 +221,29 @@ def test_rigid_joint_residuals_unchanged_in_length():
     move = design.RestToRestMove(fd.rigs.two_link_flexible_arm(), [0.0, 0.0], [0.1, 0.5], 0.5, 0.4, n_window=11)
     shape = jax.eval_shape(lambda c: design.move_residuals(c, move), jnp.zeros((5, 2))).shape
     assert shape == (11 * (2 + 2) + 2,)
+
+
+def test_design_says_whether_the_arm_reached_its_goal():
+    """Review: an infeasible move (here 3 rad in 0.5 s with 0.05 N m) returned the same
+    `result` as a good design, and nothing said that it ended far from its goal. Oracle
+    for `goal_error`: `move_metrics`' independent simulation of the designed torque."""
+    arm = fd.rigs.two_link_flexible_arm()
+    T = 0.5
+    bang = fd.BangBang([0.2, 0.2], T / 2)  # paper 002's input, compressed; its end point is the feasible goal
+    y0 = fd.initial_state(arm, joint_angles=[0.0, 0.0])
+    goal = fd.simulate(arm, y0, jnp.asarray([0.0, T]), bang, dt=1e-3).Q[-1, jnp.asarray(arm.layout.theta)]
+    feasible = design.RestToRestMove(arm, [0.0, 0.0], goal, T, 0.4, settle=0.2, n_window=5, dt=2e-3)
+    infeasible = design.RestToRestMove(arm, [0.0, 0.0], [3.0, 0.0], T, 0.05, settle=0.2, n_window=5, dt=2e-3)
+    ts = np.linspace(0.0, T, 201)
+    for move, scale, reached in ((feasible, 1.0, True), (infeasible, 0.2, False)):
+        samples = scale * np.asarray(jax.vmap(lambda t: bang(t))(jnp.asarray(ts)))
+        initial = design.BSplineTorque.fit(ts, samples, 6, T, move.tau_max)
+        res = design.design_move(move, initial, max_steps=20)
+        metrics = design.move_metrics(move, res.torque)
+        assert float(res.goal_error) == pytest.approx(
+            max(metrics["angle_error_T"], metrics["angle_error_end"]), rel=0.05
+        )
+        assert res.reached_goal is reached, res.summary()
+        assert ("does not stop at its goal" in res.summary()) is not reached
+    with pytest.raises(ValueError, match=r"design_move.max_steps: expected an integer >= 1, got 0"):
+        design.design_move(infeasible, initial, max_steps=0)
