@@ -129,6 +129,11 @@ def sweep(fn: Callable, batch, *shared: Any, devices: Sequence[jax.Device] | Non
     - `shared`: further arguments given to every entry unchanged (replicated on every device).
     - `devices`: the devices to split over (default: all of `jax.devices()`).
 
+    A `Chain` (or `AssembledChain`) in `batch` is checked on the host first: a bad
+    parameter is named with its batch entries. Chains built inside `fn` from a batch of
+    numbers are checked only inside the computation, where the error cannot say which
+    entry: build them outside (`jax.vmap(build)(params)`) to have it named.
+
     Returns the outputs stacked along a leading axis of size `B`, sharded over the devices
     (a `jax.Array`; `np.asarray` gathers it). The same values as `jax.vmap(fn)` up to
     rounding: each device runs the same program on its share.

@@ -81,6 +81,7 @@ from jaxtyping import Array, Float
 
 from .chain import AssembledChain, Chain, assemble, check_batch
 from .fixed_step import _breaks, _pieces, vector_field
+from .inputs import SampledTorque
 from .linear import RK4_MARGIN, rk4_growth
 from .scalarize import eval_elementwise, is_constant, object_array
 from .simulate import as_input
@@ -471,7 +472,12 @@ def rk4_sweep_final(
         run = _runner(None if key is None else (key, solve), make_plan, backend, block, num_warps, interpret)
         out, bad = run(flat, y0)
     except NotImplementedError as e:
+        what = (
+            f"the input ({type(torque).__name__}: its interpolation searches the sample times) has no scalar form ({e})"
+            if isinstance(torque, SampledTorque)
+            else str(e)
+        )
         raise NotImplementedError(
-            f"rk4_sweep_final: {e}. Use jax.vmap of flexdyn.fixed_step.rk4_final for this chain and input"
+            f"rk4_sweep_final: {what}. Use jax.vmap of flexdyn.fixed_step.rk4_final for this chain and input"
         ) from e
     return _checked(out, bad)

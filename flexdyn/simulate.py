@@ -108,8 +108,9 @@ def prepare(chain, y0, ts, torque, caller: str):
     if jnp.result_type(float) != jnp.float64:
         warnings.warn(
             f"{caller}: JAX runs in single precision (jax_enable_x64 is off, e.g. FLEXDYN_NO_X64=1): the "
-            "default tolerances (rtol 1e-8) are below float32's resolution, so the solver takes several "
-            "times the steps and the results carry ~1e-7 relative error; flexdyn expects float64",
+            "results carry ~1e-7 relative error at best, and the adaptive solver's default tolerances "
+            "(rtol 1e-8) are below float32's resolution, so it takes several times the steps; flexdyn "
+            "expects float64",
             stacklevel=3,
         )
     asm = assemble(chain)

@@ -119,7 +119,7 @@ def test_errors():
         fused.rk4_sweep_final(chains, Y0[:4], 0.0, 0.1, TORQUE, dt=1e-3)
     # An input whose evaluation has no scalar form (a SampledTorque's interpolation searches).
     sampled = fd.SampledTorque(jnp.linspace(0.0, 0.1, 5), jnp.ones((5, 2)))
-    with pytest.raises(NotImplementedError, match="'scan'.*rk4_final"):
+    with pytest.raises(NotImplementedError, match=r"SampledTorque: its interpolation searches .*'scan'.*rk4_final"):
         fused.rk4_sweep_final(chains, Y0, 0.0, 0.1, sampled, dt=1e-2)
     # A step far above the stability limit of the link's mode: a clear error, not NaN.
     with pytest.raises(ValueError, match=r"dt = 0.2 s is above RK4's stability limit .* batch entries 0, 1 \(of 2\)"):
