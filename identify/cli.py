@@ -31,8 +31,10 @@ A log sampled below 1 Hz is refused (exit code 2) unless `--any-rate`: on a rig 
 almost always a time column in milliseconds labelled [s], and simulating its 1000-fold
 span would take hours.
 
-Exit codes: 0 done (see `converged` in `result.json`), 1 the fit failed, 2 a usage
-error, an unreadable experiment or log, a refused output folder or sampling rate.
+Exit codes: 0 done, the fit converged; 1 the fit failed; 2 a usage error, an unreadable
+experiment or log, a refused output folder or sampling rate; 3 (`fit`) the fit finished and
+its results are written, but it did not converge or a parameter ended on its bound
+(`converged: false` in `result.json`, the WARNING printed says which).
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ import time
 from pathlib import Path
 
 MARKER = ".identify-output"
+NOT_CONVERGED = 3  # exit status of `identify fit` when the fit did not converge
 RESULT_FILE = "result.json"
 
 
@@ -608,6 +611,14 @@ def _fit_command(args) -> int:
     for p in written:
         if p.name != MARKER:
             print(f"  {p}")
+    if not result.converged:  # a script must not read this as success (found in review: exit 0)
+        print(
+            f"identify fit: exit status {NOT_CONVERGED}: the fit did not converge"
+            + (f" ({', '.join(result.at_bounds)} on a bound)" if result.at_bounds else "")
+            + "; the results above are written but are not an optimum of the model",
+            file=sys.stderr,
+        )
+        return NOT_CONVERGED
     return 0
 
 

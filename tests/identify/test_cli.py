@@ -89,6 +89,28 @@ def test_fit_succeeds_and_writes_results(fitted):
     assert doc["versions"]["jax"]
 
 
+def test_a_fit_that_did_not_converge_exits_3(fitted, monkeypatch, capsys):
+    """Review: a fit that printed `NOT converged` and a parameter on its bound exited 0,
+    so a script read it as a success. The real fit (programs cached by the fixture's run)
+    with its result marked as ended on a bound, as `identify.fit` marks it."""
+    import dataclasses
+
+    import identify.run
+
+    real = identify.run.fit_experiment
+
+    def on_a_bound(experiment, **options):
+        result = real(experiment, **options)
+        return dataclasses.replace(result, converged=False, at_bounds=[result.names[0]])
+
+    monkeypatch.setattr(identify.run, "fit_experiment", on_a_bound)
+    out = fitted["work"] / "not-converged"
+    assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 3
+    err = capsys.readouterr().err
+    assert "exit status 3: the fit did not converge" in err and "on a bound" in err
+    assert json.loads((out / "result.json").read_text())["converged"] is False  # results still written
+
+
 def test_inputs_untouched(fitted):
     assert fitted["before"] == fitted["after"]
 
