@@ -488,8 +488,10 @@ def _read_csv(path: Path, wanted, cals, strict, context):
             continue
         row = split(lines[i])
         if len(row) != len(header):
+            cut = i == len(lines) - 1 and not content.endswith(("\n", "\r"))
             raise LogError(
                 f"{path}, line {i + 1}: {len(row)} cells; expected {len(header)} like the header on line {hline}"
+                + ("; the file ends in this row without a newline: it may have been cut off mid-write" if cut else "")
             )
         line_numbers.append(i + 1)
         for c in used:
@@ -506,6 +508,7 @@ def _read_csv(path: Path, wanted, cals, strict, context):
         raw = _parse_floats(path, cells[c], decimal_comma, where_for(c))
         _check_samples(path, w.channel, raw, where_for(c))
         channels[w.channel] = _to_si(raw, unit, cal, w.channel)
+        _warn_if_turns(path, f"column {c} ({header[c - 1]!r})", w.channel, channels[w.channel], unit)
         sources[w.channel] = f"column {c} {header[c - 1]!r}" + (" (calibrated)" if cal else "")
         if w.channel == "time":
             t_relative = _relative_time(raw, unit)
@@ -514,6 +517,27 @@ def _read_csv(path: Path, wanted, cals, strict, context):
         _check_time(path, t_relative, where_for(seen[next(w.source for w in wanted if w.channel == "time")]), t)
     sources.pop("time")
     return t, t_relative, channels, sources, ignored
+
+
+#: `load_log` warns of an angle channel read as radians that reaches this many turns
+MANY_TURNS = 10
+
+
+def _warn_if_turns(path, where: str, channel: str, si: np.ndarray, unit: str) -> None:
+    """Warn when an angle channel whose column says radians reaches `MANY_TURNS` turns: most
+    likely degrees labelled [rad] (found in review: 87-273 "rad" were loaded without a word,
+    and the fit failed 2 minutes later with a warning pooled over all the logs). A link that
+    really spins that far (the spinning-link example reaches 7 turns) can ignore it."""
+    if u.channel_dimension(channel) != u.ANGLE or unit not in ("rad", "mrad"):
+        return
+    peak = float(np.max(np.abs(si))) if si.size else 0.0
+    if peak > MANY_TURNS * 2 * np.pi:
+        warnings.warn(
+            f"{path}, {where}: {channel} reaches {peak:.4g} rad ({peak / (2 * np.pi):.3g} turns); if the column "
+            f"is in degrees, label it [deg] (or map it as '... [deg]'); a link that spins this far can ignore this",
+            UserWarning,
+            stacklevel=4,
+        )
 
 
 def _warn_if_cut_off(path, text: str, lines: list[str], line_numbers: list[int]) -> None:
@@ -604,6 +628,7 @@ def _read_mat(path: Path, wanted, cals, strict, context):
         where = lambda j, s=w.source: f"variable {s!r}, sample {j + 1}"  # noqa: E731 (1-based, as in MATLAB)
         _check_samples(path, w.channel, raw, where)
         channels[w.channel] = _to_si(raw, unit, cal, w.channel)
+        _warn_if_turns(path, f"variable {w.source!r}", w.channel, channels[w.channel], unit)
         sources[w.channel] = f"variable {w.source!r} [{w.unit}]" + (" (calibrated)" if cal else "")
         if w.channel == "time":
             t_relative = _relative_time(raw, unit)

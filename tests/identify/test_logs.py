@@ -69,6 +69,33 @@ def test_a_last_row_cut_off_mid_write_is_warned_about(tmp_path):
         assert len(load_log(path, COLUMNS).t) == 20
 
 
+def test_a_last_row_cut_off_before_its_last_cell_says_so(tmp_path):
+    # review: the cell-count error gave no hint that the write was cut off
+    text = "\n".join([",".join(HEADER)] + [",".join(r) for r in good_rows()])
+    path = tmp_path / "cut.csv"
+    path.write_text(text[: text.rindex(",")])  # cut at the last row's second comma, no final newline
+    with pytest.raises(LogError, match=msg("cut.csv, line 21: 2 cells; expected 3", "may have been cut off mid-write")):
+        load_log(path, COLUMNS)
+    path.write_text(text[: text.rindex(",")] + "\n")  # a short row followed by a newline: no such hint
+    with pytest.raises(LogError, match=r"2 cells; expected 3 like the header on line 1$"):
+        load_log(path, COLUMNS)
+
+
+def test_an_angle_labelled_radians_reaching_many_turns_is_warned_about(tmp_path):
+    """Review: degrees labelled [rad] (87-273 "rad") loaded without a word; the fit failed
+    minutes later. The spinning-link example's 7 turns stay quiet."""
+    t = np.arange(20) * 0.01
+    rows = [[f"{ti:.4f}", f"{d:.6f}", "0.0"] for ti, d in zip(t, np.linspace(87.0, 273.0, 20))]
+    path = write_csv(tmp_path / "deg.csv", ["time [s]", "theta1 [rad]", "tip1 [mm]"], rows)
+    with pytest.warns(UserWarning, match=msg("deg.csv, column 2 ('theta1 [rad]')", "273 rad (43.4 turns)", "[deg]")):
+        load_log(path)
+    rows = [[f"{ti:.4f}", f"{d:.6f}", "0.0"] for ti, d in zip(t, np.linspace(0.0, 7 * 2 * np.pi, 20))]
+    path = write_csv(tmp_path / "spin.csv", ["time [s]", "theta1 [rad]", "tip1 [mm]"], rows)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_log(path)
+
+
 def test_csv_units_converted_to_si(tmp_path):
     path = write_csv(tmp_path / "drop.csv", HEADER + ["torque1 [N mm]"], [r + ["250"] for r in good_rows()], ["a"])
     log = load_log(path, {**COLUMNS, "torque1": "torque1 [N mm]"})
