@@ -191,16 +191,13 @@ def markdown(diag, title: str = "") -> str:
     lines.append("## Gain on held-out data")
     lines.append("")
     floor = diag.held_out.get("noise_floor", {})
-    lines.append("| channel | baseline RMS | extended RMS | gain | noise floor |")
-    lines.append("| --- | ---: | ---: | ---: | ---: |")
+    lines.append("| channel | unit | baseline RMS | extended RMS | gain | noise floor |")
+    lines.append("| --- | --- | ---: | ---: | ---: | ---: |")
     for c in diag.held_out["baseline"]:
-        lines.append(
-            f"| {c} | {diag.held_out['baseline'][c]:.4g} | {diag.held_out['extended'][c]:.4g} "
-            f"| {diag.held_out['gain'][c]:.2f}x | {floor[c]:.4g} |"
-            if c in floor
-            else f"| {c} | {diag.held_out['baseline'][c]:.4g} | {diag.held_out['extended'][c]:.4g} "
-            f"| {diag.held_out['gain'][c]:.2f}x | |"
-        )
+        scale, unit = display_unit(c)
+        base, ext = scale * diag.held_out["baseline"][c], scale * diag.held_out["extended"][c]
+        noise = f"{scale * floor[c]:.4g}" if c in floor else ""
+        lines.append(f"| {c} | {unit} | {base:.4g} | {ext:.4g} | {diag.held_out['gain'][c]:.2f}x | {noise} |")
     lines.append("")
     lines.append(
         "The noise floor is estimated from the held-out samples alone, without any model "

@@ -38,6 +38,7 @@ import numpy as np
 from flexdyn.stiffening import first_mode_stiffening
 
 from . import diagnostics
+from .report import display_unit
 
 STIFFENING_THRESHOLD = 0.01  # relative change of omega_1^2 above which a check is flagged
 
@@ -322,9 +323,12 @@ def summary_lines(ev: dict) -> list[str]:
     lines = []
     for log, per in ev.items():
         for c, item in per.items():
-            w = ", ".join(f"{x['rms']:.3g}" for x in item["windows"])
+            scale, unit = display_unit(c)
+            w = ", ".join(f"{scale * x['rms']:.3g}" for x in item["windows"])
             lines.append(
-                f"- `{log}` / `{c}`: residual RMS {item['rms']:.3g} (noise {item['noise_sigma']:.3g}); by window: {w}"
+                f"- `{log}` / `{c}`: residual RMS {scale * item['rms']:.3g} {unit} (the fit's noise weight sigma "
+                f"{scale * item['noise_sigma']:.3g} {unit}: declared, or re-estimated from the residuals); "
+                f"by window ({unit}): {w}"
             )
             dl = item["decay_law"]
             if dl["measured"] and dl["simulated"]:

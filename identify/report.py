@@ -143,7 +143,7 @@ def plot_residuals(outputs: dict, folder, sigma: dict | None = None, roles: dict
             a.axhline(0.0, color="0.4", lw=0.6)
             if sigma and sigma.get(c):
                 s = 2 * scale * sigma[c]
-                a.axhspan(-s, s, color="tab:green", alpha=0.12, lw=0, label="+-2 sigma (noise)")
+                a.axhspan(-s, s, color="tab:green", alpha=0.12, lw=0, label="+-2 sigma (the fit's noise weight)")
                 a.legend(fontsize="small", loc="upper right")
             rms = float(np.sqrt(np.mean(r**2)))
             a.set(

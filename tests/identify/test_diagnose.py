@@ -86,6 +86,11 @@ def test_main_job_diagnose_names_the_hidden_friction_of_the_example(tmp_path):
         assert (out / name).stat().st_size > 0
     assert "coulomb_friction" in (out / "report.md").read_text()
     assert "Not tried:" in (out / "report.md").read_text()
+    # review: the held-out table and the evidence had no units, and the fit's noise weight
+    # (re-estimated from the residuals) read as the sensor noise
+    report = (out / "report.md").read_text()
+    assert "| channel | unit | baseline RMS | extended RMS | gain | noise floor |" in report
+    assert "| theta1 | deg |" in report and "the fit's noise weight sigma" in report
     # a second run into the same folder is allowed (ours), into the example's folder is not
     assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(EXAMPLE / "logs"), "--quiet"]) == 2
 
