@@ -91,6 +91,7 @@ from .fit import (
     FitResult,
     Parameter,
     Problem,
+    _at_bounds,
     _initial_states,
     _offsets,
     _predict_jit,
@@ -594,6 +595,30 @@ class Diagnosis:
             return "n/a, the baseline's held-out residual is not above the noise level"
         return f"{self.fraction_of_excess_explained:.3f}"
 
+    @property
+    def extended_at_bounds(self) -> list[str]:
+        """The baseline's parameters whose value in the extended model lies on one of
+        their bounds (judged as `FitResult.at_bounds` is). Found in review: the real
+        pendulum's `joint1.damping` went to its lower bound once air drag took over the
+        damping, and nothing said so."""
+        if not self.causes:
+            return []
+        problem = self.baseline.problem
+        xs = []
+        for name, log, value in zip(problem.names, problem.log_scale, self.baseline.values):
+            v = float(self.extended_parameters.get(name, value))
+            xs.append(math.log(v) if log and v > 0 else (-math.inf if log else v))
+        return _at_bounds(problem, np.asarray(xs))
+
+    def at_bound_lines(self) -> list[str]:
+        """A sentence per parameter of `extended_at_bounds`."""
+        return [
+            f"{n} = {float(self.extended_parameters[n]):.5g} ended on a bound in the extended model: what it stood for "
+            "in the baseline may now be carried by the named cause(s) (its interval is then meaningless), or its "
+            "bound is too narrow (widen it if that is physical)"
+            for n in self.extended_at_bounds
+        ]
+
     def detection_limit_lines(self) -> list[str]:
         """One line per candidate not named: the smallest effect that would have been
         named, per parameter, and the criterion that sets it."""
@@ -627,6 +652,8 @@ class Diagnosis:
                     lines.append(f"    IMPLAUSIBLE: {w}")
         else:
             lines.append("no catalogue entry explains the residual significantly (see the evidence and the scores)")
+        for line in self.at_bound_lines():
+            lines.append(f"on a bound: {line}")
         for check in self.model_checks:
             if check["flagged"]:
                 lines.append(f"model check: {check['message']}")
@@ -687,6 +714,7 @@ class Diagnosis:
             "fraction_of_excess_explained": self.fraction_of_excess_explained,
             "extended_parameters": self.extended_parameters,
             "extended_intervals": self.extended_intervals,
+            "extended_at_bounds": self.extended_at_bounds,
             "costs": self.costs,
             "model_checks": self.model_checks,
             "notes": self.notes,

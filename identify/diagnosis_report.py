@@ -227,6 +227,9 @@ def markdown(diag, title: str = "") -> str:
                 f"| `{n}` | {p['value']:.5g} | {p['std_error']:.3g} | [{p['ci95'][0]:.5g}, {p['ci95'][1]:.5g}] |"
             )
         lines.append("")
+        for line in diag.at_bound_lines():
+            lines.append(f"**On a bound**: `{line.split(' = ', 1)[0]}` = {line.split(' = ', 1)[1]}")
+            lines.append("")
     if diag.model_checks:
         lines.append("## Model checks (baseline)")
         lines.append("")

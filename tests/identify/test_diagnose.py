@@ -172,6 +172,15 @@ def test_quadratic_damping_hidden_and_told_apart_from_dry_friction(monkeypatch):
     assert "note: round 2: x:joint1 not refitted" in warned.summary()
     assert "- Round 2: x:joint1 not refitted" in diagnosis_report.markdown(warned)
     assert warned.to_dict()["notes"] == [{"round": 2, "text": "x:joint1 not refitted"}]
+    # a baseline parameter that ends on its bound in the extended model is said to (review:
+    # the real pendulum's joint damping went to its lower bound once drag took over)
+    assert diag.extended_at_bounds == []
+    lower = PENDULUM_PARAMS[0].lower
+    bounded = dataclasses.replace(diag, extended_parameters={**diag.extended_parameters, "joint1.damping": lower})
+    assert bounded.extended_at_bounds == ["joint1.damping"]
+    assert "on a bound: joint1.damping = 1e-06 ended on a bound in the extended model" in bounded.summary()
+    assert "**On a bound**: `joint1.damping` = 1e-06" in diagnosis_report.markdown(bounded)
+    assert bounded.to_dict()["extended_at_bounds"] == ["joint1.damping"]
 
 
 @pytest.mark.slow
