@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from identify.report import display_unit, state_display_unit
@@ -36,3 +37,14 @@ def test_a_long_figure_title_is_wrapped_to_the_figure_width():
     assert len(lines) == 2 and all(len(line) <= 45 for line in lines)
     assert " ".join(lines) == title
     assert wrapped_title("Residuals", 5.0) == "Residuals"
+
+
+def test_residual_spectrum_resolves_a_low_frequency_over_a_long_log():
+    """Review: fixed 256-sample segments gave 0.78 Hz bins at 200 Hz, and a residual at a
+    pendulum's 1.27 Hz swing showed up between bins. Oracle: the sine's own frequency."""
+    from identify.report import residual_spectrum
+
+    t = np.arange(0.0, 30.0, 1 / 200)
+    f, p = residual_spectrum(t, np.sin(2 * np.pi * 1.27 * t))
+    assert f[1] - f[0] < 0.2
+    assert abs(f[np.argmax(p)] - 1.27) < 0.1
