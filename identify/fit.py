@@ -701,7 +701,8 @@ class FitResult:
         its = sum(s["iterations"] for s in self.stages)
         lines.append(
             f"cost {self.cost:.6g} over {self.n_residuals} residuals, residual variance {self.residual_variance:.4g}, "
-            f"{its} LM iterations in {len(self.stages)} horizon stages, {self.wall_time:.1f} s"
+            f"{its} LM iterations in {len(self.stages)} solver stages (multi-start, growing horizon, noise "
+            f"re-estimation: `stages`), {self.wall_time:.1f} s"
             + (f" (its share of {self.batch_size} logs fitted in one batch)" if self.batch_size > 1 else "")
             + ", "
             f"{'converged' if self.converged else 'NOT converged'}"
