@@ -348,10 +348,14 @@ def _checked_step(flat, growth, dt: float):
         return eqx.error_if(flat, jnp.any(unstable), message.format(dt=dt, which="an entry of the batch"))
     bad = np.flatnonzero(np.asarray(unstable))
     if bad.size:
-        shown = ", ".join(str(k) for k in bad[:10]) + (f", ... ({bad.size} in all)" if bad.size > 10 else "")
-        which = f"batch entr{'y' if bad.size == 1 else 'ies'} {shown} (of {growth.shape[0]})"
-        raise ValueError(message.format(dt=dt, which=which))
+        raise ValueError(message.format(dt=dt, which=_entries(bad, growth.shape[0])))
     return flat
+
+
+def _entries(bad: np.ndarray, total: int) -> str:
+    """ "batch entries 3, 17 (of 4096)": the first ten indices of `bad`."""
+    shown = ", ".join(str(k) for k in bad[:10]) + (f", ... ({bad.size} in all)" if bad.size > 10 else "")
+    return f"batch entr{'y' if bad.size == 1 else 'ies'} {shown} (of {total})"
 
 
 def _checked(out, bad):
@@ -362,9 +366,7 @@ def _checked(out, bad):
         return eqx.error_if(out, jnp.any(bad), _NON_FINITE.format(which="a final state is"))
     bad = np.flatnonzero(np.asarray(bad))
     if bad.size:
-        shown = ", ".join(str(k) for k in bad[:10]) + (f", ... ({bad.size} in all)" if bad.size > 10 else "")
-        which = f"the final state of batch entr{'y' if bad.size == 1 else 'ies'} {shown} (of {out.shape[0]}) is"
-        raise ValueError(_NON_FINITE.format(which=which))
+        raise ValueError(_NON_FINITE.format(which=f"the final state of {_entries(bad, out.shape[0])} is"))
     return out
 
 
