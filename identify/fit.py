@@ -225,7 +225,7 @@ def _check_log_data(log: LogData) -> None:
     series = [(f"outputs[{c!r}]", v, (t.size,)) for c, v in log.outputs.items()]
     if log.torque is not None:
         tq = np.asarray(log.torque, dtype=float)
-        series.append(("torque", tq, (t.size,) + tq.shape[1:2]))
+        series.append(("torque", tq, f"({t.size},) or ({t.size}, n_joints)"))
     for label, values, shape in series:
         v = np.asarray(values, dtype=float)
         if v.shape[:1] != (t.size,) or v.ndim > (2 if label == "torque" else 1):
@@ -236,6 +236,18 @@ def _check_log_data(log: LogData) -> None:
                 f"{where}: {label} is not finite at sample {bad[0]} (t = {t[bad[0]]:.9g} s); "
                 "drop or fill such samples before fitting"
             )
+
+
+def _check_same_parameters(problem: Problem, parameters, caller: str) -> None:
+    """The free parameters passed to a fit must be the problem's, in its order: the
+    guesses are read by position (found in review: `fit(problem, [hub1.inertia])` on a
+    problem made for `link1.EI` used the inertia's guess as EI's, silently)."""
+    given = tuple(p.name for p in parameters)
+    if given != tuple(problem.names):
+        raise ValueError(
+            f"{caller}: parameters {list(given)} are not the problem's {list(problem.names)} (as given to "
+            "make_problem, in that order)"
+        )
 
 
 def make_problem(
@@ -267,13 +279,19 @@ def make_problem(
     chain_names = set(fd.parameter_names(chain))
     known = chain_names | set(meas.parameter_names(measurement))
     names, log_scale, lower, upper = [], [], [], []
+    listed = [p.name for p in parameters]
+    twice = sorted({n for n in listed if listed.count(n) > 1})
+    if twice:  # review: both were fitted, and `FitResult.value` kept one of them
+        raise ValueError(f"make_problem: free parameter(s) {', '.join(map(repr, twice))} listed more than once")
     for p in parameters:
         if p.name not in known:
             raise ValueError(f"free parameter {p.name!r} does not exist; this chain has: {', '.join(sorted(known))}")
         signed = fd.is_signed(chain, p.name) if p.name in chain_names else meas.is_signed(p.name)
         lo = -np.inf if p.lower is None else float(p.lower)
         hi = np.inf if p.upper is None else float(p.upper)
-        if not lo <= p.guess <= hi or lo >= hi:
+        if lo >= hi:
+            raise ValueError(f"free parameter {p.name!r}: lower bound {lo!r} is not below the upper bound {hi!r}")
+        if not lo <= p.guess <= hi:
             raise ValueError(f"free parameter {p.name!r}: guess {p.guess!r} is not inside bounds [{lo!r}, {hi!r}]")
         if not signed:
             if p.guess <= 0 or (p.lower is not None and p.lower <= 0):
@@ -339,6 +357,12 @@ def make_problem(
                 raise ValueError(f"log {log.name!r}: offset for channel {c!r}, which the log does not record")
             offset_free.append((l, channels.index(c)))
     noise = dict(noise or {})
+    for c in sorted(set(noise) - set(channels)):  # review: a typo ("theta") dropped the noise level in silence
+        try:
+            ch.check_channel(chain, c)
+        except ValueError as e:
+            raise ValueError(f"make_problem: noise: {e}; the logs record {channels}") from None
+        # a channel of this chain that no log records: its noise level is not used
     sigma = []
     for j, c in enumerate(channels):
         if noise.get(c) is not None:
@@ -662,6 +686,7 @@ class FitResult:
 
     @property
     def value(self) -> dict:
+        """Parameter name -> fitted value (SI)."""
         return dict(zip(self.names, self.values.tolist()))
 
     @property
@@ -681,6 +706,10 @@ class FitResult:
         return [c for c, q in self.fit_quality.items() if q["poor"]]
 
     def summary(self) -> str:
+        """The parameter table (value, standard error, 95 % interval assuming white residuals,
+        guess, change, unit), cost and convergence, goodness of fit against the noise floor,
+        and warnings. Intervals of combinations, and intervals robust to correlated
+        residuals, come from `identify.clustered_uncertainty(result).interval(fn)`."""
         lines = []
         if self.problem is not None:  # which logs: a per-log result of `fit_independent` names its own
             names = self.problem.log_names
@@ -701,8 +730,7 @@ class FitResult:
         its = sum(s["iterations"] for s in self.stages)
         lines.append(
             f"cost {self.cost:.6g} over {self.n_residuals} residuals, residual variance {self.residual_variance:.4g}, "
-            f"{its} LM iterations in {len(self.stages)} solver stages (multi-start, growing horizon, noise "
-            f"re-estimation: `stages`), {self.wall_time:.1f} s"
+            f"{its} LM iterations in {len(self.stages)} solver stages (`stages`), {self.wall_time:.1f} s"
             + (f" (its share of {self.batch_size} logs fitted in one batch)" if self.batch_size > 1 else "")
             + ", "
             f"{'converged' if self.converged else 'NOT converged'}"
@@ -750,6 +778,8 @@ class FitResult:
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
+        """Everything `summary()` shows, JSON-ready (SI units; `identify fit` writes it to
+        `result.json`)."""
         return {
             "parameters": [
                 {
@@ -893,6 +923,7 @@ def fit(
     """
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps, early_max_steps=early_max_steps)
+    _check_same_parameters(problem, parameters, "fit")
     extra = _extra_starts(problem, parameters, extra_starts)
     fd.ensure_mapping_headroom()  # a fit compiles ~10-50 programs (flexdyn.program_cache)
     start = time.perf_counter()
@@ -1378,6 +1409,7 @@ def fit_independent(
     Returns one `FitResult` per log."""
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps)
+    _check_same_parameters(problem, parameters, "fit_independent")
     fd.ensure_mapping_headroom()  # flexdyn.program_cache
     start = time.perf_counter()
     say = progress or (lambda msg: None)

@@ -58,6 +58,12 @@ def simulate_log(
         y0[names.index(k)] = v
     for c in channels:
         ch.check_channel(chain, c)
+    stray = sorted(set(noise or {}) - set(channels))
+    if stray:  # review: noise for a channel not recorded was dropped in silence
+        raise ValueError(
+            f"simulate_log: noise given for {', '.join(map(repr, stray))}, which is not among the recorded "
+            f"channels {tuple(channels)}"
+        )
     inp = None
     if torque is not None:
         torque = np.asarray(torque, float).reshape(len(t), -1)

@@ -106,8 +106,8 @@ def clustered_uncertainty(result: FitResult, level: float = 0.95) -> ClusteredUn
     """Cluster-robust standard errors and intervals of `result`'s shared parameters, each
     log a cluster (module docstring). Uses the Jacobian the fit's covariance came from
     (`FitResult.jacobian_blocks`), else recomputes it at the optimum (one forward-mode
-    solve per log). Raises `ValueError` with fewer than 2 logs or a `level`
-    outside (0, 1)."""
+    solve per log). Raises `ValueError` with no more logs than free parameters (the
+    covariance would be singular) or a `level` outside (0, 1)."""
     if not 0.0 < level < 1.0:
         raise ValueError(f"clustered_uncertainty: level expected a probability in (0, 1), got {level!r}")
     problem = result.problem
@@ -116,6 +116,19 @@ def clustered_uncertainty(result: FitResult, level: float = 0.95) -> ClusteredUn
         raise ValueError(
             "clustered_uncertainty: needs at least 2 logs (each log is a cluster); this fit has "
             f"{n_logs}. Cut a long log into segments, or use the FitResult's white-noise intervals"
+        )
+    n_params = len(result.names)
+    if n_logs <= n_params:
+        # the per-log scores sum to zero at the optimum: their outer products span at most
+        # n_logs - 1 directions, and the others would get a variance of 0 (found in review:
+        # 3 logs, 3 parameters, an interval 60x too narrow that missed the truth)
+        raise ValueError(
+            f"clustered_uncertainty: {n_logs} log{'s' if n_logs != 1 else ''} (clusters) for {n_params} free "
+            "parameters; the cluster-robust "
+            f"covariance has rank at most {n_logs - 1}, so some combinations of the parameters would get a "
+            "variance of zero and intervals far too narrow. It needs more logs than free parameters (5 or more is "
+            "better: `identify fit` uses it from 5); cut long logs into segments, or use the FitResult's "
+            "white-noise intervals"
         )
     x = np.array([np.log(v) if lg else v for v, lg in zip(result.values, problem.log_scale)], float)
     blocks = result.jacobian_blocks

@@ -727,6 +727,34 @@ def test_make_problem_refuses_two_logs_of_one_name_and_a_bad_noise():
         identify.make_problem(chain, params, [log], {"theta1": -1e-3})
 
 
+def test_parameter_lists_noise_channels_and_fit_arguments_checked():
+    """Review (Python fit API): a parameter listed twice was fitted twice and `value` kept
+    one; lower > upper read "guess not inside bounds"; noise for a channel name that does
+    not exist was dropped in silence; `fit` with other parameters than the problem's read
+    their guesses by position; a torque of the wrong shape was said to need (T, T)."""
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(11) / 100.0
+    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7")
+    P = identify.Parameter
+    with pytest.raises(ValueError, match=r"free parameter\(s\) 'joint1.damping' listed more than once"):
+        identify.make_problem(chain, [P("joint1.damping", 1e-3), P("joint1.damping", 2e-3)], [log], {"theta1": 1e-3})
+    with pytest.raises(ValueError, match=r"'joint1.damping': lower bound 2.0 is not below the upper bound 0.5"):
+        identify.make_problem(chain, [P("joint1.damping", 1.0, 2.0, 0.5)], [log], {"theta1": 1e-3})
+    with pytest.raises(ValueError, match=r"make_problem: noise: output channel 'theta'.*the logs record \['theta1'\]"):
+        identify.make_problem(chain, [P("joint1.damping", 1e-3)], [log], {"theta1": 1e-3, "theta": 1.0})
+    problem = identify.make_problem(chain, [P("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
+    for call in (identify.fit, identify.fit_independent):
+        with pytest.raises(
+            ValueError, match=r"parameters \['hub1.inertia'\] are not the problem's \['joint1.damping'\]"
+        ):
+            call(problem, [P("hub1.inertia", 1e-4)])
+    bad = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, torque=np.zeros((1, 11)), name="drop_8")
+    with pytest.raises(ValueError, match=r"torque has shape \(1, 11\); expected \(11,\) or \(11, n_joints\)"):
+        identify.make_problem(chain, [P("joint1.damping", 1e-3)], [bad], {"theta1": 1e-3})
+    with pytest.raises(ValueError, match=r"simulate_log: noise given for 'tip1', which is not among"):
+        identify.simulate_log(chain, t, channels=("theta1",), noise={"tip1": 1e-3})
+
+
 def test_fit_independent_names_the_logs_whose_nuisances_differ():
     """Found in review: "every log must estimate the same initial-state entries and
     offsets", naming neither the logs nor the entries."""

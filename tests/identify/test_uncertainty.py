@@ -97,6 +97,11 @@ def test_needs_two_logs_and_a_valid_level(varying_damping):
     one_log = dataclasses.replace(res, problem=eqx.tree_at(lambda p: p.t, res.problem, res.problem.t[:1]))
     with pytest.raises(ValueError, match="at least 2 logs"):
         identify.clustered_uncertainty(one_log)
+    # Review: with no more logs than free parameters the robust covariance is singular and
+    # some combinations got intervals ~60x too narrow; it refuses (here 2 logs, 2 parameters).
+    two_logs = dataclasses.replace(res, problem=eqx.tree_at(lambda p: p.t, res.problem, res.problem.t[:2]))
+    with pytest.raises(ValueError, match=r"2 logs \(clusters\) for 2 free parameters; .* rank at most 1"):
+        identify.clustered_uncertainty(two_logs)
 
 
 def test_reuses_the_fits_jacobian_and_agrees_with_a_fresh_one(varying_damping):
