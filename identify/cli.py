@@ -505,8 +505,13 @@ def _fit_command(args) -> int:
     resid = residual_report(result)
     fitted_chain = result.chain
     freqs, where = natural_frequencies(fitted_chain)
-    robust = None
-    if n_fit >= CLUSTER_MIN_LOGS:
+    robust, robust_note = None, None
+    if n_fit >= CLUSTER_MIN_LOGS and n_fit <= len(result.names):
+        robust_note = (
+            f"cluster-robust intervals not computed: {n_fit} fit logs for {len(result.names)} free parameters "
+            "(they need more logs than parameters)"
+        )
+    elif n_fit >= CLUSTER_MIN_LOGS:
         say(f"cluster-robust intervals ({n_fit} fit logs as clusters) ...")
         robust = clustered_uncertainty(result)
     val_outputs, val_report, val_nuisances = {}, {}, {}
@@ -534,6 +539,9 @@ def _fit_command(args) -> int:
                 f"WARNING: the fit ended with {', '.join(result.at_bounds)} on a bound, so it is not an optimum of "
                 "the model: widen the bounds, or check the model (gravity, units: see the warnings above)"
             )
+    if robust_note is not None:
+        print()
+        print(robust_note)
     if robust is not None:
         print()
         print(robust.summary())

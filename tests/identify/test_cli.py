@@ -130,17 +130,26 @@ def test_rerun_into_own_folder_and_default_folder(fitted, monkeypatch, capsys):
 
 def test_cluster_robust_intervals_printed_and_written(fitted, monkeypatch, capsys):
     # From CLUSTER_MIN_LOGS fit logs on, the cluster-robust intervals are added (lowered to
-    # 2 here: the example has 2 fit logs; the estimator's tests are in test_uncertainty.py)
+    # 2 here; the estimator's tests are in test_uncertainty.py), if there are more fit logs
+    # than free parameters (review: with 2 logs for 2 parameters the covariance is singular).
     import identify.cli
 
     monkeypatch.setattr(identify.cli, "CLUSTER_MIN_LOGS", 2)
-    out = fitted["work"] / "robust"
+    out = fitted["work"] / "robust-2"
     assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert "cluster-robust uncertainty (2 logs as clusters, t with 1 dof)" in printed
+    assert "cluster-robust intervals not computed: 2 fit logs for 2 free parameters" in printed
+    assert json.loads((out / "result.json").read_text())["clustered_uncertainty"] is None
+    # the held-out log made a third fit log (a copy of the experiment)
+    exp = fitted["exp"].with_name("experiment_three.toml")
+    exp.write_text(fitted["exp"].read_text().replace('role = "validation"', 'role = "fit"'))
+    out = fitted["work"] / "robust"
+    assert main(["fit", str(exp), "--out", str(out), "--stages", "2", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "cluster-robust uncertainty (3 logs as clusters, t with 2 dof)" in printed
     doc = json.loads((out / "result.json").read_text())
     robust = doc["clustered_uncertainty"]
-    assert robust["n_logs"] == 2 and robust["dof"] == 1
+    assert robust["n_logs"] == 3 and robust["dof"] == 2
     white = {p["name"]: p for p in doc["parameters"]}
     for p in robust["parameters"]:
         assert p["value"] == white[p["name"]]["value"] and p["std_error"] > 0
