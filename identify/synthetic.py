@@ -58,12 +58,13 @@ def simulate_log(
         y0[names.index(k)] = v
     for c in channels:
         ch.check_channel(chain, c)
-    stray = sorted(set(noise or {}) - set(channels))
-    if stray:  # review: noise for a channel not recorded was dropped in silence
-        raise ValueError(
-            f"simulate_log: noise given for {', '.join(map(repr, stray))}, which is not among the recorded "
-            f"channels {tuple(channels)}"
-        )
+    for c in sorted(set(noise or {}) - set(channels)):
+        # review: a typo was dropped in silence; a channel of the chain that this log does
+        # not record is fine (one noise dict for logs of different channels)
+        try:
+            ch.check_channel(chain, c)
+        except ValueError as e:
+            raise ValueError(f"simulate_log: noise: {e}; this log records {tuple(channels)}") from None
     inp = None
     if torque is not None:
         torque = np.asarray(torque, float).reshape(len(t), -1)

@@ -751,8 +751,10 @@ def test_parameter_lists_noise_channels_and_fit_arguments_checked():
     bad = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, torque=np.zeros((1, 11)), name="drop_8")
     with pytest.raises(ValueError, match=r"torque has shape \(1, 11\); expected \(11,\) or \(11, n_joints\)"):
         identify.make_problem(chain, [P("joint1.damping", 1e-3)], [bad], {"theta1": 1e-3})
-    with pytest.raises(ValueError, match=r"simulate_log: noise given for 'tip1', which is not among"):
-        identify.simulate_log(chain, t, channels=("theta1",), noise={"tip1": 1e-3})
+    with pytest.raises(
+        ValueError, match=r"simulate_log: noise: output channel 'theta'.*this log records \('theta1',\)"
+    ):
+        identify.simulate_log(chain, t, channels=("theta1",), noise={"theta": 1e-3})
 
 
 def test_fit_independent_names_the_logs_whose_nuisances_differ():
