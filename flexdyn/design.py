@@ -231,12 +231,7 @@ class RestToRestMove(eqx.Module):
 
     def initial_state(self):
         """Rest at `start_angles` with undeformed links and unloaded joint springs (traceable)."""
-        lay = self.chain.layout
-        Q = jnp.zeros(lay.n_dof).at[jnp.asarray(lay.theta)].set(self.start_angles)
-        for i, k in enumerate(lay.rotor):
-            if k is not None:
-                Q = Q.at[k].set(self.start_angles[i])
-        return jnp.concatenate([Q, jnp.zeros(lay.n_dof)])
+        return jnp.concatenate([_rest_configuration(self.chain, self.start_angles), jnp.zeros(self.chain.n_dof)])
 
     def with_payload(self, payload_mass) -> RestToRestMove:
         """The move with the chain's `payload.mass` (kg) replaced; the payload's rotary
@@ -247,6 +242,17 @@ class RestToRestMove(eqx.Module):
 
     def torque(self, control_points) -> BSplineTorque:
         return BSplineTorque(control_points, self.duration, self.tau_max)
+
+
+def _rest_configuration(chain: Chain, angles):
+    """`Q` with the link angles at `angles` (rad), undeformed links and unloaded joint
+    springs (each rotor at its link's angle). Traceable."""
+    lay = chain.layout
+    Q = jnp.zeros(lay.n_dof).at[jnp.asarray(lay.theta)].set(angles)
+    for i, k in enumerate(lay.rotor):
+        if k is not None:
+            Q = Q.at[k].set(angles[i])
+    return Q
 
 
 #: `RestToRestMove` warns when gravity's torque on a joint at the start or goal, at rest,
@@ -269,10 +275,7 @@ def _warn_if_not_at_rest(chain: Chain, start, goal, tau_max) -> None:
     asm = assemble(chain)
     lay = asm.layout
     for label, angles in (("start", start), ("goal", goal)):
-        Q = jnp.zeros(lay.n_dof).at[jnp.asarray(lay.theta)].set(angles)
-        for i, k in enumerate(lay.rotor):
-            if k is not None:
-                Q = Q.at[k].set(angles[i])
+        Q = _rest_configuration(chain, angles)
         F = generalised_forces(asm, Q, jnp.zeros(lay.n_dof), jnp.zeros(chain.n_links))
         hold = np.abs(np.asarray(F)[list(lay.theta)])
         limit = np.asarray(tau_max, dtype=float)
