@@ -34,7 +34,10 @@ span would take hours.
 Exit codes: 0 done, the fit converged; 1 the fit failed; 2 a usage error, an unreadable
 experiment or log, a refused output folder or sampling rate; 3 (`fit`) the fit finished and
 its results are written, but it did not converge or a parameter ended on its bound
-(`converged: false` in `result.json`, the WARNING printed says which).
+(`converged: false` in `result.json`, the WARNING printed says which); 3 (`diagnose`) the
+diagnosis is written, but the baseline fit's solver did not converge
+(`baseline_converged: false` in `diagnosis.json`; a baseline parameter on its bound is
+only noted: there it is often the missing effect's symptom).
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ import time
 from pathlib import Path
 
 MARKER = ".identify-output"
-NOT_CONVERGED = 3  # exit status of `identify fit` when the fit did not converge
+NOT_CONVERGED = 3  # exit status when the fit (`diagnose`: the baseline fit) did not converge
 RESULT_FILE = "result.json"
 
 
@@ -702,6 +705,14 @@ def _diagnose_command(args) -> int:
     print(f"total {time.perf_counter() - start:.1f} s. Report: {out / 'report.md'} (open it; plots beside it)")
     for p in written:
         print(f"  {p}")
+    if not diag.baseline_converged:  # found in review: exit 0, and nothing said
+        print(
+            f"identify diagnose: exit status {NOT_CONVERGED}: the baseline fit did not converge "
+            f"({diag.baseline.stages[-1]['result']}); the diagnosis is written, but its scores are measured "
+            "against a model short of its optimum (see the baseline note in the summary)",
+            file=sys.stderr,
+        )
+        return NOT_CONVERGED
     return 0
 
 

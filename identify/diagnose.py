@@ -596,6 +596,13 @@ class Diagnosis:
         return f"{self.fraction_of_excess_explained:.3f}"
 
     @property
+    def baseline_converged(self) -> bool:
+        """Whether the baseline fit's solver converged (a parameter on its bound does not
+        count against it here: in a diagnosis that is often the missing effect's symptom,
+        and `notes` says so). `identify diagnose` exits 3 when it did not."""
+        return self.baseline.stages[-1]["result"] == "successful"
+
+    @property
     def extended_at_bounds(self) -> list[str]:
         """The baseline's parameters whose value in the extended model lies on one of
         their bounds (judged as `FitResult.at_bounds` is). Found in review: the real
@@ -714,6 +721,7 @@ class Diagnosis:
             "fraction_of_excess_explained": self.fraction_of_excess_explained,
             "extended_parameters": self.extended_parameters,
             "extended_intervals": self.extended_intervals,
+            "baseline_converged": self.baseline_converged,
             "extended_at_bounds": self.extended_at_bounds,
             "costs": self.costs,
             "model_checks": self.model_checks,
@@ -804,6 +812,7 @@ def diagnose_logs(
     sigma = np.asarray([base.sigma[c] for c in base_problem.channels])
     sigma_j = jnp.asarray(sigma)
     notes = _baseline_notes(base.names, base.std_errors, base.values)  # `Diagnosis.notes`
+    notes += _convergence_notes(base.stages[-1]["result"], base.at_bounds)
     for n in notes:
         say(f"  warning: {n['text']}")
     step = base.step
@@ -1689,6 +1698,37 @@ def _fits_but_does_not_predict(scores, bic_threshold: float, min_gain: float, of
                 f'(offsets = ["{channel}"] in its [[logs]] entry)'
             )
     return text
+
+
+def _convergence_notes(result: str, at_bounds) -> list:
+    """`Diagnosis.notes` of a baseline fit that did not converge (`result`: its last
+    stage's solver result, "successful", "max_steps_reached" or "failed") or ended with
+    parameters `at_bounds` (found in review: `identify diagnose` said nothing of either and
+    exited 0). A fit stopped short of its optimum makes every candidate look better than it
+    is: part of each candidate's cost drop is the baseline's own fit finishing. A parameter
+    on its bound is often the missing effect's symptom (a damping pushed to zero by the
+    friction the model lacks), so it is said, not refused."""
+    notes = []
+    if result != "successful":
+        notes.append(
+            {
+                "round": 0,
+                "text": f"the baseline fit did not converge (its solver ended: {result}): every candidate is "
+                "scored against a model short of its optimum, so part of its dBIC and held-out gain may be the "
+                "baseline's fit finishing; check it with `identify fit` on the same logs, give it more steps "
+                "(`diagnose_logs(fit_options={'max_steps': ...})`) or better guesses (`[[starts]]`), and run again",
+            }
+        )
+    if at_bounds:
+        notes.append(
+            {
+                "round": 0,
+                "text": f"the baseline's {', '.join(at_bounds)} ended on a bound: the bound, not the data, set "
+                "its value; often the symptom of the effect the model lacks (see the named causes and the "
+                "extended model's values), otherwise a bound too narrow",
+            }
+        )
+    return notes
 
 
 def note_text(note: dict) -> str:

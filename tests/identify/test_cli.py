@@ -391,3 +391,32 @@ def test_diagnose_fit_all_fits_every_candidate(tmp_path, monkeypatch, capsys, fl
     assert main(["diagnose", str(exp), "--out", str(tmp_path / "out"), "--quiet", *flag]) == 1
     assert ("n_fit" not in seen) if n_fit == "default" else (seen["n_fit"] is None), seen
     assert "stand-in diagnose" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("result, status", [("successful", 0), ("max_steps_reached", 3), ("failed", 3)])
+def test_diagnose_exits_3_when_its_baseline_fit_did_not_converge(tmp_path, monkeypatch, capsys, result, status):
+    """Found in review: a diagnosis whose baseline fit ran out of steps exited 0, and the
+    scores it printed were measured against a model short of its optimum. It is written
+    (the user may read it) and the exit status says so, as `identify fit`'s does."""
+    import dataclasses
+    import importlib
+    from types import SimpleNamespace
+
+    module = importlib.import_module("identify.diagnose")
+    report = importlib.import_module("identify.diagnosis_report")
+    exp = _copy_example(tmp_path / "example")
+    baseline = SimpleNamespace(stages=[{"result": "successful"}, {"result": result}])
+
+    @dataclasses.dataclass
+    class StandIn:
+        baseline: object
+        baseline_converged = property(module.Diagnosis.baseline_converged.fget)
+
+        def summary(self):
+            return "stand-in summary"
+
+    monkeypatch.setattr(module, "diagnose", lambda experiment, **options: StandIn(baseline))
+    monkeypatch.setattr(report, "write_report", lambda diag, out, **kw: [out / "report.md"])
+    assert main(["diagnose", str(exp), "--out", str(tmp_path / "out"), "--quiet"]) == status
+    err = capsys.readouterr().err
+    assert (f"exit status 3: the baseline fit did not converge ({result})" in err) == (status == 3), err

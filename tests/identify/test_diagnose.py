@@ -469,3 +469,15 @@ def test_a_best_fit_that_predicts_the_held_out_logs_worse_is_noted():
     # a screened-out entry's dBIC is a prediction, not a fit
     screened = [score("x", "y", -500.0, float("nan"), screened=True)]
     assert D._fits_but_does_not_predict(screened, 10.0, 1.1, set()) == ""
+
+
+def test_a_baseline_fit_that_did_not_converge_or_ended_on_a_bound_is_noted():
+    """Found in review: `diagnose` scored every candidate against a baseline fit that had
+    run out of steps and said nothing (part of each candidate's gain is then the baseline's
+    own fit finishing). A bound is noted as a possible symptom of the missing effect."""
+    assert D._convergence_notes("successful", []) == []
+    (note,) = D._convergence_notes("max_steps_reached", [])
+    assert note["round"] == 0 and "did not converge (its solver ended: max_steps_reached)" in note["text"]
+    (note,) = D._convergence_notes("successful", ["joint1.damping"])
+    assert D.note_text(note).startswith("baseline: the baseline's joint1.damping ended on a bound")
+    assert len(D._convergence_notes("failed", ["a", "b"])) == 2
