@@ -238,6 +238,42 @@ def _check_log_data(log: LogData) -> None:
             )
 
 
+#: `make_problem` warns of a log whose every channel varies about its mean by less than
+#: this many times its model-free noise floor (`identify.noise_floor`)
+AT_REST = 3.0
+
+
+def _warn_if_at_rest(log: LogData) -> None:
+    """Warn when a log shows no motion above its noise: on every channel the RMS about its
+    mean is below `AT_REST` times the channel's model-free noise floor (white noise alone
+    gives 1). Found in review: a pendulum hanging still for 5 s was fitted without a word,
+    "converged", and reported its hub inertia to within a factor of 3.7 (95 %) from noise
+    and the fitted initial angle's 0.01 deg. A static test under a load does determine the
+    static parameters (a mass times its centre's distance, from torque against angle), so
+    this warns and does not refuse."""
+    t = np.asarray(log.t, dtype=float)
+    if t.size <= nf.ORDER + 1:
+        return
+    parts = []
+    for c, v in log.outputs.items():
+        y = np.asarray(v, dtype=float)
+        spread = float(np.std(y))
+        floor = nf.noise_floor(t, y)
+        if spread > AT_REST * floor:  # (a constant channel, all zeros included, is at rest)
+            return
+        scale, unit = display_unit(c)
+        parts.append(f"{c} {scale * spread:.3g} {unit} RMS about its mean, noise floor {scale * floor:.3g} {unit}")
+    driven = log.torque is not None and np.any(np.asarray(log.torque, dtype=float) != 0)
+    warnings.warn(
+        f"log {log.name!r} shows no motion above its noise ({'; '.join(parts)}): a log at rest carries no "
+        "information about inertia, damping or stiffness, and the fit's intervals for them would come from the "
+        "noise; check the log (the right file? the sensor connected?)"
+        + ("; a static test under load determines only static parameters" if driven else ""),
+        UserWarning,
+        stacklevel=3,
+    )
+
+
 def _check_same_parameters(problem: Problem, parameters, caller: str) -> None:
     """The free parameters passed to a fit must be the problem's, in its order: the
     guesses are read by position (found in review: `fit(problem, [hub1.inertia])` on a
@@ -310,6 +346,7 @@ def make_problem(
             raise ValueError(f"make_problem: two logs are named {log.name!r}; names label the results and must differ")
         seen.add(log.name)
         _check_log_data(log)
+        _warn_if_at_rest(log)
     channels = sorted({c for log in logs for c in log.outputs})
     for c in channels:
         ch.check_channel(chain, c)

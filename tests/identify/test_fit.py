@@ -668,7 +668,7 @@ def test_problems_differing_only_in_their_log_names_share_compiled_programs():
 def test_make_problem_rejects_bad_nuisances_naming_the_log(field, value, message):
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(11) / 100.0
-    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7", **{field: value})
+    log = identify.LogData(t=t, outputs={"theta1": 0.01 * t}, name="drop_7", **{field: value})
     with pytest.raises(ValueError, match=f"log 'drop_7': {message}"):
         identify.make_problem(chain, [identify.Parameter("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
 
@@ -699,7 +699,7 @@ def test_make_problem_checks_log_data_naming_the_log(change, message):
     fit failed far from the cause ("SVD did not converge" for a NaN output)."""
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(11) / 100.0
-    log = identify.LogData(**{"t": t, "outputs": {"theta1": np.zeros_like(t)}, "name": "drop_7", **change})
+    log = identify.LogData(**{"t": t, "outputs": {"theta1": 0.01 * t}, "name": "drop_7", **change})
     with pytest.raises(ValueError, match=f"log 'drop_7': {message}"):
         identify.make_problem(chain, [identify.Parameter("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
 
@@ -709,9 +709,30 @@ def test_make_problem_warns_of_a_log_sampled_below_one_hertz():
     Python fit for minutes without a word (the command line refuses it)."""
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(11) * 5.0
-    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7")
+    log = identify.LogData(t=t, outputs={"theta1": 0.01 * t}, name="drop_7")
     with pytest.warns(UserWarning, match=r"log 'drop_7': sampled at 0.2 Hz over 50 s.*in milliseconds"):
         identify.make_problem(chain, [identify.Parameter("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
+
+
+def test_make_problem_warns_of_a_log_that_shows_no_motion():
+    """Review: a pendulum hanging still for 5 s was fitted without a word, "converged",
+    and gave its hub inertia a 95 % interval from the noise alone. A log is at rest when
+    every channel's spread about its mean is within `AT_REST` noise floors (white noise
+    alone: 1); a swing of 100 noise standard deviations is not."""
+    chain = fd.rigs.rigid_pendulum()
+    rng = np.random.default_rng(3)
+    t = np.arange(500) / 100.0
+    noise = 1e-3 * rng.standard_normal(t.size)
+    still = identify.LogData(t=t, outputs={"theta1": -np.pi / 2 + noise}, name="hanging")
+    swing = identify.LogData(t=t, outputs={"theta1": -np.pi / 2 + 0.1 * np.sin(6.5 * t) + noise}, name="swing")
+    params = [identify.Parameter("hub1.inertia", 4e-5)]
+    identify.make_problem(chain, params, [swing], {"theta1": 1e-3})  # (pytest turns a warning into an error)
+    with pytest.warns(UserWarning, match=r"log 'hanging' shows no motion above its noise \(theta1 0.05\d+ deg RMS"):
+        identify.make_problem(chain, params, [swing, still], {"theta1": 1e-3})
+    # a dead sensor reading exactly zero under a torque: at rest, and the static-test hint
+    dead = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, torque=np.full(t.size, 0.01), name="dead")
+    with pytest.warns(UserWarning, match=r"log 'dead' shows no motion.*a static test under load determines only"):
+        identify.make_problem(chain, params, [dead], {"theta1": 1e-3})
 
 
 def test_make_problem_refuses_two_logs_of_one_name_and_a_bad_noise():
@@ -719,7 +740,7 @@ def test_make_problem_refuses_two_logs_of_one_name_and_a_bad_noise():
     was lost from `result.initial_states` (a dict by name)."""
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(11) / 100.0
-    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7")
+    log = identify.LogData(t=t, outputs={"theta1": 0.01 * t}, name="drop_7")
     params = [identify.Parameter("joint1.damping", 1e-3)]
     with pytest.raises(ValueError, match="two logs are named 'drop_7'"):
         identify.make_problem(chain, params, [log, log], {"theta1": 1e-3})
@@ -734,7 +755,7 @@ def test_parameter_lists_noise_channels_and_fit_arguments_checked():
     their guesses by position; a torque of the wrong shape was said to need (T, T)."""
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(11) / 100.0
-    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7")
+    log = identify.LogData(t=t, outputs={"theta1": 0.01 * t}, name="drop_7")
     P = identify.Parameter
     with pytest.raises(ValueError, match=r"free parameter\(s\) 'joint1.damping' listed more than once"):
         identify.make_problem(chain, [P("joint1.damping", 1e-3), P("joint1.damping", 2e-3)], [log], {"theta1": 1e-3})
@@ -748,7 +769,7 @@ def test_parameter_lists_noise_channels_and_fit_arguments_checked():
             ValueError, match=r"parameters \['hub1.inertia'\] are not the problem's \['joint1.damping'\]"
         ):
             call(problem, [P("hub1.inertia", 1e-4)])
-    bad = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, torque=np.zeros((1, 11)), name="drop_8")
+    bad = identify.LogData(t=t, outputs={"theta1": 0.01 * t}, torque=np.zeros((1, 11)), name="drop_8")
     with pytest.raises(ValueError, match=r"torque has shape \(1, 11\); expected \(11,\) or \(11, n_joints\)"):
         identify.make_problem(chain, [P("joint1.damping", 1e-3)], [bad], {"theta1": 1e-3})
     with pytest.raises(
@@ -763,8 +784,8 @@ def test_fit_independent_names_the_logs_whose_nuisances_differ():
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(11) / 100.0
     logs = [
-        identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="a", fit_initial=("theta1",)),
-        identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="b", fit_initial=("theta1", "theta1_rate")),
+        identify.LogData(t=t, outputs={"theta1": 0.01 * t}, name="a", fit_initial=("theta1",)),
+        identify.LogData(t=t, outputs={"theta1": 0.01 * t}, name="b", fit_initial=("theta1", "theta1_rate")),
     ]
     params = [identify.Parameter("joint1.damping", 1e-3)]
     problem = identify.make_problem(chain, params, logs, {"theta1": 1e-3})
@@ -778,7 +799,7 @@ def _tiny_problem():
     """A rigid pendulum's 11-sample log and its joint damping free: for argument checks."""
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(11) / 100.0
-    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, name="drop_7")
+    log = identify.LogData(t=t, outputs={"theta1": 0.01 * t}, name="drop_7")
     params = [identify.Parameter("joint1.damping", 1e-3)]
     problem = identify.make_problem(chain, params, [log], {"theta1": 1e-3})
     return problem, params
@@ -860,7 +881,7 @@ def test_a_stage_step_is_at_most_the_torque_sample_interval():
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(101) * 4e-3
     torque = np.where(t >= 0.3, 0.01, 0.0)[:, None]
-    log = identify.LogData(t=t, outputs={"theta1": np.zeros_like(t)}, torque=torque, name="rest_then_step")
+    log = identify.LogData(t=t, outputs={"theta1": 0.01 * t}, torque=torque, name="rest_then_step")
     params = [identify.Parameter("joint1.damping", 1e-3)]
     problem = identify.make_problem(chain, params, [log], {"theta1": 1e-3})
     assert float(fit_module.aligned_step(problem, 0.33)) == pytest.approx(4e-3, rel=1e-12)
