@@ -91,6 +91,15 @@ def channel_unit(name: str) -> str:
     return UNITS[m[1] or m[3]]
 
 
+def state_unit(entry: str) -> str:
+    """SI unit of a state entry (`state_names`): joint and rotor angles (`theta1`,
+    `alpha1`) in rad, modal coordinates (`q1_1`: the RMS deflection of the mode over its link,
+    `flexdyn.modes`) in m, and their `_rate`s per second."""
+    base, rate = (entry[: -len("_rate")], True) if entry.endswith("_rate") else (entry, False)
+    unit = "m" if re.fullmatch(r"q\d+_\d+", base) else "rad"
+    return f"{unit}/s" if rate else unit
+
+
 def needs_acceleration(channels) -> bool:
     return any(c.startswith("accel_") for c in channels)
 

@@ -457,7 +457,7 @@ def _fit_command(args) -> int:
     import jax
     import numpy as np
 
-    from . import evidence, report as plots
+    from . import channels as ch, evidence, report as plots
     from .fit import fitted_outputs
     from .noise_floor import declared_noise_warnings
     from .run import fit_experiment, residual_report
@@ -591,7 +591,16 @@ def _fit_command(args) -> int:
         ],
     }
     doc["residuals"] = resid
-    doc["validation"] = {name: {"residuals": val_report[name], **val_nuisances[name]} for name in val_outputs}
+    doc["validation"] = {
+        name: {
+            "residuals": val_report[name],
+            "initial_states": {
+                e: {"value": v, "unit": ch.state_unit(e)} for e, v in val_nuisances[name]["initial_states"].items()
+            },
+            "offsets": {c: {"value": v, "unit": ch.channel_unit(c)} for c, v in val_nuisances[name]["offsets"].items()},
+        }
+        for name in val_outputs
+    }
     doc["natural_frequencies_hz"] = freqs
     doc["model_checks"] = model_checks
     doc["clustered_uncertainty"] = None if robust is None else robust.to_dict()

@@ -830,9 +830,18 @@ class FitResult:
                 for i, n in enumerate(self.names)
             ],
             "correlation": self.correlation.tolist(),
-            "initial_states": {k: {e: list(v) for e, v in d.items()} for k, d in self.initial_states.items()},
-            "offsets": {k: {e: list(v) for e, v in d.items()} for k, d in self.offsets.items()},
+            # per log: {entry: {value, std_error, unit}} (review: bare [value, SE] pairs)
+            "initial_states": {
+                k: {e: _valued(v, se, ch.state_unit(e)) for e, (v, se) in d.items()}
+                for k, d in self.initial_states.items()
+            },
+            "offsets": {
+                k: {c: _valued(v, se, ch.channel_unit(c)) for c, (v, se) in d.items()} for k, d in self.offsets.items()
+            },
             "noise_sigma": self.sigma,
+            # the SI unit of every per-channel value here (noise_sigma, fit_quality's
+            # residual_rms and noise_floor; `identify fit` adds residual RMS in the same units)
+            "channel_units": {c: ch.channel_unit(c) for c in self.sigma},
             "residual_variance": self.residual_variance,
             "cost": self.cost,
             "n_residuals": self.n_residuals,
@@ -852,6 +861,11 @@ class FitResult:
             "wall_time_s": self.wall_time,
             "batch_size": self.batch_size,
         }
+
+
+def _valued(value: float, std_error: float, unit: str) -> dict:
+    """A fitted nuisance as `FitResult.to_dict` writes it."""
+    return {"value": float(value), "std_error": float(std_error), "unit": unit}
 
 
 def _default_horizons(problem: Problem, n_stages: int) -> list[float]:

@@ -4,6 +4,7 @@ plots, error messages, the output-folder policy, and that inputs are never touch
 
 import hashlib
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -82,6 +83,14 @@ def test_fit_succeeds_and_writes_results(fitted):
     assert doc["residuals"]["drop_0deg"]["theta1"]["rms"] > 0
     assert set(doc["validation"]) == {"drop_m97deg"}
     assert doc["validation"]["drop_m97deg"]["residuals"]["theta1"]["rms"] < 3 * 0.1 * 3.14159 / 180  # ~noise
+    # review: initial states and offsets were bare [value, SE] pairs, per-channel values had no unit
+    assert doc["channel_units"] == {"theta1": "rad"}
+    start = doc["initial_states"]["drop_0deg"]["theta1"]
+    assert set(start) == {"value", "std_error", "unit"} and start["unit"] == "rad"
+    assert abs(start["value"]) < 0.05 and 0 < start["std_error"] < 0.01  # released at 0 deg
+    assert doc["offsets"]["drop_0deg"]["theta1"]["unit"] == "rad"
+    held = doc["validation"]["drop_m97deg"]["initial_states"]["theta1"]
+    assert held["unit"] == "rad" and abs(held["value"] - math.radians(-97)) < 0.05
     # small-amplitude frequency of the pendulum about the hanging equilibrium
     assert any(0.9 < f < 1.2 for f in doc["natural_frequencies_hz"])
     assert doc["model_checks"] == []  # a rigid link: no stiffening check (tests/identify/test_evidence.py)
