@@ -47,6 +47,7 @@ import json
 import platform
 import sys
 import time
+import warnings
 from pathlib import Path
 
 MARKER = ".identify-output"
@@ -154,11 +155,20 @@ def main(argv=None) -> int:
         args = _parser().parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2, already printed)
         return int(e.code or 0) if not isinstance(e.code, str) else 2
-    if args.command == "fit":
-        return _fit_command(args)
-    if args.command == "diagnose":
-        return _diagnose_command(args)
+    with warnings.catch_warnings():  # (restores `showwarning` on the way out)
+        warnings.showwarning = _show_warning
+        if args.command == "fit":
+            return _fit_command(args)
+        if args.command == "diagnose":
+            return _diagnose_command(args)
     return 2  # pragma: no cover (argparse requires a command)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """A warning as the commands print it: `WARNING: message` on stderr, without Python's
+    source location and line of code (found in review: a user of the command line read
+    `.../identify/run.py:36: UserWarning:` and the library's source line)."""
+    print(f"WARNING: {message}", file=sys.stderr if file is None else file, flush=True)
 
 
 # ---------------------------------------------------------------------------

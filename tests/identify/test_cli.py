@@ -298,6 +298,28 @@ def test_fit_flags_reach_the_fit(tmp_path, monkeypatch, capsys, flag, expected):
     assert "stand-in fit" in capsys.readouterr().err
 
 
+@pytest.mark.filterwarnings("default")  # (the suite turns warnings into errors; a user's shell does not)
+def test_warnings_are_printed_as_the_commands_print_them(tmp_path, monkeypatch, capsys):
+    """A library warning (say a log at rest, `identify.fit.make_problem`) reaches a
+    command-line user as `WARNING: ...`, not as Python's `path:line: UserWarning:` and the
+    library's source line; outside the command Python's own format is back."""
+    import warnings
+
+    import identify.run
+
+    def stand_in(experiment, **options):
+        warnings.warn("log 'a' shows no motion above its noise", UserWarning, stacklevel=2)
+        raise RuntimeError("stand-in fit")
+
+    monkeypatch.setattr(identify.run, "fit_experiment", stand_in)
+    assert main(["fit", str(_copy_example(tmp_path / "example")), "--out", str(tmp_path / "out"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "WARNING: log 'a' shows no motion above its noise" in err and "UserWarning" not in err, err
+    with pytest.warns(UserWarning, match="outside"):
+        warnings.warn("outside", UserWarning, stacklevel=1)
+    assert warnings.showwarning.__name__ != "_show_warning"
+
+
 def test_library_defaults_match_the_command_line():
     """The command's defaults are `identify.fit`'s (a change to one must reach the other)."""
     import inspect
