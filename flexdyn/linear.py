@@ -89,7 +89,12 @@ class Modes(eqx.Module):
 
     - `natural_frequency`: undamped, Hz, from `K v = omega^2 M v` (rigid-body modes
       of an unrestrained chain appear as exactly 0: omega^2 below the eigensolver's
-      round-off, `n eps max omega^2`, counts as zero).
+      round-off, `n eps max omega^2`, counts as zero). **Negative for an unstable mode**
+      (omega^2 < 0: the configuration is not a stable equilibrium, e.g. a pendulum
+      upright, or a slender link hanging under gravity without
+      `geometric_stiffening`): `-sqrt(-omega^2) / (2 pi)`, the mode growing as
+      `exp(2 pi |f| t)` (the convention of finite-element codes). Found in review: such
+      modes were reported as 0 Hz, like a free rotation. `unstable` says whether any is.
     - `shapes`: the corresponding generalised-coordinate vectors (columns),
       mass-normalised (`v^T M v = 1`).
     """
@@ -97,6 +102,12 @@ class Modes(eqx.Module):
     natural_frequency: Array
     shapes: Array
     names: tuple[str, ...] = eqx.field(static=True)
+
+    @property
+    def unstable(self) -> Array:
+        """Whether any mode is unstable (negative `natural_frequency`): the configuration
+        analysed is not a stable equilibrium."""
+        return jnp.any(self.natural_frequency < 0)
 
 
 #: `symmetric_eigh`: eigenvalues closer than this many `n eps max|lambda|` count as one
@@ -172,9 +183,11 @@ def modal_analysis(chain: Chain | AssembledChain, Q0=None) -> Modes:
     # A rigid-body mode's omega^2 is zero only up to the eigensolver's round-off, about
     # n eps max|omega^2| (it came out as ~3e-6 Hz); below that it is reported as exactly 0.
     tol = n * jnp.finfo(w2.dtype).eps * jnp.max(jnp.abs(w2))
-    positive = w2 > tol
-    # sqrt with a finite derivative at rigid-body (zero) modes
-    natural = jnp.where(positive, jnp.sqrt(jnp.where(positive, w2, 1.0)), 0.0) / (2 * jnp.pi)
+    nonzero = jnp.abs(w2) > tol
+    # sqrt with a finite derivative at rigid-body (zero) modes; signed: negative omega^2
+    # (an unstable mode) gives a negative frequency (`Modes`)
+    root = jnp.sqrt(jnp.where(nonzero, jnp.abs(w2), 1.0))
+    natural = jnp.where(nonzero, jnp.sign(w2) * root, 0.0) / (2 * jnp.pi)
     return Modes(natural, Linv.T @ V, asm.layout.names)
 
 

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import sys
 import time
@@ -570,6 +571,13 @@ def _fit_command(args) -> int:
     print()
     nf = ", ".join(f"{f:.4g}" for f in freqs if f > 0) or "none (rigid-body modes only)"
     print(f"Natural frequencies of the fitted model ({where}): {nf} Hz")
+    unstable = [f for f in freqs if f < 0]
+    if unstable:  # (`fd.Modes`: a negative frequency is an unstable mode)
+        print(
+            f"WARNING: the fitted model is not stable about that configuration: {len(unstable)} mode(s) diverge "
+            f"(growth rate {', '.join(f'{-2 * math.pi * f:.4g}' for f in unstable)} 1/s); a slender link hanging "
+            "under gravity needs `geometric_stiffening = true`"
+        )
     all_outputs = {**outputs, **val_outputs}
     model_checks = evidence.stiffening_checks_of(fitted_chain, all_outputs, key="simulated")
     for check in model_checks:

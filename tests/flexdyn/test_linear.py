@@ -121,3 +121,37 @@ def test_mode_shape_gradients_are_finite_with_two_rigid_body_modes():
             2 * h
         )
         assert np.isfinite(g) and abs(g - fdiff) <= 1e-6 * abs(fdiff), (g, fdiff)
+
+
+def test_an_unstable_equilibrium_has_negative_frequencies():
+    """Review: `modal_analysis` reported an unstable mode (omega^2 < 0) as 0 Hz, like a
+    free rotation. It is now `-sqrt(-omega^2) / 2 pi`. Oracles: the inverted rigid
+    pendulum's closed form, omega^2 = -m g l_c / I_pivot (hanging: +); for a floppy link
+    hanging under gravity without geometric stiffening (without the shortening terms its
+    weight couples swing and bending, and the model's stiffness matrix is indefinite, a
+    spurious instability the stiffening removes), the real eigenvalue of `linearize`'s A
+    (the growth rate)."""
+    chain = fd.rigs.rigid_pendulum(joint_damping=0.0)
+    link, L = chain.links[0], 0.30
+    m, m_p = float(link.mass), float(chain.payload.mass)
+    inertia = m * L**2 / 3 + m_p * L**2 + float(chain.hubs[0].inertia)
+    f = np.sqrt((m * L / 2 + m_p * L) * 9.81 / inertia) / (2 * np.pi)
+    up = fd.modal_analysis(chain, jnp.array([np.pi / 2]))
+    down = fd.modal_analysis(chain, jnp.array([-np.pi / 2]))
+    np.testing.assert_allclose(up.natural_frequency, [-f], rtol=1e-12)
+    np.testing.assert_allclose(down.natural_frequency, [f], rtol=1e-12)
+    assert bool(up.unstable) and not bool(down.unstable)
+    # a floppy strip hanging (1 m, rho 1 kg/m, EI 0.5 N m^2, gravity 9.81)
+    floppy = fd.Chain(
+        [fd.FlexibleLink(1.0, 1.0, 0.5, n_modes=2)],
+        joints=[fd.RigidJoint()],
+        hubs=[fd.Hub(inertia=1e-3)],
+        gravity=(0.0, -9.81),
+    )
+    hanging = jnp.array([-np.pi / 2, 0.0, 0.0])
+    modes = fd.modal_analysis(floppy, hanging)
+    eig = np.linalg.eigvals(np.asarray(fd.linearize(floppy, jnp.concatenate([hanging, jnp.zeros(3)])).A))
+    growth = np.max(eig.real)
+    assert growth > 1.0 and bool(modes.unstable)
+    (negative,) = [f for f in np.asarray(modes.natural_frequency) if f < 0]
+    np.testing.assert_allclose(-2 * np.pi * negative, growth, rtol=1e-8)
