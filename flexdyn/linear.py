@@ -191,11 +191,25 @@ def modal_analysis(chain: Chain | AssembledChain, Q0=None) -> Modes:
     return Modes(natural, Linv.T @ V, asm.layout.names)
 
 
+#: `damped_modes`: eigenvalues below this many `sqrt(eps) max|lambda|` count as zero
+ZERO_EIGENVALUE = 10.0
+
+
 def damped_modes(model: LinearModel) -> tuple[np.ndarray, np.ndarray]:
     """Damped natural frequencies (Hz) and damping ratios from the eigenvalues of
     `model.A`, one per complex pair or real eigenvalue, ascending by |eigenvalue|.
-    Host-side NumPy (not jittable)."""
+    Host-side NumPy (not jittable).
+
+    A real eigenvalue has frequency 0 and damping ratio +1 (decaying) or -1 (growing: an
+    unstable equilibrium). A rigid-body mode (a free joint: a double zero eigenvalue,
+    whose computed pair splits by about `sqrt(eps |A|)`) counts as exactly zero when
+    `|lambda| < ZERO_EIGENVALUE * sqrt(eps) max |lambda|`: frequency 0, damping ratio 0,
+    one entry per zero eigenvalue (two per undamped free joint).
+    Found in review: paper 004's free arm showed damping ratios -1 and +1 for its rigid
+    rotation (eigenvalues +-1.1e-5 1/s against 2417 1/s), read as an instability."""
     ev = np.linalg.eigvals(np.asarray(model.A))
+    tol = ZERO_EIGENVALUE * np.sqrt(np.finfo(float).eps) * (np.max(np.abs(ev)) if ev.size else 0.0)
+    ev = np.where(np.abs(ev) < tol, 0.0, ev)  # (before the pairs are halved: one entry per zero eigenvalue)
     ev = ev[np.imag(ev) >= 0]
     mag = np.abs(ev)
     order = np.argsort(mag)

@@ -155,3 +155,22 @@ def test_an_unstable_equilibrium_has_negative_frequencies():
     assert growth > 1.0 and bool(modes.unstable)
     (negative,) = [f for f in np.asarray(modes.natural_frequency) if f < 0]
     np.testing.assert_allclose(-2 * np.pi * negative, growth, rtol=1e-8)
+
+
+def test_damped_modes_of_a_free_arm_report_its_rigid_rotation_as_zero():
+    """Review: paper 004's arm (two free joints) showed damping ratios -1 and +1 for its
+    rigid rotations (round-off splits the double zero eigenvalue into +-1e-5 1/s), read as
+    an instability. Oracle: the undamped free joints' four zero eigenvalues are four
+    entries of frequency 0 and ratio 0; the flexible modes are those of
+    `modal_analysis` with the arm's damping, and a growing real eigenvalue (the inverted
+    pendulum) keeps its ratio -1."""
+    arm = fd.rigs.flexible_link_joint_arm()
+    freqs, zeta = fd.damped_modes(fd.linearize(arm))
+    assert np.all(freqs[:4] == 0) and np.all(zeta[:4] == 0), (freqs, zeta)
+    assert np.all(freqs[4:] > 1.0) and np.all((zeta[4:] > 0) & (zeta[4:] < 1)), (freqs, zeta)
+    up = fd.rigs.rigid_pendulum(joint_damping=0.0)
+    model = fd.linearize(up, jnp.array([np.pi / 2, 0.0]))
+    freqs, zeta = fd.damped_modes(model)
+    assert sorted(zeta) == [-1.0, 1.0] and list(freqs) == [0.0, 0.0], (freqs, zeta)
+    rate = 2 * np.pi * -float(fd.modal_analysis(up, jnp.array([np.pi / 2])).natural_frequency[0])
+    np.testing.assert_allclose(sorted(np.linalg.eigvals(np.asarray(model.A)).real), [-rate, rate], rtol=1e-10)

@@ -11,6 +11,7 @@ narrower. The estimator itself is checked against a Monte-Carlo sampling distrib
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import equinox as eqx
 import numpy as np
@@ -79,6 +80,22 @@ def test_combination_interval_by_the_delta_method(varying_damping):
 
     q = student_t.ppf(0.975, cu.dof)
     assert (hi - lo) / 2 == pytest.approx(2 * q * cu.std_errors[i], rel=1e-4)
+
+
+def test_combination_interval_of_a_positive_combination_in_log_scale(varying_damping):
+    """`log=True`: the delta method on ln fn; for a single positive parameter the
+    interval `summary()` gives (computed from the log-scale covariance directly), and
+    positive where the linear one of a poorly determined positive quantity is not."""
+    _, _, cu = varying_damping
+    i = cu.names.index("joint1.damping")
+    value, lo, hi = cu.interval(lambda v: v["joint1.damping"], log=True)
+    assert (lo, value, hi) == pytest.approx((cu.ci_low[i], cu.values[i], cu.ci_high[i]), rel=1e-6)
+    # a combination 1000x less determined: the linear interval crosses zero, the log one not
+    c0 = cu.values[i]
+    noisy = lambda v: c0 * math.exp(1000 * math.log(v["joint1.damping"] / c0))  # noqa: E731  (c0 (c / c0)^1000)
+    assert cu.interval(noisy)[1] < 0 < cu.interval(noisy, log=True)[1]
+    with pytest.raises(ValueError, match="must be positive"):
+        cu.interval(lambda v: -v["joint1.damping"], log=True)
 
 
 def test_summary_and_dict(varying_damping):
