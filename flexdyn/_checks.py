@@ -15,11 +15,16 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def as_float_array(value):
-    """A float64 (when x64 is on) JAX array of `value`; tracers pass through."""
+def as_float_array(value, name: str | None = None):
+    """A float64 (when x64 is on) JAX array of `value`; tracers pass through. `name` (e.g.
+    "RigidLink.length") is named when `value` is not numeric (found in review: "could not
+    convert string to float: 'abc'" named no parameter)."""
     if isinstance(value, jax.Array):
         return value if jnp.issubdtype(value.dtype, jnp.floating) else value.astype(float)
-    return jnp.asarray(value, dtype=float)
+    try:
+        return jnp.asarray(value, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name or 'value'}: expected a number or an array of numbers (SI), got {value!r}") from e
 
 
 def _is_concrete(value) -> bool:

@@ -549,7 +549,7 @@ def _reach_rate(asm: AssembledChain, i: int, q, qd):
     return -_quadratic(asm.links[i].shortening, q, qd)
 
 
-def kinetic_energy(asm: AssembledChain, Q, Qd):
+def kinetic_energy(asm: AssembledChain | Chain, Q, Qd):
     """Total kinetic energy T(Q, Q_dot), J (formula in the module docstring).
 
     Written on scalar components (`o = (o_x, o_y)`, `R(phi)` as `cos`/`sin` products; the
@@ -560,6 +560,9 @@ def kinetic_energy(asm: AssembledChain, Q, Qd):
     Measured on paper 004's arm (8 coordinates, 2-core CPU, inside a compiled loop), with
     `potential_energy` written the same way: one right-hand side 5.7 -> 2.5 us, its JVP
     19 -> 7.7 us, its VJP 24 -> 12 us, vmapped over 256 states 1.6 -> 1.2 us per state."""
+    asm = assemble(asm)
+    _check_coordinates(asm.layout, Q, "kinetic_energy")
+    _check_coordinates(asm.layout, Qd, "kinetic_energy", "Qd")
     lay, chain = asm.layout, asm.chain
     zero = jnp.zeros((), Q.dtype)
     vx = vy = psi = psi_dot = zero  # o_dot of the current joint, tip angle and rate of the previous link
@@ -609,10 +612,12 @@ def kinetic_energy(asm: AssembledChain, Q, Qd):
     return T + 0.5 * p.mass * (vx * vx + vy * vy) + 0.5 * p.inertia * psi_dot**2
 
 
-def potential_energy(asm: AssembledChain, Q):
+def potential_energy(asm: AssembledChain | Chain, Q):
     """Gravity + bending + joint-spring potential energy V(Q), J. Zero at Q = 0 for the
     elastic parts; the gravity datum is the base joint. (Scalar components, as
     `kinetic_energy`; the position recursion of `frames` inlined.)"""
+    asm = assemble(asm)
+    _check_coordinates(asm.layout, Q, "potential_energy")
     lay, chain = asm.layout, asm.chain
     zero = jnp.zeros((), Q.dtype)
     ox = oy = psi = zero
@@ -657,7 +662,9 @@ def dissipation(asm: AssembledChain, Qd):
     return R
 
 
-def total_energy(asm: AssembledChain, Q, Qd):
+def total_energy(asm: AssembledChain | Chain, Q, Qd):
+    """`kinetic_energy + potential_energy`, J (conserved without damping and input)."""
+    asm = assemble(asm)
     return kinetic_energy(asm, Q, Qd) + potential_energy(asm, Q)
 
 
@@ -669,6 +676,7 @@ def total_energy(asm: AssembledChain, Q, Qd):
 def mass_matrix(asm: AssembledChain | Chain, Q) -> Float[Array, "n n"]:
     """Generalised mass matrix M(Q) = d^2 T / dQ_dot^2 (T is exactly quadratic in Q_dot)."""
     asm = assemble(asm)
+    _check_coordinates(asm.layout, Q, "mass_matrix")  # (review: a short Q gave a smaller M)
     zero = jnp.zeros_like(Q)
     return jax.jacfwd(jax.grad(kinetic_energy, argnums=2), argnums=2)(asm, Q, zero)
 
@@ -797,11 +805,13 @@ def end_point(asm: AssembledChain | Chain, Q):
     return frames(asm, Q).end
 
 
-def _check_coordinates(lay, Q, caller: str) -> None:
-    if jnp.shape(Q) != (lay.n_dof,):
+def _check_coordinates(lay, Q, caller: str, name: str = "Q") -> None:
+    """`Q` (or the rates `Qd`) must hold one entry per coordinate (a trace-time check)."""
+    n = lay.n_dof
+    if jnp.shape(Q) != (n,):
+        what = f"(a mode shape, or the first half of a state: y[:{n}])" if name == "Q" else f"(y[{n}:] of a state)"
         raise ValueError(
-            f"{caller}: Q expected shape ({lay.n_dof},), the coordinates {list(lay.names)} (a mode shape, or "
-            f"the first half of a state: y[:{lay.n_dof}]), got {jnp.shape(Q)}"
+            f"{caller}: {name} expected shape ({n},), the coordinates {list(lay.names)} {what}, got {jnp.shape(Q)}"
         )
 
 

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .chain import AssembledChain, Chain, accelerations, assemble, generalised_forces, mass_matrix
+from .chain import AssembledChain, Chain, _check_coordinates, accelerations, assemble, generalised_forces, mass_matrix
 
 
 class LinearModel(eqx.Module):
@@ -153,6 +153,7 @@ def stiffness_matrix(chain: Chain | AssembledChain, Q0) -> Float[Array, "n n"]:
     """Tangent stiffness `K = -d(F - dV/dQ)/dQ` at rest (bending, joint springs, gravity)."""
     asm = assemble(chain)
     n = asm.layout.n_dof
+    _check_coordinates(asm.layout, Q0, "stiffness_matrix")
     zero_qd = jnp.zeros(n)
     zero_tau = jnp.zeros(len(asm.layout.actuated))
     return -jax.jacfwd(lambda Q: generalised_forces(asm, Q, zero_qd, zero_tau))(jnp.asarray(Q0, dtype=float))

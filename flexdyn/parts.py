@@ -31,6 +31,11 @@ def _smoothing(owner: str, name: str, value) -> float:
     return value
 
 
+def _float(part, name: str, value):
+    """`value` as a float array; a non-numeric one is named as `RigidLink.length` is."""
+    return as_float_array(value, f"{type(part).__name__}.{name}")
+
+
 class RigidLink(eqx.Module):
     """A rigid link of the chain.
 
@@ -55,11 +60,11 @@ class RigidLink(eqx.Module):
     drag: Scalar | None
 
     def __init__(self, length, mass, com=None, inertia=None, drag=None):
-        self.length = as_float_array(length)
-        self.mass = as_float_array(mass)
-        self.com = 0.5 * self.length if com is None else as_float_array(com)
-        self.inertia = self.mass * self.length**2 / 12.0 if inertia is None else as_float_array(inertia)
-        self.drag = None if drag is None else as_float_array(drag)
+        self.length = _float(self, "length", length)
+        self.mass = _float(self, "mass", mass)
+        self.com = 0.5 * self.length if com is None else _float(self, "com", com)
+        self.inertia = self.mass * self.length**2 / 12.0 if inertia is None else _float(self, "inertia", inertia)
+        self.drag = None if drag is None else _float(self, "drag", drag)
 
     PARAMETERS: ClassVar = (
         ("length", POSITIVE),
@@ -129,18 +134,18 @@ class FlexibleLink(eqx.Module):
             raise ValueError(f"FlexibleLink.geometric_stiffening: expected True or False, got {geometric_stiffening!r}")
         self.n_modes = n_modes
         self.geometric_stiffening = bool(geometric_stiffening)
-        self.length = as_float_array(length)
-        self.rho = as_float_array(rho)
-        self.EI = as_float_array(EI)
-        damping_ratio = as_float_array(damping_ratio)
+        self.length = _float(self, "length", length)
+        self.rho = _float(self, "rho", rho)
+        self.EI = _float(self, "EI", EI)
+        damping_ratio = _float(self, "damping_ratio", damping_ratio)
         if damping_ratio.ndim > 1 or (damping_ratio.ndim == 1 and damping_ratio.shape[0] != n_modes):
             raise ValueError(
                 f"FlexibleLink.damping_ratio: expected a scalar or one value per mode (shape ({n_modes},)), "
                 f"got shape {damping_ratio.shape}"
             )
         self.damping_ratio = jnp.broadcast_to(damping_ratio, (n_modes,))
-        self.sqrt_stiffness_damping = as_float_array(sqrt_stiffness_damping)
-        self.drag = None if drag is None else as_float_array(drag)
+        self.sqrt_stiffness_damping = _float(self, "sqrt_stiffness_damping", sqrt_stiffness_damping)
+        self.drag = None if drag is None else _float(self, "drag", drag)
 
     PARAMETERS: ClassVar = (
         ("length", POSITIVE),
@@ -192,11 +197,11 @@ class RigidJoint(eqx.Module):
         coulomb=None,
         coulomb_velocity: float = 0.01,
     ):
-        self.damping = as_float_array(damping)
-        self.rotor_inertia = as_float_array(rotor_inertia)
-        self.gear_ratio = as_float_array(gear_ratio)
+        self.damping = _float(self, "damping", damping)
+        self.rotor_inertia = _float(self, "rotor_inertia", rotor_inertia)
+        self.gear_ratio = _float(self, "gear_ratio", gear_ratio)
         self.spong_approximation = bool(spong_approximation)
-        self.coulomb = None if coulomb is None else as_float_array(coulomb)
+        self.coulomb = None if coulomb is None else _float(self, "coulomb", coulomb)
         self.coulomb_velocity = _smoothing("RigidJoint", "coulomb_velocity", coulomb_velocity)
 
     PARAMETERS: ClassVar = (
@@ -257,14 +262,14 @@ class ElasticJoint(eqx.Module):
         coulomb_velocity: float = 0.01,
         backlash=None,
     ):
-        self.stiffness = as_float_array(stiffness)
-        self.rotor_inertia = as_float_array(rotor_inertia)
-        self.gear_ratio = as_float_array(gear_ratio)
-        self.damping = as_float_array(damping)
-        self.spring_damping = as_float_array(spring_damping)
+        self.stiffness = _float(self, "stiffness", stiffness)
+        self.rotor_inertia = _float(self, "rotor_inertia", rotor_inertia)
+        self.gear_ratio = _float(self, "gear_ratio", gear_ratio)
+        self.damping = _float(self, "damping", damping)
+        self.spring_damping = _float(self, "spring_damping", spring_damping)
         self.spong_approximation = bool(spong_approximation)
-        self.coulomb = None if coulomb is None else as_float_array(coulomb)
-        self.backlash = None if backlash is None else as_float_array(backlash)
+        self.coulomb = None if coulomb is None else _float(self, "coulomb", coulomb)
+        self.backlash = None if backlash is None else _float(self, "backlash", backlash)
         self.coulomb_velocity = _smoothing("ElasticJoint", "coulomb_velocity", coulomb_velocity)
 
     PARAMETERS: ClassVar = (
@@ -298,8 +303,8 @@ class Hub(eqx.Module):
     inertia: Scalar
 
     def __init__(self, *, mass=0.0, inertia=0.0):
-        self.mass = as_float_array(mass)
-        self.inertia = as_float_array(inertia)
+        self.mass = _float(self, "mass", mass)
+        self.inertia = _float(self, "inertia", inertia)
 
     PARAMETERS: ClassVar = (("mass", NONNEGATIVE), ("inertia", NONNEGATIVE))
 
@@ -317,8 +322,8 @@ class Payload(eqx.Module):
     inertia: Scalar
 
     def __init__(self, mass=0.0, inertia=0.0):
-        self.mass = as_float_array(mass)
-        self.inertia = as_float_array(inertia)
+        self.mass = _float(self, "mass", mass)
+        self.inertia = _float(self, "inertia", inertia)
 
     PARAMETERS: ClassVar = (("mass", NONNEGATIVE), ("inertia", NONNEGATIVE))
 

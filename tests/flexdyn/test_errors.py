@@ -392,6 +392,22 @@ def test_review_mistakes_of_a_new_arm_get_clear_errors_and_warnings():
     arm = fd.Chain([fd.RigidLink(0.3, 0.4), link], hubs=[fd.Hub(inertia=0.01), fd.Hub(mass=0.3, inertia=0.002)])
     with pytest.raises(ValueError, match=r"tip_deflections: Q expected shape \(4,\).*got \(3,\)"):
         fd.tip_deflections(arm, jnp.zeros(3))
+    # review: mass_matrix of a short Q came back smaller without a word, the energies raised
+    # IndexError (wrong shapes) or AttributeError (a Chain instead of an assembled one)
+    with pytest.raises(ValueError, match=r"mass_matrix: Q expected shape \(4,\).*got \(3,\)"):
+        fd.mass_matrix(arm, jnp.zeros(3))
+    with pytest.raises(ValueError, match=r"kinetic_energy: Qd expected shape \(4,\).*y\[4:\] of a state"):
+        fd.kinetic_energy(arm, jnp.zeros(4), jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"potential_energy: Q expected shape \(4,\)"):
+        fd.potential_energy(arm, jnp.zeros(5))
+    with pytest.raises(ValueError, match=r"stiffness_matrix: Q expected shape \(4,\)"):
+        fd.stiffness_matrix(arm, jnp.zeros(2))
+    # a Chain is assembled on the way in: its energy equals the assembled chain's (0 at rest, Q = 0)
+    assert float(fd.total_energy(arm, jnp.zeros(4), jnp.zeros(4))) == 0.0
+    with pytest.raises(TypeError, match=r"RigidLink.length: expected a number or an array of numbers.*'abc'"):
+        fd.RigidLink(length="abc", mass=0.3)
+    with pytest.raises(TypeError, match=r"FlexibleLink.EI: expected a number"):
+        fd.FlexibleLink(0.5, 0.3, "stiff")
     with pytest.warns(UserWarning, match=r"RigidLink.length = 300 m is over 50 m.*pass 0.3"):
         fd.RigidLink(300.0, 0.4)
     y0 = fd.initial_state(arm, [0.0, 0.0])
