@@ -22,8 +22,8 @@ NOTEBOOK = notebook_path("trajectory_design_paper004.ipynb")
 # Measured in the slow run (2026-12-04, 2 CPU cores; 40 + 40 LM steps with Marquardt's damping update): optimised
 # residual vibration 1.75e-5 m (Dopri8 and Tsit5 1.75e-5), angle error 3.7e-5 rad at T, 4.4e-6 rad at T + 1 s, rates
 # at T 7.3e-5 rad/s, joint deflection 2.0e-5 rad, peak torque 0.372 N m; comparisons' residual vibration / the
-# optimised one's: bang-bang 179, ZV 150, ZVD 30, composite (paper gains) 364. (2026-11-24, optimistix's default
-# trust region: 3.58e-5 m, 6.7e-5 rad at T; bang-bang 88x.)
+# optimised one's: bang-bang 179, ZV 150, ZVD 29 (30 before the shapers took the undamped frequency), composite
+# (paper gains) 364. (2026-11-24, optimistix's default trust region: 3.58e-5 m, 6.7e-5 rad at T; bang-bang 88x.)
 # Stated tolerances of the optimised move: at T and at T + 1 s the link angles are within ANGLE_TOL of the goal,
 # link and rotor rates at T below RATE_TOL, joint deflections alpha - theta below DEFLECTION_TOL, and the RMS tip
 # deflection over the window below VIBRATION_TOL; the comparisons' residual vibration is at least FACTOR times larger.
