@@ -277,7 +277,7 @@ def test_bad_rig_option(tmp_path):
     path = experiment(tmp_path, '[rig]\nbase = "flexible_pendulum"\noptions = { modes = 2 }\n' + LOG)
     with pytest.raises(
         ExperimentError,
-        match=msg("exp.toml, line 3: rig.options.modes", "has no option 'modes'", "n_modes (default 1)"),
+        match=msg("exp.toml, line 3: rig.options.modes", "has no option 'modes'", "n_modes (default 2)"),
     ):
         load_experiment(path)
     path = experiment(tmp_path, '[rig]\nbase = "flexible_pendulum"\noptions = { n_modes = 1.5 }\n' + LOG)
