@@ -27,6 +27,18 @@ def as_float_array(value, name: str | None = None):
         raise TypeError(f"{name or 'value'}: expected a number or an array of numbers (SI), got {value!r}") from e
 
 
+def warn_if_single_precision(caller: str, consequence: str, stacklevel: int = 4) -> None:
+    """Warn that JAX runs in float32 (`jax_enable_x64` off, e.g. `FLEXDYN_NO_X64=1`):
+    `consequence` says what that costs `caller`. flexdyn expects float64. (`stacklevel`
+    4: the user's line when called from a function called by the public one.)"""
+    if jnp.result_type(float) != jnp.float64:
+        warnings.warn(
+            f"{caller}: JAX runs in single precision (jax_enable_x64 is off, e.g. FLEXDYN_NO_X64=1): "
+            f"{consequence}; flexdyn expects float64",
+            stacklevel=stacklevel,
+        )
+
+
 def _is_concrete(value) -> bool:
     return not isinstance(value, jax.core.Tracer)
 

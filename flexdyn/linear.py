@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._checks import warn_if_single_precision
 from .chain import AssembledChain, Chain, _check_coordinates, accelerations, assemble, generalised_forces, mass_matrix
 
 
@@ -159,14 +160,28 @@ def stiffness_matrix(chain: Chain | AssembledChain, Q0) -> Float[Array, "n n"]:
     return -jax.jacfwd(lambda Q: generalised_forces(asm, Q, zero_qd, zero_tau))(jnp.asarray(Q0, dtype=float))
 
 
-@eqx.filter_jit
 def modal_analysis(chain: Chain | AssembledChain, Q0=None) -> Modes:
     """Undamped natural frequencies and mode shapes about the configuration `Q0`
     (default zero; it should be an equilibrium at rest). Pure JAX: jit- and grad-able.
     About a steady motion (a link spinning at a constant rate), use the eigenvalues of
     `linearize(chain, y0).A` with the rates in `y0` instead: they carry the centrifugal
     and gyroscopic terms (and, with `FlexibleLink(geometric_stiffening=True)`, the
-    centrifugal stiffening; `notebooks/geometric_stiffening.ipynb`)."""
+    centrifugal stiffening; `notebooks/geometric_stiffening.ipynb`).
+
+    In single precision (`jax_enable_x64` off) it warns: the mode shapes, `M`, `K` and
+    the eigenproblem in float32 give frequencies with relative errors ~1e-4 (paper 004's
+    arm: up to 2.2e-4)."""
+    warn_if_single_precision(
+        "modal_analysis",
+        "the frequencies carry relative errors of ~1e-4 (paper 004's arm: up to 2.2e-4), "
+        "from the mode shapes, M, K and the eigenproblem in float32",
+        stacklevel=3,
+    )
+    return _modal_analysis(chain, Q0)
+
+
+@eqx.filter_jit
+def _modal_analysis(chain: Chain | AssembledChain, Q0) -> Modes:
     asm = assemble(chain)
     n = asm.layout.n_dof
     Q0 = jnp.zeros(n) if Q0 is None else jnp.asarray(Q0, dtype=float)

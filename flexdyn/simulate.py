@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import as_float_array, check_parameter, warn_if_degrees
+from ._checks import as_float_array, check_parameter, warn_if_degrees, warn_if_single_precision
 from .chain import (
     AssembledChain,
     Chain,
@@ -105,14 +105,11 @@ def check_times(ts, caller: str):
 def prepare(chain, y0, ts, torque, caller: str):
     """The assembled chain, `y0`, `ts` and the input of a solve, checked (a `ValueError`
     naming `caller` and what was expected otherwise)."""
-    if jnp.result_type(float) != jnp.float64:
-        warnings.warn(
-            f"{caller}: JAX runs in single precision (jax_enable_x64 is off, e.g. FLEXDYN_NO_X64=1): the "
-            "results carry ~1e-7 relative error at best, and the adaptive solver's default tolerances "
-            "(rtol 1e-8) are below float32's resolution, so it takes several times the steps; flexdyn "
-            "expects float64",
-            stacklevel=3,
-        )
+    warn_if_single_precision(
+        caller,
+        "the results carry ~1e-7 relative error at best, and the adaptive solver's default tolerances "
+        "(rtol 1e-8) are below float32's resolution, so it takes several times the steps",
+    )
     asm = assemble(chain)
     y0 = as_initial_state(asm, y0, caller)
     ts = check_times(ts, caller)
