@@ -427,7 +427,6 @@ def test_review_mistakes_of_a_new_arm_get_clear_errors_and_warnings():
         fd.observe(arm, fd.simulate(arm, y0, ts, large), large)
 
 
-
 def test_modal_analysis_in_single_precision_is_warned_about():
     """`modal_analysis` in float32 warns, as `simulate` does (found in review: it said
     nothing), and the error the warning states (~1e-4 relative, up to 2.2e-4 on paper
