@@ -407,10 +407,27 @@ def _check_time(path, t: np.ndarray, where: Callable[[int], str], shown: np.ndar
 
 def _read_text(path: Path) -> str:
     data = path.read_bytes()
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):  # UTF-16 with its byte-order mark ("Unicode text" on Windows)
+        try:
+            return data.decode("utf-16")
+        except UnicodeDecodeError as e:
+            raise LogError(f"{path}: starts with a UTF-16 byte-order mark but is not valid UTF-16 ({e})") from None
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError:
         return data.decode("cp1252", errors="replace")  # Windows DAQ software
+
+
+#: Excel's separator line (`sep=;`), written before the header by some exports
+_EXCEL_SEP = re.compile(r'^\s*"?sep=(?P<sep>.)"?\s*$', re.IGNORECASE)
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell.strip().replace(",", "."))
+    except ValueError:
+        return False
+    return True
 
 
 def _skip(line: str) -> bool:
@@ -424,8 +441,16 @@ def _read_csv(path: Path, wanted, cals, strict, context):
     header_at = next((i for i, line in enumerate(lines) if not _skip(line)), None)
     if header_at is None:
         raise LogError(f"{path}: no header row; expected a first row like 'time [s],theta1 [rad],tip1 [mm]'")
+    sep = _EXCEL_SEP.match(lines[header_at])
+    if sep is not None:  # Excel's "sep=;" line: the separator given, the header on the next row
+        header_at = next((i for i in range(header_at + 1, len(lines)) if not _skip(lines[i])), None)
+        if header_at is None:
+            raise LogError(f"{path}: no header row after the separator line 'sep={sep['sep']}'")
     header_line = lines[header_at]
-    delimiter = ";" if ";" in header_line else "\t" if "\t" in header_line else ","
+    if sep is not None:
+        delimiter = sep["sep"]
+    else:
+        delimiter = ";" if ";" in header_line else "\t" if "\t" in header_line else ","
     decimal_comma = delimiter != ","
 
     def split(line: str) -> list[str]:
@@ -433,6 +458,16 @@ def _read_csv(path: Path, wanted, cals, strict, context):
 
     header = [h.strip() for h in split(header_line)]
     hline = header_at + 1
+    if all(_is_number(h) for h in header):
+        raise LogError(
+            f"{path}, line {hline}: the first row is all numbers ({header_line.strip()[:60]!r}): the file seems "
+            "to have no header row; add one naming each column with its unit, like 'time [s],theta1 [deg],tip1 [mm]'"
+        )
+    if len(header) == 1 and len(header_line.split()) > 1 and header_line.count("[") > 1:
+        raise LogError(
+            f"{path}, line {hline}: one column {header_line.strip()[:60]!r}, its cells separated by spaces; "
+            "expected cells separated by commas, semicolons or tabs"
+        )
     names, file_units = [], []
     for c, text in enumerate(header, start=1):
         try:

@@ -442,3 +442,62 @@ def test_an_implausible_sampling_rate_asks_about_the_time_unit(dt, hint):
 
     sampling = _sampling(dt * np.arange(100), 0.0)
     assert (hint in str(sampling)) if hint else sampling.time_unit_hint == ""
+
+
+# ---------------------------------------------------------------------------
+# Exports of spreadsheets and Windows software (found in a new-user review)
+# ---------------------------------------------------------------------------
+
+
+def test_an_excel_separator_line_sets_the_separator(tmp_path):
+    """Excel's CSV export may start with `sep=;`: it was read as the header ("no column
+    't'; the header has ['sep=']")."""
+    rows = [[f"{0.01 * k:.2f}".replace(".", ","), "1,5", "2"] for k in range(10)]
+    path = write_csv(tmp_path / "excel.csv", ["time [s]", "theta1 [deg]", "tip1 [mm]"], rows, delimiter=";")
+    path.write_text("sep=;\n" + path.read_text())
+    log = load_log(path, COLUMNS)
+    np.testing.assert_allclose(log.t, 0.01 * np.arange(10), atol=1e-15)
+    np.testing.assert_allclose(log.outputs["theta1"], math.radians(1.5))
+
+
+def test_a_utf16_file_is_decoded(tmp_path):
+    """Windows' "Unicode text" export is UTF-16 with a byte-order mark: its header was
+    shown as mojibake."""
+    path = tmp_path / "unicode.csv"
+    text = "\n".join([",".join(HEADER)] + [",".join(r) for r in good_rows()]) + "\n"
+    path.write_bytes(text.encode("utf-16"))  # (Python writes the byte-order mark)
+    log = load_log(path, COLUMNS)
+    t, a, _ = samples()
+    np.testing.assert_allclose(log.outputs["theta1"], np.deg2rad(np.round(a, 6)), rtol=1e-12)
+
+
+def test_a_file_without_a_header_row_says_so(tmp_path):
+    path = tmp_path / "bare.csv"
+    path.write_text("\n".join(",".join(r) for r in good_rows()) + "\n")
+    with pytest.raises(LogError, match=msg("bare.csv, line 1", "all numbers", "no header row", "time [s]")):
+        load_log(path, COLUMNS)
+
+
+def test_space_separated_cells_are_named_as_such(tmp_path):
+    path = write_csv(tmp_path / "spaces.txt", HEADER, good_rows(), delimiter=" ")
+    with pytest.raises(LogError, match=msg("spaces.txt, line 1", "separated by spaces", "commas, semicolons or tabs")):
+        load_log(path, COLUMNS)
+
+
+@pytest.mark.parametrize(("unit", "factor"), [("cm", 1e-2), ("mm", 1e-3)])
+def test_centimetres(tmp_path, unit, factor):
+    rows = [[f"{0.01 * k:.2f}", "0", "2.5"] for k in range(10)]
+    log = load_log(write_csv(tmp_path / "cm.csv", ["time [s]", "theta1 [deg]", f"tip1 [{unit}]"], rows))
+    np.testing.assert_allclose(log.outputs["tip1"], 2.5 * factor, rtol=1e-15)
+
+
+def test_format_md_lists_every_unit_and_spelling():
+    """identify/FORMAT.md's units table and its list of other spellings name every key of
+    `units.UNITS` and `units.ALIASES` (review: five accepted spellings were not listed)."""
+    import pathlib
+
+    from identify import units
+
+    doc = (pathlib.Path(__file__).parents[2] / "identify" / "FORMAT.md").read_text()
+    missing = [k for k in [*units.UNITS, *units.ALIASES] if f"`[{k}]`" not in doc and f"`{k}`" not in doc]
+    assert not missing, missing
