@@ -1292,7 +1292,7 @@ def _grow(
             say(f"  horizon {h:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1]['result']})")
         if rnd + 1 < rounds:
             sigma = _reestimate_sigma(problem, z, sigma, estimate_noise, step)
-            say("  noise re-estimated: " + ", ".join(f"{c}={float(s):.3g}" for c, s in zip(problem.channels, sigma)))
+            say("  noise re-estimated: " + _noise_text(problem.channels, sigma, estimate_noise))
     return z, sigma, step, (lin, h), stages
 
 
@@ -1794,6 +1794,17 @@ def aligned_step(problem: Problem, step):
         # came out non-finite. The torque's samples resolve the input no finer anyway.
         return jnp.asarray(dt_s, dtype=jnp.asarray(step).dtype)
     return jnp.asarray(dt_s / math.ceil(dt_s / h - 1e-9), dtype=jnp.asarray(step).dtype)
+
+
+def _noise_text(channels, sigma, estimated) -> str:
+    """`theta1 0.03 deg (declared), tip1 0.0497 mm (estimated)`: the noise weights in
+    display units, each said to be declared or re-estimated from the residuals (review:
+    `theta1=0.000524` printed a declared 0.03 deg in rad, as if estimated)."""
+    parts = []
+    for c, s in zip(channels, np.asarray(sigma)):
+        scale, unit = display_unit(c)
+        parts.append(f"{c} {float(s) * scale:.3g} {unit} ({'estimated' if c in estimated else 'declared'})")
+    return ", ".join(parts)
 
 
 def _reestimate_sigma(problem: Problem, z, sigma, channels, step):

@@ -1028,3 +1028,12 @@ def test_a_gross_misfit_points_at_the_set_up_first():
     # in the table's units (found in review: "RMS 9.91" in rad beside a table in deg)
     assert "(RMS 2.64 deg) is 46 times its noise floor (0.0573 deg," in summary(46.0)
     assert 46.0 < GROSS_MISFIT < 2.5e4
+
+
+def test_the_noise_printout_has_units_and_says_declared_or_estimated():
+    """Review: `noise re-estimated: theta1=0.000524, tip1=4.97e-05` showed a declared
+    0.03 deg in rad beside an estimated tip noise, unlabelled."""
+    from identify.fit import _noise_text
+
+    text = _noise_text(("theta1", "tip1"), [math.radians(0.03), 4.97e-5], ("tip1",))
+    assert text == "theta1 0.03 deg (declared), tip1 0.0497 mm (estimated)"
