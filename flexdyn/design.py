@@ -293,7 +293,7 @@ def _warn_if_not_at_rest(chain: Chain, start, goal, tau_max) -> None:
             )
 
 
-def move_residuals(control_points, move: RestToRestMove, *, at_goal: bool = True):
+def move_residuals(control_points, move: RestToRestMove, *, at_goal: bool = True, adjoint=None):
     """Residual vector of the move (module docstring) for one chain: dimensionless
     (rad-like), length `n_window (n_joints + n_links) + n_joints`, plus
     `n_window n_joints + n_joints` when some joint is elastic.
@@ -306,7 +306,14 @@ def move_residuals(control_points, move: RestToRestMove, *, at_goal: bool = True
     since `T`, so they would repeat the rate residuals with a weight growing over the
     window, and in the robust design that rigid drift crowded out the tip vibration
     (paper 002 arm over 0-100 g: worst-case vibration 2.5e-3 m with them, 7.1e-4 m
-    without)."""
+    without).
+
+    `adjoint`: how the solve is differentiated (default `diffrax.ForwardMode()`: for
+    `jax.jacfwd` / `jax.jvp`, what `design_move`'s Levenberg-Marquardt uses). For
+    `jax.grad` of a cost built on the residuals (reverse mode: optax, your own
+    optimiser) pass `adjoint=diffrax.RecursiveCheckpointAdjoint()`: forward mode
+    cannot be reversed (found in review: `jax.grad` failed with JAX's "Reverse-mode
+    differentiation does not work for lax.while_loop")."""
     torque = move.torque(control_points)
     traj = simulate(
         move.chain,
@@ -314,7 +321,7 @@ def move_residuals(control_points, move: RestToRestMove, *, at_goal: bool = True
         move.output_times(),
         torque,
         dt=move.dt,
-        adjoint=diffrax.ForwardMode(),
+        adjoint=diffrax.ForwardMode() if adjoint is None else adjoint,
     )
     out = observe(move.chain, traj, torque)
     scale = 1.0 / jnp.sqrt(float(move.n_window))
@@ -329,7 +336,7 @@ def move_residuals(control_points, move: RestToRestMove, *, at_goal: bool = True
     return jnp.concatenate(parts)
 
 
-def robust_residuals(control_points, move: RestToRestMove, payload_masses, payload_weight=1.0):
+def robust_residuals(control_points, move: RestToRestMove, payload_masses, payload_weight=1.0, *, adjoint=None):
     """Residuals of a design robust to the payload: `move_residuals` of the nominal chain
     (`move.chain`, reaching the goal), followed by the at-rest residuals
     (`at_goal=False`) for every payload mass (kg) of a vmapped batch, scaled by
@@ -346,12 +353,12 @@ def robust_residuals(control_points, move: RestToRestMove, payload_masses, paylo
     An open-loop torque cannot bring different inertias to the same angles, so the
     payloads other than the nominal one are asked to stop without vibration and with
     their joints at rest at `T`, not to stop at the goal; how far from the goal they stop
-    is reported by `move_metrics`."""
+    is reported by `move_metrics`. `adjoint`: as for `move_residuals`."""
     payload_masses = as_float_array(payload_masses)
-    per_payload = jax.vmap(lambda m: move_residuals(control_points, move.with_payload(m), at_goal=False))(
-        payload_masses
-    )
-    nominal = move_residuals(control_points, move)
+    per_payload = jax.vmap(
+        lambda m: move_residuals(control_points, move.with_payload(m), at_goal=False, adjoint=adjoint)
+    )(payload_masses)
+    nominal = move_residuals(control_points, move, adjoint=adjoint)
     scale = payload_weight / jnp.sqrt(float(payload_masses.shape[0]))
     return jnp.concatenate([nominal, per_payload.ravel() * scale])
 
@@ -392,7 +399,13 @@ class MoveDesign(eqx.Module):
         cost, cost0 = float(self.cost), float(self.initial_cost)
         lines = [
             f"cost {cost0:.4g} -> {cost:.4g} ({cost / cost0 if cost0 > 0 else float('nan'):.3g} of the initial) in "
-            f"{int(self.num_steps)} Levenberg-Marquardt steps",
+            f"{int(self.num_steps)} Levenberg-Marquardt steps"
+            + (
+                " (all of max_steps: `result` then reads max_steps_reached, usual for a design whose residual "
+                "cannot reach zero; judge it by the cost and the goal error below)"
+                if self.result == optx.RESULTS.max_steps_reached
+                else ""
+            ),
             f"largest joint-angle error over [T, T + settle] (nominal payload): {float(self.goal_error):.3g} rad "
             f"({100 * float(self.goal_error) / max(float(self.travel), 1e-12):.3g} % of the move's "
             f"{float(self.travel):.3g} rad)",

@@ -4,9 +4,11 @@ blocks (slow)."""
 import re
 import warnings
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import flexdyn as fd
@@ -245,5 +247,32 @@ def test_design_says_whether_the_arm_reached_its_goal():
         )
         assert res.reached_goal is reached, res.summary()
         assert ("does not stop at its goal" in res.summary()) is not reached
+        # review: `result` read max_steps_reached after a good design; the summary says it is usual
+        hit_budget = bool(res.result == optx.RESULTS.max_steps_reached)
+        assert ("max_steps_reached, usual for a design" in res.summary()) is hit_budget
     with pytest.raises(ValueError, match=r"design_move.max_steps: expected an integer >= 1, got 0"):
         design.design_move(infeasible, initial, max_steps=0)
+
+
+def test_reverse_mode_gradient_of_the_residuals_with_a_reverse_adjoint():
+    """Review: `jax.grad` of a cost on `move_residuals` failed inside diffrax (the default
+    forward-mode adjoint cannot be reversed); with `adjoint=RecursiveCheckpointAdjoint()`
+    it works, and equals J^T r from the forward-mode Jacobian (the other AD mode)."""
+    arm = fd.Chain(
+        links=[fd.FlexibleLink(length=0.5, rho=0.2, EI=1.0, n_modes=1)],
+        joints=[fd.RigidJoint()],
+        hubs=[fd.Hub(inertia=0.02)],
+        payload=fd.Payload(mass=0.05),
+        gravity=(0.0, 0.0),
+    )
+    move = design.RestToRestMove(arm, [0.0], [0.3], 0.3, 0.5, settle=0.1, n_window=4, dt=2e-3)
+    cp = jnp.asarray([[0.1], [-0.05], [0.02], [-0.1]])
+
+    def cost(c):
+        r = design.move_residuals(c, move, adjoint=diffrax.RecursiveCheckpointAdjoint())
+        return 0.5 * jnp.sum(r**2)
+
+    grad = jax.grad(cost)(cp)
+    r = design.move_residuals(cp, move)
+    J = jax.jacfwd(lambda c: design.move_residuals(c, move))(cp)
+    np.testing.assert_allclose(np.asarray(grad), np.einsum("i,i...->...", r, J), rtol=1e-9, atol=1e-12)
