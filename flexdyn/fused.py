@@ -340,7 +340,8 @@ def _checked_step(flat, growth, dt: float):
     `eqx.error_if`."""
     message = (
         "rk4_sweep_final: the fixed step dt = {dt:g} s is above RK4's stability limit for the stiffest mode "
-        "at y0 of {which} (fd.stable_step(chain, y0, solver='rk4') gives the limit of one entry): a mode would "
+        "at y0 of {which} (fd.stable_step(chain, y0, solver='rk4', safety=1.0) gives the limit of one entry; "
+        "its default safety, 90 % of it): a mode would "
         "grow from round-off and the result be wrong; reduce dt"
     )
     unstable = growth > 1.0 + 1e-9

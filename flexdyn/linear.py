@@ -333,7 +333,8 @@ def check_rk4_step(chain: Chain | AssembledChain, y0, torque0, dt, caller: str):
         f"{caller}: the fixed step dt"
         + ("" if isinstance(dt, jax.core.Tracer) else f" = {float(dt):g} s")
         + " is above RK4's stability limit for the chain's stiffest mode at y0 "
-        "(fd.stable_step(chain, y0, solver='rk4') gives the limit): a mode would grow from round-off and "
+        "(fd.stable_step(chain, y0, solver='rk4', safety=1.0) gives the limit; its default safety, 90 % of it): "
+        "a mode would grow from round-off and "
         "the result be wrong; reduce dt or use the adaptive solver (dt=None)",
     )
 

@@ -264,7 +264,7 @@ def _simulate(
     - `dt`: fixed step, s (e.g. `1e-3` as papers 002/004); adaptive if None. Steps are
       aligned to the input's discontinuities (`torque.jump_times()`), so fixed-step RK4
       stays fourth-order accurate across a bang-bang switch. A `dt` above RK4's stability
-      limit for the linearisation at `y0` (`fd.stable_step(chain, y0, solver="rk4")`) by
+      limit for the linearisation at `y0` (`fd.stable_step(chain, y0, solver="rk4", safety=1.0)`) by
       more than 2 % is refused before the run (`flexdyn.linear.check_rk4_step`; it costs
       ~1.5 s more compilation on paper 004's arm); the stiffness moves with the
       configuration, so stay clear of the limit.
