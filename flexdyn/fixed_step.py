@@ -139,8 +139,11 @@ def rk4_final(
     an input (`flexdyn.inputs`) or anything `simulate` accepts; `solve`: `"unrolled"`,
     `"rsqrt"` or `"cho"`; `unroll`: RK4 steps per loop iteration (`lax.scan(unroll=...)`).
 
-    Raises (inside `jit` too) if the state becomes non-finite: with a fixed step that means
-    `dt` is above the stability limit of the stiffest mode or joint.
+    Raises (inside `jit` and `vmap` too) if `dt` is above RK4's stability limit for the
+    chain's linearisation about `y0` (`flexdyn.linear.check_rk4_step`, as `simulate` and
+    `rk4_trajectory` check; found in review: it only caught a state gone non-finite, and
+    above the limit a barely excited mode grows from round-off to a finite but wrong
+    result), and if the state becomes non-finite.
     """
     t0, t1, dt = float(t0), float(t1), float(dt)
     if not (dt > 0 and math.isfinite(dt)):
@@ -153,6 +156,7 @@ def rk4_final(
     torque = as_input(torque, asm.chain.n_links)
     y0 = as_initial_state(asm, y0, "rk4_final")
     _check_torque_shape(torque, t0, y0, asm.chain.n_links)
+    y0 = check_rk4_step(asm, y0, torque(t0, y0), dt, "rk4_final")
     field = vector_field(asm, torque, solve)
     starts, steps, lasts = _step_table(_breaks(torque, t0, t1), dt)
 

@@ -269,7 +269,20 @@ def _rk4_rigs():
     return {"strip": own, "paper004": fd.rigs.flexible_link_joint_arm()}
 
 
-@pytest.mark.parametrize("rig, solve", [("strip", "simulate"), ("paper004", "simulate"), ("strip", "rk4_trajectory")])
+def _rk4_final_as_trajectory(chain, y0, ts, torque, dt):
+    """`fixed_step.rk4_final`'s final state, as `.Q` like a trajectory's (the whole state)."""
+    import types
+
+    from flexdyn import fixed_step
+
+    y = fixed_step.rk4_final(chain, y0, float(ts[0]), float(ts[-1]), torque, dt=float(dt))
+    return types.SimpleNamespace(Q=y[None])
+
+
+@pytest.mark.parametrize(
+    "rig, solve",
+    [("strip", "simulate"), ("paper004", "simulate"), ("strip", "rk4_trajectory"), ("strip", "rk4_final")],
+)
 def test_a_fixed_step_just_above_the_rk4_stability_limit_is_refused(rig, solve):
     """Oracle: `fd.stable_step(solver="rk4")`, the limit from the eigenvalues of the full
     linearisation `A` (NumPy). 3 % above it the run is refused (found in review: 16 %
@@ -279,9 +292,10 @@ def test_a_fixed_step_just_above_the_rk4_stability_limit_is_refused(rig, solve):
     limit = fd.stable_step(chain, y0, solver="rk4", safety=1.0)
     ts = jnp.linspace(0.0, 50 * limit, 3)
     torque = fd.BangBang([0.01] * chain.n_links, 10 * limit)
+    run = _rk4_final_as_trajectory if solve == "rk4_final" else getattr(fd, solve)
     with pytest.raises(RUNTIME_ERRORS, match=rf"{solve}: the fixed step {STABILITY}"):
-        getattr(fd, solve)(chain, y0, ts, torque, dt=1.03 * limit).Q.block_until_ready()
-    traj = getattr(fd, solve)(chain, y0, ts, torque, dt=0.97 * limit)
+        run(chain, y0, ts, torque, dt=1.03 * limit).Q.block_until_ready()
+    traj = run(chain, y0, ts, torque, dt=0.97 * limit)
     assert jnp.all(jnp.isfinite(traj.Q))
 
 
