@@ -47,7 +47,14 @@ def batch_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
 
 def batch_size(batch) -> int:
     """The common leading dimension of the array leaves of `batch`."""
-    arrays = [x for x in jax.tree_util.tree_leaves(batch) if eqx.is_array(x)]
+    leaves = jax.tree_util.tree_leaves(batch)
+    arrays = [x for x in leaves if eqx.is_array(x)]
+    if not arrays:  # review: a list of floats said "got leading sizes []"
+        shown = repr(batch) if len(repr(batch)) <= 60 else repr(batch)[:57] + "..."
+        raise ValueError(
+            f"batch: expected arrays with a leading (batch) dimension, got no array at all ({shown}); "
+            "Python numbers are held static: pass jnp.asarray(...), e.g. jnp.asarray([0.1, 0.2, 0.3])"
+        )
     if any(jnp.ndim(x) == 0 for x in arrays):
         raise ValueError(
             "batch: every array leaf needs a leading (batch) dimension; got a scalar leaf "

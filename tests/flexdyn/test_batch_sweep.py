@@ -103,6 +103,9 @@ def test_mismatched_batch_sizes_are_an_error():
         fb.batch_size({"a": jnp.zeros(3), "b": jnp.zeros(4)})
     with pytest.raises(ValueError, match="scalar leaf"):
         fb.batch_size({"a": jnp.zeros(3), "b": jnp.zeros(())})
+    # review: a list of Python floats said "got leading sizes []"
+    with pytest.raises(ValueError, match=r"got no array at all \(\[0.1, 0.2, 0.3\]\).*jnp.asarray"):
+        fb.sweep(lambda m: m, [0.1, 0.2, 0.3])
 
 
 def test_an_invalid_chain_in_the_batch_is_named_with_its_entries():
