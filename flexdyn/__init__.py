@@ -95,6 +95,7 @@ from .tsit5 import tsit5_trajectory as tsit5_trajectory
 
 __version__ = "0.1.0"
 from .params import (
+    UnknownParameterError as UnknownParameterError,
     get_parameter as get_parameter,
     is_signed as is_signed,
     parameter_names as parameter_names,

@@ -83,22 +83,22 @@ def _locate(chain: Chain, name: str):
     """(getter of the leaf array, index into it or None, unit, signed) for `name`."""
     m = _NAME.match(name)
     if m is None:
-        raise KeyError(_unknown(chain, name))
+        raise _unknown(chain, name)
     if m["gravity"]:
         return (lambda c: c.gravity), int(m["g"]), "m/s^2", True
     if m["payload"]:
         field = m["pfield"]
         if field not in PARAMETER_FIELDS[Payload]:
-            raise KeyError(_unknown(chain, name))
+            raise _unknown(chain, name)
         return (lambda c: getattr(c.payload, field)), None, PARAMETER_FIELDS[Payload][field], False
     kind, index, field = m["part"], int(m["index"]), m["field"]
     n = len(chain.links)
     if not 1 <= index <= n:
-        raise KeyError(_unknown(chain, name))
+        raise _unknown(chain, name)
     part = _part(chain, kind, index)
     fields = PARAMETER_FIELDS[type(part)]
     if field not in fields:
-        raise KeyError(_unknown(chain, name))
+        raise _unknown(chain, name)
     if getattr(part, field) is None:
         raise KeyError(
             f"parameter {name!r}: {kind} {index} has no {field} term ({type(part).__name__}({field}=None)); "
@@ -107,12 +107,43 @@ def _locate(chain: Chain, name: str):
     k = None if m["k"] is None else int(m["k"])
     ndim = np.ndim(getattr(part, field))
     if (k is None) != (ndim == 0) or (k is not None and k >= np.shape(getattr(part, field))[0]):
-        raise KeyError(_unknown(chain, name))
+        raise _unknown(chain, name)
     return (lambda c: getattr(_part(c, kind, index), field)), k, fields[field], field in SIGNED
 
 
-def _unknown(chain: Chain, name: str) -> str:
-    return f"unknown parameter {name!r}; this chain has: {', '.join(parameter_names(chain))}"
+class UnknownParameterError(KeyError, ValueError):
+    """A parameter name the chain does not have. A `KeyError` (a lookup by name) and a
+    `ValueError` (as `identify.make_problem` raises for the same mistake); its message is
+    shown as written, not quoted as `KeyError`'s is (found in review: escaped quotes)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+def closest_name(name: str, names) -> str | None:
+    """The entry of `names` that `name` most likely meant: the same but for case
+    (`link1.ei` -> `link1.EI`), else the closest spelling (`difflib`, ratio >= 0.8), else None."""
+    import difflib
+
+    names = list(names)
+    folded = [n for n in names if n.lower() == name.lower()]
+    if folded:
+        return folded[0]
+    close = difflib.get_close_matches(name, names, n=1, cutoff=0.8)
+    return close[0] if close else None
+
+
+def did_you_mean(name: str, names) -> str:
+    """` (did you mean 'link1.EI'?)` when `closest_name` finds one, else ''."""
+    near = closest_name(name, names)
+    return f" (did you mean {near!r}?)" if near is not None and near != name else ""
+
+
+def _unknown(chain: Chain, name: str) -> UnknownParameterError:
+    names = parameter_names(chain)
+    return UnknownParameterError(
+        f"unknown parameter {name!r}{did_you_mean(name, names)}; this chain has: {', '.join(names)}"
+    )
 
 
 def parameter_unit(chain: Chain, name: str) -> str:

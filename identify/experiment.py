@@ -546,7 +546,7 @@ def _unknown_parameter(r: _Reader, chain: fd.Chain, key: tuple, value) -> Experi
     valid = fd.parameter_names(chain)
     name = key[-1]
     return _dotted_key_error(r, key, name, value, valid) or r.error(
-        key, f"unknown parameter; this rig has: {', '.join(valid)}"
+        key, f"unknown parameter{fd.params.did_you_mean(name, valid)}; this rig has: {', '.join(valid)}"
     )
 
 

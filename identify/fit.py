@@ -321,7 +321,10 @@ def make_problem(
         raise ValueError(f"make_problem: free parameter(s) {', '.join(map(repr, twice))} listed more than once")
     for p in parameters:
         if p.name not in known:
-            raise ValueError(f"free parameter {p.name!r} does not exist; this chain has: {', '.join(sorted(known))}")
+            raise ValueError(
+                f"free parameter {p.name!r} does not exist{fd.params.did_you_mean(p.name, known)}; "
+                f"this chain has: {', '.join(sorted(known))}"
+            )
         signed = fd.is_signed(chain, p.name) if p.name in chain_names else meas.is_signed(p.name)
         lo = -np.inf if p.lower is None else float(p.lower)
         hi = np.inf if p.upper is None else float(p.upper)

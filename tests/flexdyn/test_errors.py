@@ -461,3 +461,18 @@ def test_modal_analysis_in_single_precision_is_warned_about():
     assert np.all(f32[~flexible] == 0.0), f32
     error = np.abs(f32[flexible] / f64[flexible] - 1)
     assert error.max() < 5e-4, error
+
+
+def test_an_unknown_parameter_name_suggests_the_one_meant():
+    """Review: `link1.ei` raised a `KeyError` shown with escaped quotes and no hint (and
+    `identify.make_problem` a `ValueError` for the same mistake): now one error that is
+    both, its message as written, with the name meant."""
+    chain = fd.rigs.flexible_pendulum()
+    with pytest.raises(fd.UnknownParameterError) as e:
+        fd.with_parameters(chain, {"link1.ei": 2.0})
+    assert isinstance(e.value, KeyError) and isinstance(e.value, ValueError)
+    assert str(e.value).startswith("unknown parameter 'link1.ei' (did you mean 'link1.EI'?); this chain has: ")
+    with pytest.raises(ValueError, match=r"'joint1.dampin' \(did you mean 'joint1.damping'\?\)"):
+        fd.get_parameter(chain, "joint1.dampin")
+    with pytest.raises(ValueError, match=r"unknown parameter 'spring'; this chain has"):  # nothing close
+        fd.get_parameter(chain, "spring")

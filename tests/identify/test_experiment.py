@@ -319,7 +319,10 @@ def test_explicit_chain_errors(tmp_path):
 
 def test_rig_set_errors(tmp_path):
     path = experiment(tmp_path, RIG + '[rig.set]\n"link1.E" = 2.0\n' + LOG)
-    with pytest.raises(ExperimentError, match=msg('line 6: rig.set."link1.E"', "unknown parameter", "link1.EI")):
+    with pytest.raises(
+        ExperimentError,
+        match=msg('line 6: rig.set."link1.E"', "unknown parameter (did you mean 'link1.EI'?)", "link1.EI"),
+    ):
         load_experiment(path)
     path = experiment(tmp_path, RIG + '[rig.set]\n"link1.EI" = 0.0\n' + LOG)
     with pytest.raises(ExperimentError, match=msg('rig.set."link1.EI"', "FlexibleLink.EI", "> 0")):
