@@ -949,8 +949,9 @@ def fit(
       multi-start stage (`_distinct`: starts that ended at the same short-horizon cost
       count once; none with `n_starts=1`). The result is the attempt off the bounds with the lowest
       `identify.noise_floor.score`; a restart that ends with the same score (within
-      `SAME_SCORE`, 10 %) as an earlier one stops the restarts: the same misfit from two
-      starts is the model's, not the start's (a missing effect: `identify diagnose`).
+      `SAME_SCORE`, 10 %) as an earlier one, both on a bound or both off, stops the
+      restarts: the same misfit from two starts is the model's (a missing effect:
+      `identify diagnose`) or the data's (a sign, a unit), not the start's.
     - `restart_poor_fit`: restart on a poor fit, as above (`diagnose` turns it off: its
       baseline misses an effect on purpose). Every result reports its goodness of fit
       (`FitResult.fit_quality`, `poor_fit`) either way.
@@ -1076,12 +1077,16 @@ def fit(
         quality = nf.goodness(problem.channels, ms, *floors)
         poor = [c for c, q in quality.items() if q["poor"]]
         score = nf.score(ms, *floors)
-        same = not bounded and any(abs(score - o[1]) <= SAME_SCORE * o[1] for o in outcomes if not o[0])
+        same = _same_misfit(bounded, score, [(o[0], o[1]) for o in outcomes])
         outcomes.append((bounded, score, z, sigma_a, step, lin, tried, ms))
         if not bounded and not (restart_poor_fit and poor):
             break
-        if same:  # the same misfit again: the model, not the start, is the cause
-            say("  the restart ended with the same misfit: keeping the best so far")
+        if same:  # the same misfit again: the model (or the data), not the start, is the cause
+            say(
+                "  the restart ended with the same misfit"
+                + (" on a bound again" if bounded else "")
+                + ": keeping the best so far"
+            )
             break
         why = (
             "a parameter ended on its bound"
@@ -1120,6 +1125,15 @@ def _distinct(zs: list, costs) -> list:
 #: `fit`: a restart whose `identify.noise_floor.score` is within this fraction of an earlier
 #: attempt's ended with the same misfit (the same basin, or a model that misses an effect)
 SAME_SCORE = 0.1
+
+
+def _same_misfit(bounded: bool, score: float, earlier) -> bool:
+    """Whether an attempt of `fit`'s growing horizon (on a bound or not, its score) ends
+    with the misfit of an earlier one (`earlier`: `(bounded, score)` pairs): both on a
+    bound or both off, scores within `SAME_SCORE`. Among attempts on a bound too (found in
+    review: an encoder's sign opposite to the torque put every parameter on a bound, and
+    two restarts ended at the same cost, 431 s for nothing)."""
+    return any(b == bounded and abs(score - s) <= SAME_SCORE * s for b, s in earlier)
 
 
 def _dense_covariance(problem: Problem, r, J) -> Covariance:

@@ -1037,3 +1037,12 @@ def test_the_noise_printout_has_units_and_says_declared_or_estimated():
 
     text = _noise_text(("theta1", "tip1"), [math.radians(0.03), 4.97e-5], ("tip1",))
     assert text == "theta1 0.03 deg (declared), tip1 0.0497 mm (estimated)"
+
+
+def test_restarts_stop_at_the_same_misfit_on_a_bound_too():
+    from identify.fit import _same_misfit
+
+    assert _same_misfit(True, 1.05e9, [(True, 1.0e9)])  # review: restarts on bounds, same cost
+    assert _same_misfit(False, 10.5, [(False, 10.0)])
+    assert not _same_misfit(False, 10.5, [(True, 10.0)])  # off the bound now: a different outcome
+    assert not _same_misfit(True, 2.0e9, [(True, 1.0e9)])
