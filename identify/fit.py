@@ -723,6 +723,9 @@ class FitResult:
     # logs fitted together in one vmapped batch (`fit_independent`): `wall_time` is then the
     # batch's time divided among them
     batch_size: int = 1
+    # channels whose simulation moves against the measurement (`_reversed_channels`):
+    # channel -> correlation of the two (below REVERSED_CORRELATION); checked on a poor fit
+    reversed_channels: dict = dataclasses.field(default_factory=dict)
 
     @property
     def value(self) -> dict:
@@ -799,6 +802,14 @@ class FitResult:
                     else ""
                 )
             )
+        for c, corr in self.reversed_channels.items():
+            lines.append(
+                f"warning: {c} first moves against the simulation's push (cosine {corr:.2f} of the two traces over "
+                "each log's first push of the torque): is its sign "
+                "reversed (or the torque's)? flexdyn's angles, deflections and torques are counter-clockwise "
+                "positive (README: conventions); negate the column in the log (a column in volts: a negative "
+                "calibration scale, identify/FORMAT.md)"
+            )
         if self.poor_fit:
             lines.append(
                 "note: the intervals above assume white residuals; with model error in the residual they are "
@@ -858,6 +869,7 @@ class FitResult:
             },
             "converged": self.converged,
             "at_bounds": self.at_bounds,
+            "reversed_channels": self.reversed_channels,
             "identifiability_warnings": self.identifiability,
             "fit_quality": self.fit_quality,
             "singular_values": self.singular_values.tolist(),
@@ -1346,6 +1358,61 @@ def _residual_ms(problem: Problem, z, sigma, step, lin=None) -> np.ndarray:
     return np.sum(np.where(mask, res, 0.0) ** 2, axis=1) / np.maximum(mask.sum(axis=1), 1)
 
 
+#: `_reversed_channels`: a channel whose first response to the torque and the simulation's
+#: have a cosine below this moves against the model
+REVERSED_CORRELATION = -0.5
+
+
+def _reversed_channels(problem: Problem, z, sigma, step, channels) -> dict:
+    """Of `channels` (those fitted poorly: `FitResult.poor_fit`), the ones whose first
+    response to the input moves against the simulation's: channel -> the cosine of the
+    two traces over each driven log's first push (from its onset to the first sign change
+    of its largest torque, at most a quarter of the log), each taken from its value at the
+    onset and pooled over the logs; named below `REVERSED_CORRELATION`. Any model with
+    positive inertias first moves the way the torque pushes, whatever its parameters, so
+    a measured channel that moves the other way has its sign (or the torque's) reversed.
+    Found in review: an encoder counting the other way put every parameter on a bound,
+    residual 861x the floor, with only generic advice; the fitted simulation then barely
+    moves (a payload of 4 kg), so the whole traces do not correlate and the first push
+    is what tells. One simulation, only on a poor fit."""
+    theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
+    r, _ = _residuals_from(problem, theta, z["y0"], z["offset"], sigma, None, step)
+    meas_ = np.asarray(problem.measured)
+    pred = np.asarray(r).reshape(meas_.shape) * np.asarray(sigma) + meas_
+    t, valid, present = np.asarray(problem.t), np.asarray(problem.valid), np.asarray(problem.present)
+    tau = np.asarray(problem.torque_v)
+    pushes = []
+    for l in range(meas_.shape[0]):
+        k = valid[l] & (t[l] >= float(problem.onset[l]))
+        if k.sum() < 4 or not np.any(tau[l][k] != 0):
+            continue
+        idx = np.flatnonzero(k)
+        j = int(np.argmax(np.max(np.abs(tau[l][idx]), axis=0)))
+        drive = tau[l][idx, j]
+        first = int(np.flatnonzero(drive != 0)[0])
+        flips = np.flatnonzero(np.sign(drive[first:]) == -np.sign(drive[first]))
+        stop = first + (int(flips[0]) if flips.size else len(idx))
+        stop = min(stop, first + max(len(idx) // 4, 4))
+        pushes.append((l, idx[: stop + 1]))
+    out = {}
+    for jc, c in enumerate(problem.channels):
+        if c not in channels:
+            continue
+        ps, ms = [], []
+        for l, w in pushes:
+            if present[l, jc] and w.size >= 4:
+                ps.append(pred[l, w, jc] - pred[l, w[0], jc])
+                ms.append(meas_[l, w, jc] - meas_[l, w[0], jc])
+        if not ps:
+            continue
+        p_all, m_all = np.concatenate(ps), np.concatenate(ms)
+        denom = np.sqrt(np.sum(p_all**2) * np.sum(m_all**2))
+        cosine = float(np.sum(p_all * m_all) / denom) if denom > 0 else 0.0
+        if cosine < REVERSED_CORRELATION:
+            out[c] = cosine
+    return out
+
+
 def _floors(problem: Problem):
     """`identify.noise_floor.channel_floors` of the problem's logs."""
     return nf.channel_floors(problem.t, problem.measured, problem.valid, problem.present)
@@ -1379,6 +1446,9 @@ def _finish(
     for k, (l, c) in enumerate(problem.offset_free):
         offs.setdefault(problem.log_names[l], {})[problem.channels[c]] = (float(z["offset"][k]), float(se_nat[q + k]))
     at_bounds = _at_bounds(problem, xs)
+    quality = nf.goodness(problem.channels, residual_ms, *_floors(problem))
+    poor = [c for c, q in quality.items() if q["poor"]]
+    reversed_channels = _reversed_channels(problem, z, sigma, step, poor) if poor else {}
     # A parameter on its bound is not an interior optimum: the standard errors mean nothing
     # there and the bound, not the data, decided the value.
     converged = stages[-1]["result"] == "successful" and not at_bounds
@@ -1402,7 +1472,8 @@ def _finish(
         identifiability=cov.identifiability,
         singular_values=cov.singular_values,
         wall_time=wall_time,
-        fit_quality=nf.goodness(problem.channels, residual_ms, *_floors(problem)),
+        fit_quality=quality,
+        reversed_channels=reversed_channels,
         problem=problem,
         z=z,
         step=step,

@@ -1046,3 +1046,22 @@ def test_restarts_stop_at_the_same_misfit_on_a_bound_too():
     assert _same_misfit(False, 10.5, [(False, 10.0)])
     assert not _same_misfit(False, 10.5, [(True, 10.0)])  # off the bound now: a different outcome
     assert not _same_misfit(True, 2.0e9, [(True, 1.0e9)])
+
+
+def test_a_channel_whose_sign_is_reversed_is_named(arm):
+    """Review: an encoder counting the other way than the torque put every parameter on a
+    bound with a residual 861x the floor, and the fit gave only generic advice. The log's
+    theta1 negated: the fit is poor (it makes theta1 barely move: a 4 kg payload, so the
+    whole traces do not correlate), and over the torque's first push the measured theta1
+    moves against the simulated one (cosine near -1): named, with the convention."""
+    log = arm.log(5)
+    flipped = dataclasses.replace(log, outputs={**log.outputs, "theta1": -np.asarray(log.outputs["theta1"])})
+    params = [identify.Parameter(n, v, v * 1e-2, v * 1e2) for n, v in TRUTH.items()]
+    problem = identify.make_problem(arm.chain, params, [flipped], noise=arm.noise)
+    options = dict(estimate_noise=False, n_starts=1, max_restarts=0, frequency_init=False, n_stages=1)
+    result = identify.fit(problem, params, **options)
+    assert "theta1" in result.poor_fit, result.summary()
+    # measured: theta1 -0.907 (tip1 +0.996; on the true log +0.9995 / +0.9999)
+    assert result.reversed_channels.get("theta1", 0.0) < -0.8 and "tip1" not in result.reversed_channels
+    assert "theta1 first moves against the simulation" in result.summary()
+    assert result.to_dict()["reversed_channels"] == result.reversed_channels
