@@ -72,6 +72,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import time
 import types
 from collections.abc import Callable
@@ -1251,7 +1252,11 @@ def diagnose_logs(
         # separately: the expensive part)
         for c in [x for x in cands if x.structural and x.label not in done and x.label in struct_promising]:
             s = structural.score(c, current, rms_cur)
-            if s is not None:
+            if isinstance(s, str):  # its fit failed: said, not dropped in silence
+                text = f"{c.label}: its fit failed ({s}); not scored, so no evidence either way"
+                say(f"  round {rnd + 1}: {text}")
+                notes.append({"round": rnd + 1, "text": text})
+            else:
                 scores.append(s[0])
                 struct_models[c.label] = s[1]
                 stuck = _stuck_above_nested(c, s[0].cost, current["cost"], bic_threshold)
@@ -2004,12 +2009,24 @@ class _StructuralFits:
         return _structural_score(self, c, current, rms_cur)
 
 
+def _error_reason(e: Exception) -> str:
+    """The message of `e` without the stack JAX and Equinox put around a run-time check's
+    (`eqx.error_if`: "... EquinoxRuntimeError: joint1.stiffness must be finite and > 0")."""
+    text = str(e)
+    m = re.search(r"EquinoxRuntimeError: (.+)", text)
+    if m:
+        return m.group(1).strip()
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[0] if lines else type(e).__name__
+
+
 def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float):
     """Fit a structural candidate as a model of its own (baseline parameters refitted from
     the baseline's values, accepted continuous effects kept at their fitted values).
     Returns `(score, model)` (`model`: the fitted chain, its measurement, the free
-    parameters at their fitted values, the fit, the held-out weighted cost), or None when
-    the fit failed."""
+    parameters at their fitted values, the fit, the held-out weighted cost), or, when the
+    fit failed, the reason (a string, for `Diagnosis.notes`; found on the spinning-link
+    example: a failed candidate was only printed, and missing from the report)."""
     base, parameters, sup_meas = setting.base, setting.parameters, setting.measurement
     channels, sigma, N, rtol, say = setting.channels, setting.sigma, setting.N, setting.rtol, setting.say
     fit_logs, held_out_logs = setting.fit_logs, setting.held_out_logs
@@ -2069,8 +2086,9 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
         }
         r_ho, _ = _held_out_batch(ho_problem, jnp.zeros((1, 0)), v0, jnp.asarray(sigma), res.step, 25)
     except (RuntimeError, ValueError) as e:
-        say(f"  structural candidate {c.label} failed: {e}")
-        return None
+        reason = _error_reason(e)
+        say(f"  structural candidate {c.label} failed: {reason}")
+        return reason
     k = len(new)
     k_eff = max(k, 1)
     dbic = N * math.log(max(res.cost, 1e-300) / current["cost"]) + k * math.log(N)

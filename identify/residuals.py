@@ -76,6 +76,25 @@ def _strictly_increasing(t):
     return jnp.where(jnp.concatenate([jnp.ones(1, bool), t[1:] > t[:-1]]), t, t[-1] + 1e-6 * k)
 
 
+def _admissible(problem, theta, y0):
+    """`(theta, y0, ok)`: the parameters and initial state with every entry the model
+    would refuse replaced by a harmless value (1 for a parameter, 0 for a state entry),
+    and whether none was. A Levenberg-Marquardt trial point far out (an unbounded
+    log-scale stiffness whose exp overflowed, a NaN from a singular step) must be a
+    rejected step, as a failed solve is (`FAILED_RESIDUAL`), not stop the fit: the model's
+    parameter checks (`eqx.error_if` at assembly) raise on it. Found on the spinning-link
+    example: diagnose's joint-elasticity candidate (its new stiffness unbounded) failed
+    with "joint1.stiffness must be finite and > 0" and was dropped from the report."""
+    theta = jnp.asarray(theta)
+    good = jnp.isfinite(theta)
+    if problem.names:
+        positive = jnp.asarray(problem.log_scale, dtype=bool)
+        good = good & jnp.where(positive, theta > 0, True)
+    y0_good = jnp.isfinite(y0)
+    ok = jnp.all(good) & jnp.all(y0_good)
+    return jnp.where(good, theta, 1.0), jnp.where(y0_good, y0, 0.0), ok
+
+
 def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: bool):
     """Outputs `(T, C)` of one log (times `t`, commanded torque samples `torque_v`,
     initial state `y0`, onset time `onset`: `Problem.onset`) and whether its solve
@@ -90,7 +109,9 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     in each of them made a fit several times slower (measured: a 4-parameter flexible arm
     at rest for 3 s before 1.2 s of doublets, 8 seeds, two fits at a time on 2 cores:
     19-94 s warm per fit, 5-17 s with the rest skipped, the same optima to 1e-12). The
-    last stage simulates the whole log."""
+    last stage simulates the whole log. Parameters or an initial state the model would
+    refuse (`_admissible`) count as a failed solve."""
+    theta, y0, admissible = _admissible(problem, theta, y0)
     asm = fd.assemble(_chain(problem, theta))
     sensors = _measurement(problem, theta)
     if horizon is None:
@@ -122,7 +143,7 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
         adjoint=diffrax.ForwardMode(),
         throw=False,
     )
-    ok = (sol.result == diffrax.RESULTS.successful) & jnp.all(jnp.isfinite(sol.ys))
+    ok = admissible & (sol.result == diffrax.RESULTS.successful) & jnp.all(jnp.isfinite(sol.ys))
     ys = jnp.where(ok, sol.ys, 0.0)
     evaluate = lambda tk, yk: ch.evaluate(asm, problem.channels, tk, yk, torque)  # noqa: E731
     out = jax.vmap(evaluate)(ts, ys)

@@ -481,3 +481,19 @@ def test_a_baseline_fit_that_did_not_converge_or_ended_on_a_bound_is_noted():
     (note,) = D._convergence_notes("successful", ["joint1.damping"])
     assert D.note_text(note).startswith("baseline: the baseline's joint1.damping ended on a bound")
     assert len(D._convergence_notes("failed", ["a", "b"])) == 2
+
+
+def test_a_failed_candidate_fit_is_given_its_reason():
+    """A structural candidate whose fit fails is noted with the reason, not only printed
+    (found on the spinning-link example: joint_elasticity vanished from the report); the
+    reason is the check's message without the stack around it."""
+    import equinox as eqx
+    import jax
+
+    from identify.diagnose import _error_reason
+
+    run = eqx.filter_jit(lambda x: eqx.error_if(x, x > 0, "joint1.stiffness must be finite and > 0"))
+    with pytest.raises(RuntimeError) as e:
+        jax.block_until_ready(run(jax.numpy.asarray(1.0)))
+    assert _error_reason(e.value) == "joint1.stiffness must be finite and > 0"
+    assert _error_reason(ValueError("make_problem: no logs\nmore")) == "make_problem: no logs"

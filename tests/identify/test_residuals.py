@@ -116,3 +116,37 @@ def test_nuisances_only(multilog_problem):
     v = {"y0": y0, "offset": off}
     _, lin = jax.linearize(lambda v_: fn(v_, None), v)
     np.testing.assert_allclose(lin({"y0": jnp.zeros(3), "offset": jnp.array([0.0, 1.0, 0.0])}), J_ref[:, 6], rtol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "theta, y0",
+    [
+        ([np.inf, 0.03], [0.41, 0.05, -0.02]),  # a log-scale parameter's exp overflowed
+        ([2e-3, 0.0], [0.41, 0.05, -0.02]),  # ... or underflowed to 0 (the model needs > 0)
+        ([np.nan, 0.03], [0.41, 0.05, -0.02]),  # a NaN from a singular step
+        ([2e-3, 0.03], [np.nan, 0.05, -0.02]),  # a NaN initial state
+    ],
+)
+def test_a_trial_point_the_model_refuses_is_a_failed_solve_not_an_error(multilog_problem, theta, y0):
+    """The spinning-link diagnosis dropped its joint-elasticity candidate: a Levenberg-
+    Marquardt trial point overflowed the (unbounded, log-scale) joint stiffness, and the
+    model's parameter check stopped the whole fit ("joint1.stiffness must be finite and >
+    0"). Such a point must be what a failed solve is: `FAILED_RESIDUAL` on every used
+    sample, so the step is rejected; the other logs' residuals and a good point unchanged."""
+    from identify.residuals import FAILED_RESIDUAL
+
+    p, x, y0_good, off = multilog_problem
+    r, ok = jax.jit(lambda th, y: residuals(p, th, y, off, p.sigma, None, 2e-3))(
+        jnp.asarray(theta, dtype=float), jnp.asarray(y0, dtype=float)
+    )
+    r, ok = np.asarray(r).reshape(p.measured.shape), np.asarray(ok)
+    used = np.asarray(p.valid[:, :, None] & p.present[:, None, :])
+    bad_theta = not np.all(np.isfinite(theta)) or min(theta) <= 0
+    # a bad parameter fails every log; a bad initial state (log 0's) only its own log
+    failed = np.array([True, True, True]) if bad_theta else np.array([True, False, False])
+    np.testing.assert_array_equal(ok, ~failed)
+    for l in range(3):
+        if failed[l]:
+            assert np.all(r[l][used[l]] == FAILED_RESIDUAL)
+        else:
+            assert np.all(np.abs(r[l][used[l]]) < FAILED_RESIDUAL)
