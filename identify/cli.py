@@ -4,6 +4,11 @@
                  [--no-restart-poor-fit] [--quiet] [--force] [--any-rate]
     identify diagnose EXPERIMENT.toml [--out DIR] [--only NAME,...] [--max-effects N] [--quiet] [--force]
                       [--any-rate]
+    identify check EXPERIMENT.toml [--any-rate]
+
+`check` reads the experiment file and its logs with every check a fit makes and prints
+what a fit would start from, in seconds (nothing compiled or written): exit 0 if a fit
+can start, 2 with the file, line and key if not.
 
 `diagnose` fits the experiment's model, shows what it gets wrong, tries the catalogue of
 model extensions (`identify.catalogue`), names the cause(s) whose gain is significant and
@@ -119,6 +124,15 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="write our files into --out even if it holds other files (they are never deleted or overwritten)",
     )
+    ck = sub.add_parser(
+        "check",
+        help="read an experiment file and its logs and say what a fit would start from, without fitting",
+        description="Load the experiment file (identify/FORMAT.md) and its logs with every check a fit makes, "
+        "print the rig, the free parameters, the logs and the set-up checks, and exit: 0 if a fit could start, 2 "
+        "(with the file, line and key) if not. Nothing is compiled or written (a few seconds).",
+    )
+    ck.add_argument("experiment", type=Path, help="the experiment file (TOML)")
+    ck.add_argument("--any-rate", action="store_true", help="as for fit")
     dg = sub.add_parser(
         "diagnose",
         help="find what the model gets wrong, name the cause, extend the model, measure the gain",
@@ -162,6 +176,8 @@ def main(argv=None) -> int:
             return _fit_command(args)
         if args.command == "diagnose":
             return _diagnose_command(args)
+        if args.command == "check":
+            return _check_command(args)
     return 2  # pragma: no cover (argparse requires a command)
 
 
@@ -404,6 +420,16 @@ def _experiment_and_folder(args, suffix: str):
     """The experiment of `args.experiment`, its input files, and the output folder
     (`--out`, default `<experiment stem>-<suffix>` here), checked (`check_output_folder`);
     raises `_Refused` with the message for the user."""
+    exp = _load_experiment(args)
+    inputs = [Path(exp.path)] + [Path(spec.file) for spec in exp.logs]
+    out = args.out if args.out is not None else Path.cwd() / f"{Path(exp.path).stem}-{suffix}"
+    check_output_folder(out, inputs, args.force, suffix)
+    return exp, inputs, out
+
+
+def _load_experiment(args):
+    """The experiment of `args.experiment`, its logs' sampling rates checked (`--any-rate`);
+    raises `_Refused` with the message for the user."""
     from .experiment import ExperimentError, load_experiment
     from .logs import LogError
 
@@ -422,10 +448,36 @@ def _experiment_and_folder(args, suffix: str):
             "column in milliseconds but labelled [s]? (simulating such a span takes hours) Fix the unit in the "
             "header or the experiment's columns, or pass --any-rate to fit it as it is"
         )
-    inputs = [Path(exp.path)] + [Path(spec.file) for spec in exp.logs]
-    out = args.out if args.out is not None else Path.cwd() / f"{Path(exp.path).stem}-{suffix}"
-    check_output_folder(out, inputs, args.force, suffix)
-    return exp, inputs, out
+    return exp
+
+
+def _check_command(args) -> int:
+    """`identify check`: load the experiment with every check a fit makes before it
+    compiles anything (the file, the logs, the problem `make_problem` builds: its logs at
+    rest, its sampling) and print what a fit would start from (review: the only way to
+    validate a file was to start a fit and wait for its compilation)."""
+    try:
+        exp = _load_experiment(args)
+    except _Refused as e:
+        print(f"identify check: {e}", file=sys.stderr, flush=True)
+        return 2
+    from .run import problem_from_experiment
+
+    print(f"identify check: {exp.summary()}")
+    for line in _set_up_checks(exp)[1:]:  # (the summary gives the gravity)
+        if not line.startswith("warning: ") or line not in exp.summary():
+            print(f"  {line}")
+    try:
+        problem = problem_from_experiment(exp)
+    except ValueError as e:
+        print(f"identify check: {e}", file=sys.stderr, flush=True)
+        return 2
+    samples = int(problem.valid.sum())
+    print(
+        f"ok: a fit can start: {len(exp.free)} free parameter(s), {len(problem.log_names)} fit log(s) "
+        f"({samples} samples), {len(exp.validation_logs)} validation log(s); run `identify fit {args.experiment}`"
+    )
+    return 0
 
 
 def _compile_estimate(exp) -> float:

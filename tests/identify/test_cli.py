@@ -5,6 +5,7 @@ plots, error messages, the output-folder policy, and that inputs are never touch
 import hashlib
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -451,3 +452,19 @@ def test_diagnose_exits_3_when_its_baseline_fit_did_not_converge(tmp_path, monke
     assert main(["diagnose", str(exp), "--out", str(tmp_path / "out"), "--quiet"]) == status
     err = capsys.readouterr().err
     assert (f"exit status 3: the baseline fit did not converge ({result})" in err) == (status == 3), err
+
+
+def test_check_validates_an_experiment_without_fitting(tmp_path, capsys):
+    """Review: the only way to validate an experiment file was to start a fit (and wait
+    for its compilation). `identify check` loads it with the fit's checks and exits."""
+    exp = _copy_example(tmp_path / "example")
+    before = _snapshot(tmp_path)
+    assert main(["check", str(exp)]) == 0
+    out = capsys.readouterr().out
+    assert "free hub1.inertia" in out and "[validation] log 'drop_m97deg'" in out
+    assert re.search(r"ok: a fit can start: 2 free parameter\(s\), 2 fit log\(s\) \(\d+ samples\), 1 validation", out)
+    assert _snapshot(tmp_path) == before  # nothing written
+    exp.write_text(exp.read_text().replace('"hub1.inertia"', '"hub1.inertai"'))
+    assert main(["check", str(exp)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("identify check: ") and "experiment.toml" in err and "hub1.inertai" in err
