@@ -671,10 +671,13 @@ class Diagnosis:
             "held-out RMS per channel (baseline -> extended, gain; the data's model-free noise floor, "
             "identify.noise_floor):"
         )
+        from .report import display_unit
+
         for c in self.held_out["baseline"]:
+            k, unit = display_unit(c)  # (review: the console's values had no unit; SI rad beside report.md's deg)
             lines.append(
-                f"  {c}: {self.held_out['baseline'][c]:.4g} -> {self.held_out['extended'][c]:.4g} "
-                f"({self.held_out['gain'][c]:.2f}x)" + (f"; floor {floor[c]:.4g}" if c in floor else "")
+                f"  {c} ({unit}): {k * self.held_out['baseline'][c]:.4g} -> {k * self.held_out['extended'][c]:.4g} "
+                f"({self.held_out['gain'][c]:.2f}x)" + (f"; floor {k * floor[c]:.4g}" if c in floor else "")
             )
         for c in self.left_unexplained:
             ratio = self.held_out["extended"][c] / floor[c]

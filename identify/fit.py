@@ -844,6 +844,7 @@ class FitResult:
                 for i, n in enumerate(self.names)
             ],
             "correlation": self.correlation.tolist(),
+            "correlation_names": list(self.names),  # the rows' and columns' order (review: only implied)
             # per log: {entry: {value, std_error, unit}} (review: bare [value, SE] pairs)
             "initial_states": {
                 k: {e: _valued(v, se, ch.state_unit(e)) for e, (v, se) in d.items()}

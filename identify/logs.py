@@ -341,7 +341,10 @@ def load_log(
         raise LogError(f"{path}: unknown log type {path.suffix!r}; expected {', '.join(CSV_SUFFIXES + MAT_SUFFIXES)}")
     n = t.shape[0]
     if n < max(min_samples, 2):
-        raise LogError(f"{path}: {n} samples; expected at least {min_samples} to fit a model")
+        raise LogError(
+            f"{path}: {n} samples; expected at least {min_samples} to fit a model (the experiment file's "
+            "[experiment] min_samples, default 10)"
+        )
     sampling = _sampling(t_relative, t[0])
     for arr in [t, t_relative, *channels.values()]:
         arr.flags.writeable = False

@@ -77,19 +77,18 @@ def _strictly_increasing(t):
 
 
 def _admissible(problem, theta, y0):
-    """`(theta, y0, ok)`: the parameters and initial state with every entry the model
-    would refuse replaced by a harmless value (1 for a parameter, 0 for a state entry),
-    and whether none was. A Levenberg-Marquardt trial point far out (an unbounded
-    log-scale stiffness whose exp overflowed, a NaN from a singular step) must be a
+    """`(theta, y0, ok)`: the parameters and initial state with every non-finite entry
+    (which the model refuses) replaced by a harmless value (1 for a parameter, 0 for a
+    state entry), and whether none was. A Levenberg-Marquardt trial point far out (an unbounded
+    log-scale stiffness whose exp overflowed to inf, a NaN from a singular step) must be a
     rejected step, as a failed solve is (`FAILED_RESIDUAL`), not stop the fit: the model's
     parameter checks (`eqx.error_if` at assembly) raise on it. Found on the spinning-link
     example: diagnose's joint-elasticity candidate (its new stiffness unbounded) failed
     with "joint1.stiffness must be finite and > 0" and was dropped from the report."""
     theta = jnp.asarray(theta)
+    # (finiteness only: a log-scale parameter at exactly 0 is legitimate where the model
+    # allows >= 0, e.g. diagnose's candidates at their neutral values)
     good = jnp.isfinite(theta)
-    if problem.names:
-        positive = jnp.asarray(problem.log_scale, dtype=bool)
-        good = good & jnp.where(positive, theta > 0, True)
     y0_good = jnp.isfinite(y0)
     ok = jnp.all(good) & jnp.all(y0_good)
     return jnp.where(good, theta, 1.0), jnp.where(y0_good, y0, 0.0), ok
