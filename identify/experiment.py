@@ -802,9 +802,15 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
             value = float(log.outputs[state][0])
             measured.append(state)
         elif isinstance(value, str):
-            dim = u.ANGLE if state.startswith(("theta", "alpha")) and not state.endswith("_rate") else None
+            # angles and modal coordinates (m, the mode's RMS deflection) take units (review:
+            # "2 mm" for q1_1 was refused while [noise] takes any unit); rates take SI numbers
+            dim = None if state.endswith("_rate") else u.ANGLE if state.startswith(("theta", "alpha")) else u.LENGTH
             if dim is None:
-                raise r.error(ikey, f'expected a number (SI units) or "measured", got {_show(value)}')
+                raise r.error(
+                    ikey,
+                    f'expected a number (SI units: rad/s for an angle rate, m/s for a modal one) or "measured", '
+                    f"got {_show(value)}",
+                )
             try:
                 value = u.parse_quantity(value, dim)
             except ValueError as e:

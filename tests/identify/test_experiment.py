@@ -573,6 +573,8 @@ def test_calibration_errors(tmp_path):
         ('offsets = ["tip2"]', ("logs[1].offsets", "'tip2' is not an output channel of this log", "theta1, tip1")),
         ('initial = { q1_1 = "measured" }', ("logs[1].initial.q1_1", '"measured" needs a q1_1 channel')),
         ('initial = { theta1 = "ten" }', ("logs[1].initial.theta1", "expected a number with a unit", "'ten'")),
+        ('initial = { q1_1 = "2 deg" }', ("logs[1].initial.q1_1", "'2 deg' is an angle", "expected a length")),
+        ('initial = { theta1_rate = "5 deg" }', ("logs[1].initial.theta1_rate", "rad/s for an angle rate")),
         ('role = "test"', ("logs[1].role", 'expected "fit" or "validation"', "'test'")),
     ],
 )
@@ -721,3 +723,10 @@ def test_the_summary_says_where_gravity_makes_the_first_link_hang(gravity, text)
     from identify.experiment import gravity_text
 
     assert text in gravity_text(gravity)
+
+
+def test_a_modal_initial_value_takes_a_length_unit(tmp_path):
+    """Review: `q1_1 = "2 mm"` was refused while [noise] takes units for any channel."""
+    path = experiment(tmp_path, RIG + LOG + 'initial = { q1_1 = "2 mm", theta1 = "10 deg" }\n')
+    (entry,) = load_experiment(path).logs
+    assert entry.initial == {"q1_1": pytest.approx(2e-3), "theta1": pytest.approx(math.radians(10.0))}
