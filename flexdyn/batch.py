@@ -139,7 +139,8 @@ def sweep(fn: Callable, batch, *shared: Any, devices: Sequence[jax.Device] | Non
     A `Chain` (or `AssembledChain`) in `batch` is checked on the host first: a bad
     parameter is named with its batch entries. Chains built inside `fn` from a batch of
     numbers are checked only inside the computation, where the error cannot say which
-    entry: build them outside (`jax.vmap(build)(params)`) to have it named.
+    entry (sweep's `RuntimeError` says what failed and this): build them outside
+    (`jax.vmap(build)(params)`) to have it named. The call waits for its result.
 
     Returns the outputs stacked along a leading axis of size `B`, sharded over the devices
     (a `jax.Array`; `np.asarray` gathers it). The same values as `jax.vmap(fn)` up to
@@ -151,5 +152,25 @@ def sweep(fn: Callable, batch, *shared: Any, devices: Sequence[jax.Device] | Non
     mesh = batch_mesh(devices)
     sharded, n = shard_batch(batch, mesh)
     shared = tuple(shared)
-    out = _sharded_vmap(fn, mesh)(sharded, shared)
+    try:
+        out = jax.block_until_ready(_sharded_vmap(fn, mesh)(sharded, shared))
+    except RuntimeError as e:
+        reason = _check_message(e)
+        if reason is None:
+            raise
+        # (review: inside `fn` under vmap the check cannot say which entry failed)
+        raise RuntimeError(
+            f"sweep: an entry of the batch failed a check inside fn: {reason}. Under vmap the check cannot "
+            "say which entry: build the chains outside fn (chains = jax.vmap(build)(params)) and sweep over "
+            "them, and sweep names the bad entries before running"
+        ) from e
     return unpad_batch(out, n)
+
+
+def _check_message(e: Exception) -> str | None:
+    """The message of an `eqx.error_if` check in `e` (a run-time error of a jitted
+    program), without the stack around it; None if `e` is not one."""
+    import re
+
+    m = re.search(r"EquinoxRuntimeError: (.+)", str(e))
+    return m.group(1).strip() if m else None

@@ -127,3 +127,19 @@ def test_an_invalid_chain_in_the_batch_is_named_with_its_entries():
     good = jax.vmap(lambda m: eqx.tree_at(lambda c: c.payload.mass, base, m))(jnp.asarray([0.1, 0.2]))
     out = fb.sweep(lambda c: fd.assemble(c).chain.payload.mass, good)
     np.testing.assert_allclose(np.asarray(out), [0.1, 0.2])
+
+
+def test_a_check_failing_inside_fn_says_how_to_have_the_entry_named():
+    """Chains built inside `fn` are checked under vmap, where the check cannot name the
+    entry (review: only "payload.mass must be finite and >= 0" under Equinox's stack):
+    sweep says what failed and how to have the entry named."""
+    base = fd.rigs.flexible_link_joint_arm()
+
+    def mass(m):
+        return fd.assemble(eqx.tree_at(lambda c: c.payload.mass, base, m)).chain.payload.mass
+
+    with pytest.raises(
+        RuntimeError, match=r"sweep: an entry of the batch failed a check inside fn: payload.mass must be .*outside fn"
+    ):
+        fb.sweep(mass, jnp.asarray([0.1, -0.2]))
+    np.testing.assert_allclose(np.asarray(fb.sweep(mass, jnp.asarray([0.1, 0.2]))), [0.1, 0.2])
