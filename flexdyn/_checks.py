@@ -7,6 +7,7 @@ computation with `eqx.error_if` by `checked`.
 
 from __future__ import annotations
 
+import re
 import warnings
 
 import equinox as eqx
@@ -141,3 +142,22 @@ def checked_part(part, owner: str | None = None):
     names = [name for name, _ in present]
     values = [checked(getattr(part, name), owner, name, kind, _shape(part, name)) for name, kind in present]
     return eqx.tree_at(lambda p: [getattr(p, name) for name in names], part, values, is_leaf=lambda x: x is None)
+
+
+def runtime_check_message(e: Exception) -> str | None:
+    """The message of a run-time check (`eqx.error_if`) in `e`, an error raised by a
+    jitted program, without the stacks JAX and Equinox put around it ("... Equinox
+    RuntimeError: link1.EI must be finite and > 0" -> "link1.EI must be finite and > 0");
+    None if `e` holds none."""
+    m = re.search(r"EquinoxRuntimeError: (.+)", str(e))
+    return m.group(1).strip() if m else None
+
+
+def error_reason(e: Exception) -> str:
+    """`runtime_check_message(e)`, else the first non-empty line of `e`'s message (else
+    its type's name): what to print of an error in one line."""
+    check = runtime_check_message(e)
+    if check is not None:
+        return check
+    lines = [line.strip() for line in str(e).splitlines() if line.strip()]
+    return lines[0] if lines else type(e).__name__

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._checks import runtime_check_message
 from .chain import AssembledChain, Chain, check_batch
 
 BATCH_AXIS = "batch"
@@ -155,7 +156,7 @@ def sweep(fn: Callable, batch, *shared: Any, devices: Sequence[jax.Device] | Non
     try:
         out = jax.block_until_ready(_sharded_vmap(fn, mesh)(sharded, shared))
     except RuntimeError as e:
-        reason = _check_message(e)
+        reason = runtime_check_message(e)
         if reason is None:
             raise
         # (review: inside `fn` under vmap the check cannot say which entry failed)
@@ -165,12 +166,3 @@ def sweep(fn: Callable, batch, *shared: Any, devices: Sequence[jax.Device] | Non
             "them, and sweep names the bad entries before running"
         ) from e
     return unpad_batch(out, n)
-
-
-def _check_message(e: Exception) -> str | None:
-    """The message of an `eqx.error_if` check in `e` (a run-time error of a jitted
-    program), without the stack around it; None if `e` is not one."""
-    import re
-
-    m = re.search(r"EquinoxRuntimeError: (.+)", str(e))
-    return m.group(1).strip() if m else None

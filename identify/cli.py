@@ -480,6 +480,14 @@ def _check_command(args) -> int:
     return 0
 
 
+def _failure_text(e: Exception) -> str:
+    """What to print of a failed fit: a run-time check's own message without the JAX and
+    Equinox stacks around it (`flexdyn._checks.runtime_check_message`), else the error's."""
+    from flexdyn._checks import runtime_check_message
+
+    return runtime_check_message(e) or str(e)
+
+
 def _compile_estimate(exp) -> float:
     """A rough guess of the first fit's time (s), compilation included, on a 2-core
     machine, growing with the number of coordinates and channels. Measured 2026-12-03 (2-core
@@ -562,7 +570,7 @@ def _fit_command(args) -> int:
             progress=progress,
         )
     except (RuntimeError, ValueError) as e:
-        print(f"identify fit: the fit failed: {e}", file=sys.stderr, flush=True)
+        print(f"identify fit: the fit failed: {_failure_text(e)}", file=sys.stderr, flush=True)
         return 1
     say(f"[{time.perf_counter() - start:6.1f} s] fit done ({result.wall_time:.1f} s incl. compilation and covariance)")
 
@@ -761,7 +769,7 @@ def _diagnose_command(args) -> int:
             **({"n_fit": None} if args.fit_all else {}),
         )
     except (RuntimeError, ValueError) as e:
-        print(f"identify diagnose: failed: {e}", file=sys.stderr, flush=True)
+        print(f"identify diagnose: failed: {_failure_text(e)}", file=sys.stderr, flush=True)
         return 1
     print()
     print(diag.summary())

@@ -72,7 +72,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 import time
 import types
 from collections.abc import Callable
@@ -85,6 +84,7 @@ import optimistix as optx
 from scipy import stats
 
 import flexdyn as fd
+from flexdyn._checks import error_reason
 
 from . import catalogue as cat, covariance, evidence as ev, measurement as meas, noise_floor as nf
 from .fit import (
@@ -2012,17 +2012,6 @@ class _StructuralFits:
         return _structural_score(self, c, current, rms_cur)
 
 
-def _error_reason(e: Exception) -> str:
-    """The message of `e` without the stack JAX and Equinox put around a run-time check's
-    (`eqx.error_if`: "... EquinoxRuntimeError: joint1.stiffness must be finite and > 0")."""
-    text = str(e)
-    m = re.search(r"EquinoxRuntimeError: (.+)", text)
-    if m:
-        return m.group(1).strip()
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[0] if lines else type(e).__name__
-
-
 def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float):
     """Fit a structural candidate as a model of its own (baseline parameters refitted from
     the baseline's values, accepted continuous effects kept at their fitted values).
@@ -2089,7 +2078,7 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
         }
         r_ho, _ = _held_out_batch(ho_problem, jnp.zeros((1, 0)), v0, jnp.asarray(sigma), res.step, 25)
     except (RuntimeError, ValueError) as e:
-        reason = _error_reason(e)
+        reason = error_reason(e)
         say(f"  structural candidate {c.label} failed: {reason}")
         return reason
     k = len(new)

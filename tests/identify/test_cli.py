@@ -468,3 +468,13 @@ def test_check_validates_an_experiment_without_fitting(tmp_path, capsys):
     assert main(["check", str(exp)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("identify check: ") and "experiment.toml" in err and "hub1.inertai" in err
+
+
+def test_a_failed_fit_prints_the_check_not_the_stacks():
+    """A run-time check inside the fit (`eqx.error_if`) is printed as its own message, not
+    with the JAX and Equinox stacks around it (review: pages of stack for one line)."""
+    from identify.cli import _failure_text
+
+    wrapped = RuntimeError("Above is the stack outside of JIT...\n_EquinoxRuntimeError: link1.EI must be > 0\n\n---")
+    assert _failure_text(wrapped) == "link1.EI must be > 0"
+    assert _failure_text(ValueError("fit: no logs")) == "fit: no logs"

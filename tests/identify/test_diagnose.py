@@ -490,7 +490,7 @@ def test_a_failed_candidate_fit_is_given_its_reason():
     import equinox as eqx
     import jax
 
-    from identify.diagnose import _error_reason
+    from flexdyn._checks import error_reason as _error_reason
 
     run = eqx.filter_jit(lambda x: eqx.error_if(x, x > 0, "joint1.stiffness must be finite and > 0"))
     with pytest.raises(RuntimeError) as e:
