@@ -98,6 +98,7 @@ from .fit import (
     _predict_jit,
     _residuals_from,
     _x_from_z,
+    exp_natural,
     fit,
     fitted_outputs,
     make_problem,
@@ -181,10 +182,10 @@ class _Joint(eqx.Module):
 
 def _theta(j: _Joint, xb, xe, idx, logf):
     p = j.problem
-    tb = [jnp.exp(xb[i]) if p.log_scale[i] else xb[i] for i in range(j.nb)]
+    tb = [exp_natural(xb[i]) if p.log_scale[i] else xb[i] for i in range(j.nb)]
     tb = jnp.stack(tb) if tb else jnp.zeros((0,))
     safe = jnp.where(logf, xe, 0.0)
-    ve = jnp.where(logf, jnp.exp(safe), xe)
+    ve = jnp.where(logf, exp_natural(safe), xe)
     te = jnp.concatenate([j.neutral, jnp.zeros(1)]).at[idx].set(ve)[:-1]
     return jnp.concatenate([tb, te])
 

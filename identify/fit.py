@@ -525,10 +525,25 @@ def _z_from_x(problem: Problem, x):
     return z
 
 
+#: `exp_natural`: a log-scale parameter's natural coordinate is clipped to +-this before
+#: `exp`, so that the parameter stays finite and > 0 (1e-304 to 1e304)
+LOG_CLIP = 700.0
+
+
+def exp_natural(x):
+    """A log-scale parameter from its natural coordinate: `exp(x)`, with `x` clipped to
+    `+-LOG_CLIP` (the same value and derivative inside). A Levenberg-Marquardt trial
+    point of an unbounded parameter far out overflowed to inf or underflowed to 0, which
+    the model's parameter checks refuse with an error that stopped the fit (found in
+    review: diagnose's joint-elasticity candidate on a pendulum, "joint1.rotor_inertia
+    must be finite and > 0"); clipped, the trial point is merely a bad one, rejected."""
+    return jnp.exp(jnp.clip(x, -LOG_CLIP, LOG_CLIP))
+
+
 def _theta_from_x(problem: Problem, x):
     if not problem.names:
         return jnp.zeros((0,), x.dtype)
-    return jnp.stack([jnp.exp(x[i]) if problem.log_scale[i] else x[i] for i in range(len(problem.names))])
+    return jnp.stack([exp_natural(x[i]) if problem.log_scale[i] else x[i] for i in range(len(problem.names))])
 
 
 def _x_from_theta(problem: Problem, theta):

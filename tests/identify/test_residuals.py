@@ -149,3 +149,25 @@ def test_a_trial_point_the_model_refuses_is_a_failed_solve_not_an_error(multilog
             assert np.all(r[l][used[l]] == FAILED_RESIDUAL)
         else:
             assert np.all(np.abs(r[l][used[l]]) < FAILED_RESIDUAL)
+
+
+@pytest.mark.parametrize("x_far", [-800.0, 800.0])
+def test_an_unbounded_log_scale_parameter_far_out_is_a_bad_point_not_an_error(x_far):
+    """Review (diagnose on a pendulum): a new elastic joint's unbounded rotor inertia, a
+    log-scale parameter, reached exp(-800) = 0 at a Levenberg-Marquardt trial point and
+    the model's check ("must be finite and > 0") stopped the fit. Its natural coordinate
+    is clipped (`identify.fit.exp_natural`): the point gives finite residuals or the
+    failed-solve ones, and the value inside the clip is exp's."""
+    import identify
+
+    chain = fit_module.fd.rigs.rigid_pendulum()
+    t = np.arange(80) * 5e-3
+    log = identify.simulate_log(chain, t, initial={"theta1": 0.4}, channels=("theta1",))
+    params = [identify.Parameter("hub1.inertia", 2e-5), identify.Parameter("payload.mass", 0.03, 1e-3, 1.0)]
+    p = identify.make_problem(chain, params, [log], {"theta1": 1e-3})
+    assert p.log_scale[0] and not np.isfinite(np.asarray(p.lower[0]))  # unbounded, log scale
+    theta = fit_module._theta_from_x(p, jnp.asarray([x_far, np.log(0.03)]))
+    assert 0 < float(theta[0]) < np.inf
+    r, ok = residuals(p, theta, jnp.zeros(0), jnp.zeros(0), p.sigma, None, 2e-3)
+    assert np.all(np.isfinite(np.asarray(r)))
+    np.testing.assert_allclose(fit_module.exp_natural(jnp.asarray(3.0)), np.exp(3.0), rtol=1e-15)
