@@ -654,8 +654,9 @@ class Diagnosis:
                 )
                 for n, p in c.parameters.items():
                     lines.append(
-                        f"    {n} = {p['value']:.{covariance.digits(p['value'], p['std_error'])}g} {p['unit']} "
-                        f"(SE {p['std_error']:.2g}, 95 % CI {covariance.interval_text(*p['ci95'])})"
+                        f"    {n} = {p['value']:.{covariance.digits(p['value'], p['std_error'])}g}"
+                        + (f" {p['unit']}" if p["unit"] and p["unit"] != "1" else "")  # (a gain's "1" read as a typo)
+                        + f" (SE {p['std_error']:.2g}, 95 % CI {covariance.interval_text(*p['ci95'])})"
                     )
                 for w in c.warnings:
                     lines.append(f"    IMPLAUSIBLE: {w}")
@@ -684,7 +685,8 @@ class Diagnosis:
             ratio = self.held_out["extended"][c] / floor[c]
             lines.append(
                 f"  {c}: the {'extended' if self.causes else 'baseline'} model's held-out residual is still "
-                f"{ratio:.3g} times the noise floor: an effect is left unexplained (or the noise is not white)"
+                f"{ratio:.3g} times the noise floor: an effect is left unexplained (or the noise is not white, "
+                "or the logged input is noisy: noise on a torque column drives the model, not the rig)"
             )
         lines.append(
             f"total dBIC {self.delta_bic_total:.1f}; fraction of the held-out residual explained "
@@ -1323,10 +1325,13 @@ def diagnose_logs(
         winners = [s for s in scores if s.accepted]
         width = max([32] + [len(s.label) for s in scores[:5]])
         for s in scores[:5]:
+            verdict = (
+                ("NAMED" if s is winners[0] else "passes, not named (the named one is better)") if s.accepted else ""
+            )
             outcome = (
                 f"(predicted by one Gauss-Newton step; not fitted: {s.screen_reason})"
                 if s.screened
-                else f"held-out gain {s.held_out_gain:6.3f}x {'ACCEPTED' if s.accepted else ''}"
+                else f"held-out gain {s.held_out_gain:6.3f}x {verdict}"
             )
             say(f"  {s.label:<{width}} dBIC {s.delta_bic:10.1f}  {outcome}")
         if not winners:

@@ -251,14 +251,22 @@ def markdown(diag, title: str = "") -> str:
         lines.append("")
         lines.append("| candidate | parameters | dBIC | F-test p | held-out gain | accepted |")
         lines.append("| --- | --- | ---: | ---: | ---: | --- |")
+        # the round's first accepted candidate is named; others that pass are runners-up (review:
+        # two rows read "yes" and one cause was named)
+        named = next((s.label for s in scores if s.accepted), None)
         for s in scores:
+            verdict = (
+                ("**named**" if s.label == named else "passes; not named (the named one is better)")
+                if s.accepted
+                else ""
+            )
             params = ", ".join(f"`{n}` = {v:.5g}" for n, v in s.params.items()) or (  # a gain near 1: 5 digits
                 f"(not fitted: {s.screen_reason})" if s.screened else ""
             )
             gain = "" if s.screened else f"{s.held_out_gain:.3f}x"
             p = "" if s.screened else f"{s.p_value:.2g}"
             dbic = f"({s.delta_bic:.1f})" if s.screened else f"{s.delta_bic:.1f}"
-            lines.append(f"| {s.label} | {params} | {dbic} | {p} | {gain} | {'yes' if s.accepted else ''} |")
+            lines.append(f"| {s.label} | {params} | {dbic} | {p} | {gain} | {verdict} |")
         if any(s.screened for s in scores):
             lines.append("")
             lines.append(
