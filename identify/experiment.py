@@ -191,7 +191,7 @@ class Experiment:
         for k, start in enumerate(self.starts, start=1):
             lines.append(f"  start {k}: " + ", ".join(f"{n} = {v:g}" for n, v in start.items()))
         for c, s in self.noise.items():
-            lines.append(f"  noise {c}: {'estimate' if s is None else f'{s:g} {u.SI_UNIT[u.channel_dimension(c)]}'}")
+            lines.append(f"  noise {c}: {'estimate' if s is None else _noise_text(c, s)}")
         for n in meas.parameter_names(self.measurement):
             unit = meas.unit(n, channel_unit)
             lines.append(f"  measurement {n} = {float(meas.get_parameter(self.measurement, n)):g} {unit}".rstrip())
@@ -199,6 +199,17 @@ class Experiment:
             lines.append(f"  [{entry.role}] " + entry.log.summary().replace("\n", "\n    "))
             lines.extend(f"  warning: {w}" for w in entry.warnings())
         return "\n".join(lines)
+
+
+def _noise_text(channel: str, sigma: float) -> str:
+    """`0.000349066 rad (0.02 deg)`: SI, and in the unit the reports use when it differs
+    (review: `identify check` echoed a "0.02 deg" noise as rad only)."""
+    from .report import display_unit
+
+    si = u.SI_UNIT[u.channel_dimension(channel)]
+    scale, unit = display_unit(channel)
+    shown = f" ({sigma * scale:.6g} {unit})" if unit not in (si, "SI") else ""
+    return f"{sigma:g} {si}{shown}"
 
 
 def gravity_text(gravity) -> str:

@@ -475,7 +475,7 @@ def test_an_initial_value_held_at_a_noisy_first_sample_is_warned_about(tmp_path)
     # the noise is shown with its unit
     assert "noise theta1: estimate" in exp.summary()
     with_noise = load_experiment(experiment(tmp_path, RIG + '[noise]\ntip1 = "20 um"\n' + LOG, name="c.toml"))
-    assert "noise tip1: 2e-05 m" in with_noise.summary()
+    assert "noise tip1: 2e-05 m (0.02 mm)" in with_noise.summary()
 
 
 def test_log_file_missing(tmp_path):
