@@ -704,13 +704,14 @@ class Diagnosis:
             lines.append(f"round {r}: candidates (best first)")
             w = max([34] + [len(s.label) for s in scores])  # a pair's label is long
             lines.append(f"  {'candidate':<{w}} {'dBIC':>10} {'p-value':>9} {'held-out gain':>14}  accepted")
+            verdict = round_verdicts(scores)
             for s in scores:
                 if s.screened:
                     lines.append(f"  {s.label:<{w}} {s.delta_bic:>10.1f}   (predicted; not fitted: {s.screen_reason})")
                     continue
                 lines.append(
                     f"  {s.label:<{w}} {s.delta_bic:>10.1f} {s.p_value:>9.2g} {s.held_out_gain:>13.3f}x  "
-                    f"{'yes' if s.accepted else ''}"
+                    f"{verdict[s.label]}"
                 )
         return "\n".join(lines)
 
@@ -1324,10 +1325,9 @@ def diagnose_logs(
         )
         winners = [s for s in scores if s.accepted]
         width = max([32] + [len(s.label) for s in scores[:5]])
+        verdicts = round_verdicts(scores)
         for s in scores[:5]:
-            verdict = (
-                ("NAMED" if s is winners[0] else "passes, not named (the named one is better)") if s.accepted else ""
-            )
+            verdict = verdicts[s.label].upper() if verdicts[s.label] == "named" else verdicts[s.label]
             outcome = (
                 f"(predicted by one Gauss-Newton step; not fitted: {s.screen_reason})"
                 if s.screened
@@ -2016,6 +2016,18 @@ class _StructuralFits:
 
     def score(self, c, current: dict, rms_cur: float):
         return _structural_score(self, c, current, rms_cur)
+
+
+def round_verdicts(scores) -> dict:
+    """Label -> `"named"` for a round's first accepted candidate (the one the search
+    names), `"passes, not named (the named one is better)"` for the others that pass both
+    tests, `""` else: what the console, the summary and the report show (review: two rows
+    said "ACCEPTED"/"yes" and one cause was named)."""
+    named = next((s.label for s in scores if s.accepted), None)
+    return {
+        s.label: ("named" if s.label == named else "passes, not named (the named one is better)") if s.accepted else ""
+        for s in scores
+    }
 
 
 def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float):

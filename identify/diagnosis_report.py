@@ -13,7 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from . import covariance, evidence as ev  # noqa: E402
-from .diagnose import DETECTION_LIMITS_MEANING, note_text  # noqa: E402
+from .diagnose import DETECTION_LIMITS_MEANING, note_text, round_verdicts  # noqa: E402
 from .report import display_unit, jsonable, wrapped_title  # noqa: E402
 
 JSON_FILE = "diagnosis.json"
@@ -251,15 +251,9 @@ def markdown(diag, title: str = "") -> str:
         lines.append("")
         lines.append("| candidate | parameters | dBIC | F-test p | held-out gain | accepted |")
         lines.append("| --- | --- | ---: | ---: | ---: | --- |")
-        # the round's first accepted candidate is named; others that pass are runners-up (review:
-        # two rows read "yes" and one cause was named)
-        named = next((s.label for s in scores if s.accepted), None)
+        verdicts = round_verdicts(scores)
         for s in scores:
-            verdict = (
-                ("**named**" if s.label == named else "passes; not named (the named one is better)")
-                if s.accepted
-                else ""
-            )
+            verdict = f"**{verdicts[s.label]}**" if verdicts[s.label] == "named" else verdicts[s.label]
             params = ", ".join(f"`{n}` = {v:.5g}" for n, v in s.params.items()) or (  # a gain near 1: 5 digits
                 f"(not fitted: {s.screen_reason})" if s.screened else ""
             )

@@ -497,3 +497,18 @@ def test_a_failed_candidate_fit_is_given_its_reason():
         jax.block_until_ready(run(jax.numpy.asarray(1.0)))
     assert _error_reason(e.value) == "joint1.stiffness must be finite and > 0"
     assert _error_reason(ValueError("make_problem: no logs\nmore")) == "make_problem: no logs"
+
+
+def test_only_the_first_accepted_candidate_of_a_round_reads_named():
+    """Review: a sensor delay and an actuator lag both passed, both rows read "ACCEPTED"
+    / "yes", and only the delay was named."""
+    import types
+
+    from identify.diagnose import round_verdicts
+
+    rows = [types.SimpleNamespace(label=k, accepted=a) for k, a in (("delay", True), ("lag", True), ("drag", False))]
+    assert round_verdicts(rows) == {
+        "delay": "named",
+        "lag": "passes, not named (the named one is better)",
+        "drag": "",
+    }
