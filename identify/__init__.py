@@ -40,6 +40,7 @@ from .fit import (
     LogData as LogData,
     Parameter as Parameter,
     Problem as Problem,
+    SimulationFailed as SimulationFailed,
     fit as fit,
     fit_independent as fit_independent,
     fitted_outputs as fitted_outputs,

@@ -92,6 +92,7 @@ from .fit import (
     FitResult,
     Parameter,
     Problem,
+    SimulationFailed,
     _at_bounds,
     _initial_states,
     _offsets,
@@ -1231,6 +1232,7 @@ def diagnose_logs(
         bic_threshold,
         min_gain,
         max_f,
+        0.5 / dt_sample,
         say,
     )
     for rnd in range(max_effects):
@@ -1260,7 +1262,8 @@ def diagnose_logs(
         for c in [x for x in cands if x.structural and x.label not in done and x.label in struct_promising]:
             s = structural.score(c, current, rms_cur)
             if isinstance(s, str):  # its fit failed: said, not dropped in silence
-                text = f"{c.label}: its fit failed ({s}); not scored, so no evidence either way"
+                evidence = getattr(s, "evidence", "no evidence either way")
+                text = f"{c.label}: its fit failed ({s}); not scored; {evidence}"
                 say(f"  round {rnd + 1}: {text}")
                 notes.append({"round": rnd + 1, "text": text})
             else:
@@ -2012,6 +2015,7 @@ class _StructuralFits:
     bic_threshold: float
     min_gain: float
     max_frequency_hz: float
+    nyquist_hz: float
     say: Callable[[str], None]
 
     def score(self, c, current: dict, rms_cur: float):
@@ -2028,6 +2032,47 @@ def round_verdicts(scores) -> dict:
         s.label: ("named" if s.label == named else "passes, not named (the named one is better)") if s.accepted else ""
         for s in scores
     }
+
+
+class _FailedTowardRigid(str):
+    """A structural candidate's failure reason (a `str`) whose fit drifted to the model
+    the candidate extends; `.evidence`: what that says, for the note."""
+
+    def __new__(cls, reason: str, evidence: str):
+        out = super().__new__(cls, reason)
+        out.evidence = evidence
+        return out
+
+
+def _rigid_limit(c, error, nyquist_hz: float) -> str | None:
+    """For a `joint_elasticity` fit that failed because its simulation needed more steps
+    than allowed (`identify.fit.SimulationFailed`): when the joint mode at the values where
+    it failed is far above the logs' Nyquist frequency, the evidence that the fit was
+    making the joint rigid (None otherwise). The joint mode is at least
+    `sqrt(k / J_rotor) / (2 pi)` (the rotor on its spring against a locked link; a free
+    link raises it: `omega^2 = k (1/J_rotor + 1/J_link)`).
+
+    Found on a driven rigid pendulum whose logs hide dry friction: the elastic-joint fit
+    took the stiffness from 2.7e-3 to 87 N m/rad and the rotor inertia from 1.5e-5 to
+    8.6e-8 kg m^2, a joint mode of >= 5 kHz against a 100 Hz Nyquist frequency, and the
+    adaptive solve ran out of steps; the note said "no evidence either way"."""
+    if c.name != "joint_elasticity" or not isinstance(error, SimulationFailed):
+        return None
+    if not any("limit of" in why for why in error.logs.values()):
+        return None
+    k = error.values.get(f"{c.where}.stiffness")
+    rotor = error.values.get(f"{c.where}.rotor_inertia")
+    if k is None or rotor is None or not (k > 0 and rotor > 0):
+        return None
+    f_joint = math.sqrt(k / rotor) / (2 * math.pi)
+    if f_joint < 10 * nyquist_hz:
+        return None
+    return (
+        f"the fit was making the joint rigid: where its simulation ran out of steps, the joint mode is at least "
+        f"{f_joint:.3g} Hz ({c.where}.stiffness {k:.3g} N m/rad, rotor inertia {rotor:.3g} kg m^2), "
+        f"{f_joint / nyquist_hz:.0f}x the logs' Nyquist frequency {nyquist_hz:.3g} Hz: evidence against an elastic "
+        "joint the logs resolve"
+    )
 
 
 def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float):
@@ -2098,7 +2143,8 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
     except (RuntimeError, ValueError) as e:
         reason = error_reason(e)
         say(f"  structural candidate {c.label} failed: {reason}")
-        return reason
+        rigid = _rigid_limit(c, e, setting.nyquist_hz)
+        return reason if rigid is None else _FailedTowardRigid(reason, rigid)
     k = len(new)
     k_eff = max(k, 1)
     dbic = N * math.log(max(res.cost, 1e-300) / current["cost"]) + k * math.log(N)

@@ -1854,13 +1854,63 @@ def _starts(problem: Problem, x0: np.ndarray, n_starts: int, spread: float) -> n
     return np.stack(out)
 
 
+class SimulationFailed(RuntimeError):
+    """A fit stage could not simulate its logs at the current parameters (the adaptive
+    solver reached its step limit, or the state stopped being finite). Attributes:
+    `horizon_s` (the stage's horizon, s from each log's onset), `values` (parameter name
+    -> value, SI, where the simulation failed), `logs` (log name -> what failed)."""
+
+    def __init__(self, message: str, *, horizon_s: float, values: dict, logs: dict):
+        super().__init__(message)
+        self.horizon_s = horizon_s
+        self.values = values
+        self.logs = logs
+
+
+@eqx.filter_jit
+def _solve_flags(problem: Problem, theta, y0s, horizon):
+    """Each log's success flag and whether its solve reached the step limit."""
+    _, ok, limit = predict(problem, theta, y0s, horizon, stats="limit")
+    return ok, limit
+
+
+def _simulation_failure(problem: Problem, z, horizon) -> SimulationFailed:
+    """Why the logs' simulation at `z` over `horizon` failed, per log (one more solve,
+    only after a failure; review: "the simulation at the current parameters failed" said
+    neither which log, nor why, nor at which values)."""
+    theta = np.asarray(_theta_from_x(problem, _x_from_z(problem, z["phys"])))
+    ok, limit = _solve_flags(problem, jnp.asarray(theta), _initial_states(problem, z["y0"]), jnp.asarray(horizon))
+    logs = {}
+    for name, ok_l, limit_l in zip(problem.log_names, np.asarray(ok), np.asarray(limit)):
+        if not ok_l:
+            logs[name] = (
+                f"the adaptive solver reached its limit of {problem.max_steps} steps (a stiff model: a mode far "
+                "above the logs' band)"
+                if limit_l
+                else "the state stopped being finite, or a parameter is out of its range"
+            )
+    if not logs:  # (the stage's own program disagreed with this one: say so, do not guess)
+        logs = {name: "the stage's simulation failed; a repeated one succeeded" for name in problem.log_names}
+    values = {name: float(v) for name, v in zip(problem.names, theta)}
+    shown = ", ".join(f"{name} = {v:.4g}" for name, v in values.items())
+    which = "; ".join(f"log '{name}': {why}" for name, why in logs.items())
+    return SimulationFailed(
+        f"fit: the simulation over the {float(horizon):.4g} s horizon failed at the current parameters ({which}); "
+        f"parameters where it failed: {shown}; check guesses and bounds",
+        horizon_s=float(horizon),
+        values=values,
+        logs=logs,
+    )
+
+
 def _stage_step(problem: Problem, z, horizon, safety):
-    """The constant step of a stage (None: use the problem's own fixed dt)."""
+    """The constant step of a stage (None: use the problem's own fixed dt); raises
+    `SimulationFailed` when a log's simulation fails."""
     if problem.dt is not None:
         return None
     step, ok, _ = _grid_step(problem, z, jnp.asarray(horizon), safety)
     if not bool(ok):
-        raise RuntimeError("fit: the simulation at the current parameters failed; check guesses and bounds")
+        raise _simulation_failure(problem, z, horizon)
     return aligned_step(problem, step)
 
 

@@ -153,6 +153,8 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     else:
         dout = out
     out = meas.apply_sensors(sensors, problem.channels, ts, out, dout)
+    if stats == "limit":  # (identify.fit._simulation_failure: why a solve failed)
+        return out, ok, sol.result == diffrax.RESULTS.max_steps_reached
     return (out, ok, sol.stats["num_accepted_steps"]) if stats else (out, ok)
 
 
@@ -164,7 +166,8 @@ def predict(problem, theta, y0s, horizon=None, step=None, *, stats: bool = False
 
     `step` (s, may be traced): integrate with Tsit5 at this constant step. Otherwise
     the problem's fixed `dt` (RK4) or its adaptive tolerances are used. With `stats`,
-    also return the number of accepted steps per log."""
+    also return the number of accepted steps per log (`stats="limit"`: whether the
+    solve reached `problem.max_steps`, instead)."""
     one = lambda t, tv, y0, on: _simulate_log(problem, theta, t, tv, y0, on, horizon, step, stats)  # noqa: E731
     return jax.vmap(one)(problem.t, problem.torque_v, y0s, problem.onset)
 

@@ -512,3 +512,28 @@ def test_only_the_first_accepted_candidate_of_a_round_reads_named():
         "lag": "passes, not named (the named one is better)",
         "drag": "",
     }
+
+
+def test_an_elastic_joint_fit_that_runs_out_of_steps_far_above_nyquist_is_evidence_of_a_rigid_joint():
+    """Found on a driven rigid pendulum whose logs hide dry friction: the elastic-joint fit
+    drove the joint mode to >= 5 kHz (100 Hz Nyquist), its adaptive solve ran out of
+    steps, and the note said "no evidence either way". The joint mode is recomputed here
+    from the values (rotor on its spring, link locked: sqrt(k / J) / 2 pi)."""
+    from identify import SimulationFailed
+
+    cand = types.SimpleNamespace(name="joint_elasticity", where="joint1")
+    k, rotor = 86.93, 8.564e-8
+    f_joint = math.sqrt(k / rotor) / (2 * math.pi)  # 5070 Hz
+
+    def failure(why="the adaptive solver reached its limit of 100000 steps (a stiff model)", **values):
+        values = values or {"joint1.stiffness": k, "joint1.rotor_inertia": rotor, "hub1.inertia": 1.5e-7}
+        return SimulationFailed("x", horizon_s=5.8, values=values, logs={"log0": why})
+
+    text = D._rigid_limit(cand, failure(), 100.0)
+    assert f"{f_joint:.3g} Hz" in text and f"{f_joint / 100:.0f}x" in text and "evidence against" in text
+    assert D._rigid_limit(cand, failure(), f_joint / 9.0) is None  # within 10x Nyquist: not the rigid limit
+    assert D._rigid_limit(cand, failure("the state stopped being finite"), 100.0) is None
+    assert D._rigid_limit(types.SimpleNamespace(name="missing_mode", where="link1"), failure(), 100.0) is None
+    assert D._rigid_limit(cand, RuntimeError("other"), 100.0) is None
+    reason = D._FailedTowardRigid("its reason", text)
+    assert reason == "its reason" and reason.evidence == text

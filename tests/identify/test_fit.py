@@ -888,6 +888,25 @@ def test_a_stage_step_is_at_most_the_torque_sample_interval():
     assert float(fit_module.aligned_step(problem, 1.5e-3)) == pytest.approx(4e-3 / 3, rel=1e-12)
 
 
+def test_a_simulation_that_runs_out_of_steps_is_named_with_the_values_where_it_failed():
+    """Review: a fit whose simulation failed said only "the simulation at the current
+    parameters failed". A solver budget of 3 steps cannot cover a 0.4 s swing of the
+    pendulum (its adaptive solver takes ~20): `SimulationFailed` names the log, the step
+    limit, the horizon and the parameter values."""
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(0.0, 0.4, 1e-2)
+    log = identify.simulate_log(chain, t, initial={"theta1": 0.3}, channels=("theta1",), name="swing")
+    params = [identify.Parameter("joint1.damping", 2e-3, 1e-6, 1e-1)]
+    problem = identify.make_problem(chain, params, [log], {"theta1": 1e-3}, max_steps=3)
+    with pytest.raises(identify.SimulationFailed) as info:
+        identify.fit(problem, params, n_stages=1, frequency_init=False)
+    e = info.value
+    assert e.values == {"joint1.damping": pytest.approx(2e-3, rel=1e-12)}
+    assert list(e.logs) == ["swing"] and "limit of 3 steps" in e.logs["swing"]
+    assert "log 'swing'" in str(e) and "joint1.damping = 0.002" in str(e)
+    assert e.horizon_s == pytest.approx(float(t[-1] - problem.onset[0]), rel=1e-12)  # one stage: the whole log
+
+
 # A local optimum of the 3 s, 1.5 Hz sine-driven log below (seed 1): where `fit_independent`
 # ended, 'converged', from guesses EI x6 and the others 20 % off without the frequency
 # initialisation (tests/identify/test_frequency_init.py). Its residual is 3.3 (theta1) and
