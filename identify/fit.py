@@ -1583,7 +1583,7 @@ def fit_independent(
     }
     # Spread the logs over all devices (`flexdyn.batch`): the batch is padded to a multiple
     # of the device count (repeating the last log) and placed with a NamedSharding over a
-    # 1-D mesh of `jax.devices()`, so XLA splits every vmapped stage across the devices. On
+    # 1-D mesh of `jax.devices()`, so each vmapped stage is split across the devices. On
     # one device nothing is padded and this is the plain vmapped call. Only the first L
     # entries of each result are read.
     from flexdyn import batch as fbatch
@@ -1593,7 +1593,14 @@ def fit_independent(
     sigma = problem.sigma
     horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
     _say_onsets(problem, horizons, say)
-    grid = eqx.filter_vmap(_grid_step, in_axes=(0, 0, None, None))
+    # The stage-step simulations run each device's share on its own
+    # (`flexdyn.batch.sharded_vmap`): XLA's partitioning of the vmapped program replicated
+    # a division in it (6 "[SPMD] Involuntary full rematerialization ... _grid_step/div"
+    # warnings, 3 flexible-pendulum logs on 4 CPU devices; none since, same results). The
+    # Levenberg-Marquardt program stays a vmapped call on the sharded batch (6 such
+    # warnings of its own remain): lineax's linear solve fails its structure check inside
+    # `shard_map` (jax 0.10; lineax issue #185, "pytree does not match out_structure").
+    grid = fbatch.sharded_vmap(_grid_step, (0, 0, None, None), mesh)
     solve = eqx.filter_vmap(_solve, in_axes=(0, 0, None, None, 0, None, None, None, None, None))
     if frequency_init:
         z = _frequency_initialise_independent(problem, singles, stacked, z, x0, grid, grid_safety, say)

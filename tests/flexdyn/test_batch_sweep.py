@@ -44,6 +44,8 @@ _SHARDED_SCRIPT = textwrap.dedent(
     chains = jax.vmap(lambda m: eqx.tree_at(lambda c: c.payload.mass, chain, m))(masses)
     per_chain = fb.sweep(lambda c, y0, ts: fd.simulate(c, y0, ts, torque, dt=1e-3).Q, chains, y0, ts)
     placed, n = fb.shard_batch(masses)
+    # sharded_vmap: batched and replicated arguments, a static (non-array) output
+    sv, label = fb.sharded_vmap(lambda m, y0, ts: (final_state(m, y0, ts), "Q"), (0, None, None))(placed, y0, ts)
     print(json.dumps({
         "devices": len(jax.devices()),
         "n": n,
@@ -53,6 +55,9 @@ _SHARDED_SCRIPT = textwrap.dedent(
         "max_diff": float(np.max(np.abs(np.asarray(sharded) - np.asarray(plain)))),
         "max_diff_chain": float(np.max(np.abs(np.asarray(per_chain) - np.asarray(plain)))),
         "spread": float(np.max(np.abs(np.asarray(plain[0]) - np.asarray(plain[-1])))),
+        "max_diff_sharded_vmap": float(np.max(np.abs(np.asarray(sv)[:n] - np.asarray(plain)))),
+        "sharded_vmap_shards": sorted(int(s.data.shape[0]) for s in sv.addressable_shards),
+        "label": label,
     }))
     """
 )
@@ -69,6 +74,8 @@ def test_sweep_sharded_over_four_cpu_devices_equals_vmap():
     assert out["spread"] > 1e-3  # the entries differ, so a mix-up of entries would show
     assert out["max_diff"] < 1e-12
     assert out["max_diff_chain"] < 1e-12
+    assert out["max_diff_sharded_vmap"] < 1e-12 and out["sharded_vmap_shards"] == [2, 2, 2, 2]
+    assert out["label"] == "Q"
 
 
 def test_sweep_on_one_device_equals_vmap():
