@@ -100,5 +100,6 @@ from .params import (
     is_signed as is_signed,
     parameter_names as parameter_names,
     parameter_unit as parameter_unit,
+    with_optional_terms as with_optional_terms,
     with_parameters as with_parameters,
 )

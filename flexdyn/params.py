@@ -100,15 +100,52 @@ def _locate(chain: Chain, name: str):
     if field not in fields:
         raise _unknown(chain, name)
     if getattr(part, field) is None:
-        raise KeyError(
+        # (review: a plain KeyError, its message quoted, and the experiment loader said only
+        # "unknown parameter")
+        raise UnknownParameterError(
             f"parameter {name!r}: {kind} {index} has no {field} term ({type(part).__name__}({field}=None)); "
-            f"build it with {type(part).__name__}(..., {field}=0.0) to make it a parameter"
+            f"build it with {type(part).__name__}(..., {field}=0.0), or add it with "
+            f"flexdyn.with_optional_terms(chain, [{name!r}]), to make it a parameter"
         )
     k = None if m["k"] is None else int(m["k"])
     ndim = np.ndim(getattr(part, field))
     if (k is None) != (ndim == 0) or (k is not None and k >= np.shape(getattr(part, field))[0]):
         raise _unknown(chain, name)
     return (lambda c: getattr(_part(c, kind, index), field)), k, fields[field], field in SIGNED
+
+
+def absent_optional_term(chain: Chain, name: str) -> bool:
+    """True when `name` is an optional term (`OPTIONAL`: a link's `drag`, a joint's
+    `coulomb`, an elastic joint's `backlash`) of a part of `chain` that does not have it
+    (the field is None), i.e. `with_optional_terms` would make it a parameter."""
+    m = _NAME.match(name)
+    if m is None or not m["part"] or m["k"] is not None or m["field"] not in OPTIONAL:
+        return False
+    index = int(m["index"])
+    if not 1 <= index <= len(chain.links):
+        return False
+    part = _part(chain, m["part"], index)
+    return m["field"] in PARAMETER_FIELDS[type(part)] and getattr(part, m["field"]) is None
+
+
+def with_optional_terms(chain: Chain, names) -> Chain:
+    """`chain` with the optional terms `names` (`"joint2.coulomb"`, `"link1.drag"`,
+    `"joint1.backlash"`) present at 0.0, their neutral value: the same equations, now with
+    these parameters (set them with `with_parameters`). Names already present are left as
+    they are; any other name is an `UnknownParameterError`."""
+    for name in names:
+        if absent_optional_term(chain, name):
+            m = _NAME.match(name)
+            kind, index, field = m["part"], int(m["index"]), m["field"]
+            chain = eqx.tree_at(
+                lambda c: getattr(_part(c, kind, index), field),
+                chain,
+                jnp.asarray(0.0, dtype=float),
+                is_leaf=lambda x: x is None,
+            )
+        else:
+            _locate(chain, name)  # present: fine; anything else: named
+    return chain
 
 
 class UnknownParameterError(KeyError, ValueError):

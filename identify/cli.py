@@ -472,6 +472,18 @@ def _check_command(args) -> int:
     except ValueError as e:
         print(f"identify check: {e}", file=sys.stderr, flush=True)
         return 2
+    # the declared noise against the model-free floor of the fit logs (review: "0.05 m"
+    # for a 0.05 mm strain gauge passed the check and was only flagged after the fit)
+    import numpy as np
+
+    from .fit import _floors
+    from .noise_floor import declared_noise_warnings, pooled
+
+    floor, count = _floors(problem)
+    floors = np.sqrt(pooled(floor**2, count))
+    quality = {c: {"noise_floor": float(f)} for c, f in zip(problem.channels, floors) if np.isfinite(f)}
+    for line in declared_noise_warnings(exp.noise, quality):
+        print(f"  warning: {line}")
     samples = int(problem.valid.sum())
     print(
         f"ok: a fit can start: {len(exp.free)} free parameter(s), {len(problem.log_names)} fit log(s) "

@@ -107,15 +107,26 @@ class LogSpec:
         noise included, as exact (found in review: with 0.08 deg of noise on the first
         sample, the intervals of EI, the damping and the payload missed the truth by 10-13
         standard errors, and the fit reported no problem)."""
+        out = []
         held = [s for s in self.measured if s not in self.fit_initial]
-        if not held:
-            return []
-        names = ", ".join(held)
-        return [
-            f'log {self.name!r}: {names} = "measured" holds the first sample, noise included, as the exact initial '
-            f"value, which biases the fit beyond its intervals; add {names} to fit_initial to estimate it from "
-            "the whole log (the first sample is its starting guess)"
-        ]
+        if held:
+            names = ", ".join(held)
+            out.append(
+                f'log {self.name!r}: {names} = "measured" holds the first sample, noise included, as the exact '
+                f"initial value, which biases the fit beyond its intervals; add {names} to fit_initial to estimate "
+                "it from the whole log (the first sample is its starting guess)"
+            )
+        # (review: a two-link log whose `torque2` was left out of `columns` ran with joint 2
+        # unpowered, and only "columns not used: 'tau2 [N m]'" hinted at it)
+        for header in self.log.ignored:
+            if _looks_like_torque(header):
+                mapped = ", ".join(sorted(self.log.inputs)) or "none"
+                out.append(
+                    f"log {self.name!r}: the unused column {header!r} looks like a torque, but a joint without a "
+                    f"torque column is unpowered in the model (torque columns mapped: {mapped}); map it in columns "
+                    f"(e.g. torque2 = {header!r}) if it drives a joint"
+                )
+        return out
 
     def torque(self, n_joints: int) -> np.ndarray | None:
         """Applied torques, shape (T, n_joints), N m; joints without a torque column get 0.
@@ -126,6 +137,19 @@ class LogSpec:
         for name, values in self.log.inputs.items():
             out[:, u.channel_kind_index(name)[1] - 1] = values
         return out
+
+
+def _looks_like_torque(header: str) -> bool:
+    """A column header with a torque unit (`[N m]`, `[mN m]`, ...) or named like one
+    (`tau`, `torque`, `moment`)."""
+    try:
+        name, unit = u.split_header(header)
+    except ValueError:
+        return False
+    canonical = u.normalise_unit(unit) if unit else None
+    if canonical is not None and u.unit_dimension(canonical) == u.TORQUE:
+        return True
+    return any(word in name.lower() for word in ("tau", "torque", "moment"))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -407,7 +431,7 @@ def load_experiment(path) -> Experiment:
 
     noise = _noise(r, logs, r.table(doc.get("noise", {}), ("noise",)))
     measurement = _measurement(r, chain, logs, doc)
-    free, measurement = _free_parameters(
+    free, measurement, chain = _free_parameters(
         r, chain, measurement, logs, r.table(doc.get("parameters", {}), ("parameters",))
     )
     starts = _starts(r, free, doc.get("starts", []))
@@ -574,6 +598,9 @@ def _apply_set(r: _Reader, chain: fd.Chain, overrides: Mapping) -> fd.Chain:
     valid = fd.parameter_names(chain)
     for name, value in overrides.items():
         key = ("rig", "set", name)
+        if fd.params.absent_optional_term(chain, name):  # e.g. "joint2.coulomb": switched on
+            chain = fd.with_optional_terms(chain, [name])
+            valid = fd.parameter_names(chain)
         if name not in valid:
             raise _unknown_parameter(r, chain, key, value)
         value = r.number(value, key)
@@ -588,13 +615,20 @@ def _apply_set(r: _Reader, chain: fd.Chain, overrides: Mapping) -> fd.Chain:
 
 def _free_parameters(
     r: _Reader, chain: fd.Chain, measurement: meas.Measurement, logs: list[LogSpec], table: Mapping
-) -> tuple[list[FreeParameter], meas.Measurement]:
-    """The `[parameters]` entries, and the measurement model with every free measurement
-    parameter present (at its neutral value when `[sensors]`/`[actuators]` do not give it)."""
+) -> tuple[list[FreeParameter], meas.Measurement, fd.Chain]:
+    """The `[parameters]` entries, the measurement model with every free measurement
+    parameter present (at its neutral value when `[sensors]`/`[actuators]` do not give it),
+    and the chain with every optional term they name present (`joint2.coulomb` on a rig
+    without dry friction: at 0.0, the fit starts from the guess)."""
     valid = fd.parameter_names(chain)
     free = []
     for name, spec in table.items():
         key = ("parameters", name)
+        if fd.params.absent_optional_term(chain, name):
+            # (review: "joint2.coulomb" on a named rig said "unknown parameter", although
+            # the README lists it; a named rig cannot be given the term any other way)
+            chain = fd.with_optional_terms(chain, [name])
+            valid = fd.parameter_names(chain)
         if meas.is_measurement_parameter(name):
             measurement = _measurement_parameter(r, chain, measurement, logs, name, key)
             unit = meas.unit(name, channel_unit)
@@ -632,7 +666,7 @@ def _free_parameters(
                 "expected lower <= guess <= upper",
             )
         free.append(FreeParameter(name, guess, lower, upper, unit, log_scale))
-    return free, measurement
+    return free, measurement, chain
 
 
 def _starts(r: _Reader, free: list[FreeParameter], entries) -> tuple[dict[str, float], ...]:

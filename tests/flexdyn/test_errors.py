@@ -476,3 +476,27 @@ def test_an_unknown_parameter_name_suggests_the_one_meant():
         fd.get_parameter(chain, "joint1.dampin")
     with pytest.raises(ValueError, match=r"unknown parameter 'spring'; this chain has"):  # nothing close
         fd.get_parameter(chain, "spring")
+
+
+def test_an_absent_optional_term_is_named_and_can_be_added():
+    """Review: `joint2.coulomb` on a rig without dry friction raised a plain `KeyError`
+    (quoted message). Now an `UnknownParameterError` saying how to add the term;
+    `with_optional_terms` adds it at 0.0, where the equations are those without it: the
+    pendulum swings the same to the last bit, and a dry friction of 1 mN m then slows it."""
+    chain = fd.rigs.rigid_pendulum()
+    with pytest.raises(fd.UnknownParameterError) as e:
+        fd.get_parameter(chain, "joint1.coulomb")
+    assert "joint 1 has no coulomb term" in str(e.value) and "with_optional_terms" in str(e.value)
+    assert not str(e.value).startswith('"')
+    added = fd.with_optional_terms(chain, ["joint1.coulomb", "link1.drag"])
+    assert {"joint1.coulomb", "link1.drag"} <= set(fd.parameter_names(added))
+    assert fd.with_optional_terms(added, ["joint1.coulomb"]) is added  # present: unchanged
+    with pytest.raises(fd.UnknownParameterError, match="unknown parameter 'joint1.backlash'"):
+        fd.with_optional_terms(chain, ["joint1.backlash"])  # an elastic joint's term
+    ts = jnp.linspace(0.0, 1.0, 11)
+    y0 = fd.initial_state(chain, joint_angles=[0.0])
+    plain = fd.simulate(chain, y0, ts, dt=1e-3).Q[:, 0]
+    neutral = fd.simulate(added, y0, ts, dt=1e-3).Q[:, 0]
+    np.testing.assert_array_equal(np.asarray(neutral), np.asarray(plain))
+    dry = fd.simulate(fd.with_parameters(added, {"joint1.coulomb": 1e-3}), y0, ts, dt=1e-3).Q[:, 0]
+    assert float(jnp.max(jnp.abs(dry - plain))) > 1e-4

@@ -464,6 +464,14 @@ def test_check_validates_an_experiment_without_fitting(tmp_path, capsys):
     assert "free hub1.inertia" in out and "[validation] log 'drop_m97deg'" in out
     assert re.search(r"ok: a fit can start: 2 free parameter\(s\), 2 fit log\(s\) \(\d+ samples\), 1 validation", out)
     assert _snapshot(tmp_path) == before  # nothing written
+    assert "declared noise" not in out  # 0.1 deg, the logs' own
+    # a declared noise in the wrong unit (review: "0.05 m" for a 0.05 mm gauge passed the
+    # check and was flagged only after a 5-minute fit): against the logs' model-free floor
+    exp.write_text(exp.read_text().replace('theta1 = "0.1 deg"', 'theta1 = "0.1 rad"'))
+    assert main(["check", str(exp)]) == 0
+    out = capsys.readouterr().out
+    m = re.search(r"warning: the declared noise of theta1 \(5\.73 deg\) is ([\d.]+) times the noise floor", out)
+    assert m and 40 < float(m[1]) < 80, out  # 0.1 rad / 0.1 deg = 57.3
     exp.write_text(exp.read_text().replace('"hub1.inertia"', '"hub1.inertai"'))
     assert main(["check", str(exp)]) == 2
     err = capsys.readouterr().err

@@ -34,6 +34,22 @@ def test_spin_rates_come_from_phi_or_the_sum_of_joint_angles():
     assert ev.link_spin_rates(fd.Chain([fd.RigidLink(0.3, 0.2)]), tips) == {"link1": None}
 
 
+def test_rms_spin_rates_pool_every_sample_of_every_log():
+    """Closed forms: a sine swing a sin(w t) over whole periods has RMS rate a w / sqrt(2);
+    a constant rate is its own RMS; two logs pool their squares sample by sample."""
+    chain = fd.Chain([fd.RigidLink(0.3, 0.2), fd.RigidLink(0.3, 0.2)])
+    w = 2 * np.pi  # 2 whole periods in the 2 s of `_traces`
+    _, traces = _traces(theta1=lambda t: 0.5 * np.sin(w * t), phi2=lambda t: -4.0 * t)
+    rms = ev.link_spin_rms(chain, traces)
+    assert rms["link1"] == pytest.approx(0.5 * w / np.sqrt(2), rel=1e-3)
+    assert rms["link2"] == pytest.approx(4.0, rel=1e-9)
+    _, other = _traces(theta1=lambda t: 3.0 * t)
+    both = {"a": traces["log1"], "b": other["log1"]}  # equal lengths: the mean of the two mean squares
+    assert ev.link_spin_rms(chain, both)["link1"] == pytest.approx(np.sqrt(((0.5 * w) ** 2 / 2 + 9.0) / 2), rel=1e-3)
+    assert ev.link_spin_rms(chain, both)["link2"] == pytest.approx(4.0, rel=1e-9)  # log b has no angle for it
+    assert ev.link_spin_rms(chain, other)["link2"] is None  # unknown, not zero
+
+
 def test_a_link_spinning_at_half_its_first_frequency_is_flagged_with_the_ei_bias():
     chain = fd.Chain([fd.FlexibleLink(L, RHO, EI, n_modes=2)])
     rate = 2.0 * SCALE  # lam = 2: 0.569 of the first clamped frequency

@@ -341,6 +341,26 @@ def test_unknown_free_parameter(tmp_path):
         load_experiment(path)
 
 
+def test_an_optional_term_named_in_parameters_or_rig_set_is_added_to_a_named_rig(tmp_path):
+    """Review: `"joint2.coulomb"` on a named rig said "unknown parameter" (the README lists
+    it, and a named rig takes no joint tables). Naming an optional term adds it: at the
+    value `rig.set` gives, or at 0.0 (neutral) with the fit starting from the guess."""
+    body = RIG + '[rig.set]\n"link1.drag" = 0.002\n[parameters]\n"joint1.coulomb" = { guess = 1e-3, upper = 0.1 }\n'
+    exp = load_experiment(experiment(tmp_path, body + LOG))
+    assert float(fd.get_parameter(exp.chain, "link1.drag")) == 0.002
+    assert float(fd.get_parameter(exp.chain, "joint1.coulomb")) == 0.0
+    (p,) = exp.free
+    assert (p.name, p.guess, p.upper, p.unit, p.log_scale) == ("joint1.coulomb", 1e-3, 0.1, "N m", True)
+    # with no guess, the term's neutral 0 cannot start a log-space fit: said so
+    path = experiment(tmp_path, RIG + '[parameters]\n"joint1.coulomb" = {}\n' + LOG, log=False, name="b.toml")
+    with pytest.raises(ExperimentError, match=msg('"joint1.coulomb".guess', "expected a guess > 0")):
+        load_experiment(path)
+    # backlash is an elastic joint's: on a rigid one still unknown
+    path = experiment(tmp_path, RIG + '[parameters]\n"joint1.backlash" = 1e-3\n' + LOG, log=False, name="c.toml")
+    with pytest.raises(ExperimentError, match=msg('parameters."joint1.backlash"', "unknown parameter")):
+        load_experiment(path)
+
+
 @pytest.mark.parametrize(
     "entry, expected",
     [
@@ -730,3 +750,17 @@ def test_a_modal_initial_value_takes_a_length_unit(tmp_path):
     path = experiment(tmp_path, RIG + LOG + 'initial = { q1_1 = "2 mm", theta1 = "10 deg" }\n')
     (entry,) = load_experiment(path).logs
     assert entry.initial == {"q1_1": pytest.approx(2e-3), "theta1": pytest.approx(math.radians(10.0))}
+
+
+def test_an_unused_torque_column_is_a_warning(tmp_path):
+    """Review: a log whose `torque2` was left out of `columns` ran with joint 2 unpowered;
+    only "columns not used: 'tau2 [N m]'" hinted at it. A column with a torque unit or
+    name that no channel uses is now a warning; other unused columns are not."""
+    write_log(tmp_path / "logs" / "drop.csv", header=("time [s]", "theta1 [deg]", "tip1 [mm]", "tau1 [N m]"))
+    exp = load_experiment(experiment(tmp_path, RIG + LOG, log=False))
+    (spec,) = exp.logs
+    (w,) = spec.warnings()
+    assert "'tau1 [N m]' looks like a torque" in w and "unpowered" in w and "torque columns mapped: none" in w
+    write_log(tmp_path / "logs" / "drop.csv", header=("time [s]", "theta1 [deg]", "tip1 [mm]", "strain [mm]"))
+    (spec,) = load_experiment(experiment(tmp_path, RIG + LOG, log=False)).logs
+    assert spec.log.ignored == ("strain [mm]",) and spec.warnings() == []

@@ -76,6 +76,13 @@ def test_the_model_check_flags_the_linear_link_on_these_logs():
     assert check["flagged"] and 0.15 < check["relative_shift_spin"] < 0.25, check
     truth = _make_logs_module().truth()
     assert evidence.stiffening_checks(truth, rates) == []  # the truth has the option
+    # the EI bias at the fit logs' RMS and largest rates bracket the linear fit's EI (1.158,
+    # measured: the slow test below checks it on a live fit), the chain at its values
+    fit_traces = {k: v for k, v in traces.items() if k in ("spin_slow", "spin_fast")}
+    fitted = fd.with_parameters(exp.chain, {"link1.EI": 1.158})
+    (check,) = evidence.stiffening_checks_of(fitted, fit_traces)
+    assert check["ei_bias_factor_rms"] < 1.158 < check["ei_bias_factor"], check
+    assert "RMS" in check["message"] and "not a mode of the whole arm" in check["message"]
 
 
 @pytest.mark.slow
@@ -92,6 +99,7 @@ def test_fits_of_both_experiment_files(tmp_path):
     assert ei["value"] == pytest.approx(1.158, rel=0.01) and ei["ci95"][0] > 1.1, ei
     (check,) = lin["model_checks"]
     assert check["flagged"] and check["ei_bias_factor"] > ei["value"], check  # an upper estimate
+    assert check["ei_bias_factor_rms"] < ei["value"], check  # the RMS rate's: a lower one here
     held = lin["validation"]["spin_mid"]["residuals"]["tip1"]["rms"]
     assert held > 50 * 0.02e-3, held
     ei = {d["name"]: d for d in stiff["parameters"]}["link1.EI"]
