@@ -505,9 +505,22 @@ def _compile_estimate(exp) -> float:
     machine, growing with the number of coordinates and channels. Measured 2026-12-03 (2-core
     Intel Xeon): 10.6 s for `examples/pendulum_drops` (1 coordinate, 1 channel), 49.5 s for
     a flexible link on an elastic joint (4 coordinates, 3 channels, frequency
-    initialisation included); the guess is ~1.15x those."""
+    initialisation included); the guess is ~1.15x those. Doubled where the process may use
+    one core only (review, a two-link arm under `taskset -c 0`: ~96 s guessed, 198 s to the
+    end of the first stage)."""
     n = exp.chain.n_dof
-    return 12.0 * (1.0 + 0.8 * (n - 1)) * (1.0 + 0.2 * (len(exp.output_channels) - 1))
+    guess = 12.0 * (1.0 + 0.8 * (n - 1)) * (1.0 + 0.2 * (len(exp.output_channels) - 1))
+    return guess * (2.0 if _cores() < 2 else 1.0)
+
+
+def _cores() -> int:
+    """The CPU cores this process may run on."""
+    import os
+
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - macOS, Windows
+        return os.cpu_count() or 1
 
 
 # ---------------------------------------------------------------------------
@@ -561,8 +574,8 @@ def _fit_command(args) -> int:
         f"{args.stages} horizon stage(s); JAX on {jax.default_backend()}"
     )
     say(
-        f"compiling the simulation and Levenberg-Marquardt (first call, ~{_compile_estimate(exp):.0f} s in all: the "
-        "frequency initialisation's and the first stage's times include it) ..."
+        f"compiling the simulation and Levenberg-Marquardt (first call, ~{_compile_estimate(exp):.0f} s in all on "
+        f"{_cores()} core(s): the frequency initialisation's and the first stage's times include it) ..."
     )
 
     last = [time.perf_counter()]

@@ -1123,6 +1123,19 @@ def fit(
             + ", ".join(f"{c} is {quality[c]['ratio']:.3g}" for c in poor)
             + " times the noise floor"
         )
+        if attempt + 1 == len(candidates):
+            # (review: 8 starts at the same cost, a poor fit, and no trace of whether the
+            # documented restart had run)
+            say(
+                f"  {why}; not restarted: "
+                + (
+                    "no other start (n_starts=1 and no extra starts)"
+                    if len(candidates) == 1 and not (n_starts > 1 or len(extra))
+                    else f"the {len(candidates)} distinct optima of the multi-start stage kept for restarts "
+                    f"(max_restarts={max_restarts}) have all been grown"
+                )
+                + ": the misfit is more likely the model's or the data's than the start's"
+            )
     _, _, z, sigma, step, lin, tried, ms = min(outcomes, key=lambda o: (o[0], o[1]))
     stages.extend(tried)
     say("  computing standard errors (exact Jacobian at the optimum) ...")

@@ -486,3 +486,15 @@ def test_a_failed_fit_prints_the_check_not_the_stacks():
     wrapped = RuntimeError("Above is the stack outside of JIT...\n_EquinoxRuntimeError: link1.EI must be > 0\n\n---")
     assert _failure_text(wrapped) == "link1.EI must be > 0"
     assert _failure_text(ValueError("fit: no logs")) == "fit: no logs"
+
+
+def test_the_compile_estimate_allows_for_a_single_core(monkeypatch, tmp_path):
+    """Review: on one core (`taskset -c 0`) the first call took 2x the guess made for two."""
+    from identify import cli, load_experiment
+
+    exp = load_experiment(_copy_example(tmp_path / "example"))
+    monkeypatch.setattr(cli, "_cores", lambda: 2)
+    two = cli._compile_estimate(exp)
+    monkeypatch.setattr(cli, "_cores", lambda: 1)
+    assert cli._compile_estimate(exp) == pytest.approx(2 * two)
+    assert 10 < two < 20  # measured 10.6 s for this example on 2 cores (the docstring's)

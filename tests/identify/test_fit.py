@@ -986,6 +986,25 @@ def test_restarts_skip_the_multi_start_stages_repeated_optima():
     assert result.converged and within_bars(result), result.summary()
 
 
+def test_a_poor_fit_says_why_it_was_not_restarted():
+    """Review: a poor fit (residual 16-180x the floor) whose starts all ended at one cost
+    left no trace of whether the documented restart had run. A pendulum log with an
+    unfitted 0.02 rad sensor offset (20x its noise) stays poor from any start."""
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(0.0, 1.0, 1e-2)
+    log = identify.simulate_log(
+        chain, t, initial={"theta1": 0.3}, channels=("theta1",), noise={"theta1": 1e-3},
+        rng=np.random.default_rng(2), true_offsets={"theta1": 0.02}, name="offset",
+    )  # fmt: skip
+    params = [identify.Parameter("joint1.damping", 2e-3, 1e-6, 1e-1)]
+    problem = identify.make_problem(chain, params, [log], {"theta1": 1e-3})
+    said = []
+    result = identify.fit(problem, params, n_starts=1, n_stages=1, frequency_init=False, progress=said.append)
+    assert result.poor_fit == ["theta1"], result.summary()
+    (line,) = [m for m in said if "not restarted" in m]
+    assert "times the noise floor; not restarted: no other start (n_starts=1 and no extra starts)" in line, line
+
+
 def test_parameters_the_data_see_only_in_combination_have_no_interval():
     """A pendulum's free swing shows its rotary inertia about the pivot `J = I + m c^2` only
     through `m g c / J` (the frequency) and `d / J` (the decay). With the mass known and
