@@ -48,7 +48,7 @@ from .fit import (
     make_problem as make_problem,
     predict as predict,
 )
-from .logs import Log as Log, LogError as LogError, load_log as load_log
+from .logs import Log as Log, LogError as LogError, load_log as load_log, write_log as write_log
 from .measurement import Measurement as Measurement, Sensor as Sensor
 from .run import (
     evaluate_held_out as evaluate_held_out,

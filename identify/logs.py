@@ -684,3 +684,48 @@ __all__ = [
     "Sampling",
     "load_log",
 ]
+
+
+def write_log(log, path, *, units: Mapping[str, str] | None = None, comments=(), overwrite: bool = False) -> Path:
+    """Write a log (`identify.LogData`, e.g. from `simulate_log`) as a CSV file that
+    `load_log` and experiment files read back: a header `time [s], theta1 [deg], ...,
+    torque1 [N m], ...` (outputs, then one torque column per joint), every value with 17
+    significant digits (the same float64 read back).
+
+    **Arguments:**
+    - `units`: channel -> unit of its column (`{"theta1": "deg", "tip1": "mm"}`); the
+      others in SI (`time` too: `{"time": "ms"}`).
+    - `comments`: lines written first, each after `# ` (what made the log, its licence).
+    - `overwrite`: replace an existing file (default: refuse, naming it).
+
+    Returns the path written. Raises `ValueError` naming the channel for a unit of the
+    wrong dimension, and `FileExistsError` for an existing file without `overwrite`."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: exists; not overwritten (pass overwrite=True to replace it)")
+    t = np.asarray(log.t, float)
+    columns = {"time": t, **{c: np.asarray(v, float) for c, v in log.outputs.items()}}
+    if log.torque is not None:
+        torque = np.asarray(log.torque, float).reshape(len(t), -1)
+        columns.update({f"torque{j + 1}": torque[:, j] for j in range(torque.shape[1])})
+    units = dict(units or {})
+    unknown = set(units) - set(columns)
+    if unknown:
+        raise ValueError(f"write_log: units for {sorted(unknown)}, which the log does not have; it has {list(columns)}")
+    header, scaled = [], []
+    for c, values in columns.items():
+        dim = u.channel_dimension(c)
+        if dim is None:
+            raise ValueError(f"write_log: {c!r} is not a channel name (expected e.g. theta1, tip1, torque1)")
+        unit = units.get(c, u.SI_UNIT[dim])
+        canonical = u.normalise_unit(unit)
+        if canonical is None or u.unit_dimension(canonical) != dim:
+            raise ValueError(
+                f"write_log: units[{c!r}] = {unit!r}: expected {u.article(dim)} unit, e.g. {u._example_unit(dim)!r}"
+            )
+        header.append(f"{c} [{canonical}]")
+        scaled.append(values / u.unit_factor(canonical))
+    lines = [f"# {line}" for line in comments] + [",".join(header)]
+    lines += [",".join(f"{v:.17g}" for v in row) for row in zip(*scaled)]
+    path.write_text("\n".join(lines) + "\n")
+    return path

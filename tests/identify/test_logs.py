@@ -501,3 +501,39 @@ def test_format_md_lists_every_unit_and_spelling():
     doc = (pathlib.Path(__file__).parents[2] / "identify" / "FORMAT.md").read_text()
     missing = [k for k in [*units.UNITS, *units.ALIASES] if f"`[{k}]`" not in doc and f"`{k}`" not in doc]
     assert not missing, missing
+
+
+def test_write_log_is_read_back_bit_for_bit_and_never_overwrites(tmp_path):
+    """Review: users simulating logs had to write the CSV layout of FORMAT.md by hand.
+    Oracle: the CSV reader (`load_log`, its own unit table) gives back the same float64
+    values (the deg/mm scaling round-trips to within one rounding); an existing file is
+    refused, named, and left as it was."""
+    import identify
+
+    t = np.linspace(0.0, 0.5, 51)
+    log = identify.LogData(
+        t=t,
+        outputs={"theta1": 0.3 * np.sin(7 * t), "tip1": 1e-3 * np.cos(11 * t)},
+        torque=np.stack([0.1 * t, -0.2 * t], axis=1),
+        name="synthetic",
+    )
+    path = identify.write_log(
+        log, tmp_path / "a.csv", units={"theta1": "deg", "tip1": "mm"}, comments=["made by the test"]
+    )
+    text = path.read_text().splitlines()
+    assert text[0] == "# made by the test" and text[1] == "time [s],theta1 [deg],tip1 [mm],torque1 [N m],torque2 [N m]"
+    back = load_log(path)
+    np.testing.assert_array_equal(back.t, t)
+    np.testing.assert_allclose(back.outputs["theta1"], log.outputs["theta1"], rtol=4e-16, atol=1e-17)
+    np.testing.assert_allclose(back.outputs["tip1"], log.outputs["tip1"], rtol=4e-16, atol=1e-20)
+    np.testing.assert_array_equal(back.inputs["torque2"], -0.2 * t)
+    with pytest.raises(FileExistsError, match=r"a\.csv: exists; not overwritten"):
+        identify.write_log(log, path)
+    assert path.read_text().splitlines() == text
+    identify.write_log(log, path, overwrite=True)  # SI this time
+    assert path.read_text().splitlines()[0].startswith("time [s],theta1 [rad],tip1 [m]")
+    with pytest.raises(ValueError, match=r"units\['tip1'\] = 'deg': expected a length unit, e.g. 'mm'"):
+        identify.write_log(log, tmp_path / "b.csv", units={"tip1": "deg"})
+    with pytest.raises(ValueError, match=r"units for \['tip2'\]"):
+        identify.write_log(log, tmp_path / "b.csv", units={"tip2": "mm"})
+    assert not (tmp_path / "b.csv").exists()
