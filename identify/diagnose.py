@@ -498,6 +498,8 @@ class Score:
     intervals: dict = dataclasses.field(default_factory=dict)
     # two entries fitted together (the pair search): their labels; else empty
     members: tuple = ()
+    # the standard error of `held_out_gain` from the held-out samples (`gain_standard_error`)
+    held_out_gain_se: float = float("nan")
 
     @property
     def label(self) -> str:
@@ -519,6 +521,11 @@ class Cause:
     together_with: list = dataclasses.field(default_factory=list)
     # fitted values outside what the component plausibly does (`catalogue.implausible`)
     warnings: list = dataclasses.field(default_factory=list)
+    held_out_gain_se: float = float("nan")  # `Score.held_out_gain_se`
+
+    def marginal(self, min_gain: float) -> bool:
+        """Whether the held-out gain is within two standard errors of the bar it passed."""
+        return bool(np.isfinite(self.held_out_gain_se) and self.held_out_gain - min_gain < 2 * self.held_out_gain_se)
 
 
 #: what `Diagnosis.detection_limits` are, as the summary and the report say it
@@ -579,6 +586,16 @@ class Diagnosis:
     # (`detection_limits`): label -> {parameter: {"value", "criterion", "unit", "neutral"}},
     # "value" the offset from the neutral value (inf: not seen to first order)
     detection_limits: dict = dataclasses.field(default_factory=dict)
+    # the held-out gain a cause had to reach (`diagnose_logs`' `min_gain`)
+    min_gain: float = 1.1
+
+    def marginal_text(self, c) -> str:
+        """What a cause's marginal held-out gain (`Cause.marginal`) means."""
+        return (
+            f"its held-out gain {c.held_out_gain:.4f}x is within two standard errors ({c.held_out_gain_se:.2g} "
+            f"each) of the {self.min_gain:g}x bar it passed: as likely a chance pass as an effect; confirm it on "
+            "more held-out data (or a noisy input column may be what it fits)"
+        )
 
     @property
     def named(self) -> list[str]:
@@ -651,6 +668,7 @@ class Diagnosis:
                 lines.append(
                     f"  {c.name} at {c.where} ({c.description}): dBIC {c.delta_bic:.1f}, "
                     f"held-out gain {c.held_out_gain:.2f}x"
+                    + (f" (SE {c.held_out_gain_se:.2g})" if np.isfinite(c.held_out_gain_se) else "")
                     + (f" (together with {', '.join(c.together_with)}: the pair's scores)" if c.together_with else "")
                 )
                 for n, p in c.parameters.items():
@@ -661,6 +679,8 @@ class Diagnosis:
                     )
                 for w in c.warnings:
                     lines.append(f"    IMPLAUSIBLE: {w}")
+                if c.marginal(self.min_gain):
+                    lines.append(f"    MARGINAL: {self.marginal_text(c)}")
         else:
             lines.append("no catalogue entry explains the residual significantly (see the evidence and the scores)")
         for line in self.at_bound_lines():
@@ -1153,6 +1173,7 @@ def diagnose_logs(
                         bool(dbic < -bic_threshold and gain >= min_gain),
                         k,
                         members=tuple(m.label for m in c.members),
+                        held_out_gain_se=gain_standard_error(np.asarray(current["ho"]), np.asarray(r_ho)),
                     )
                 )
         for c in screened_out:
@@ -1442,6 +1463,7 @@ def diagnose_logs(
                 params,
                 sc.delta_bic,
                 sc.held_out_gain,
+                held_out_gain_se=sc.held_out_gain_se,
                 together_with=list(info.get("with", [])),
                 warnings=cat.implausible(
                     wc.name,
@@ -1529,6 +1551,7 @@ def diagnose_logs(
             for lab, per in limits.items()
         }
     diag = Diagnosis(
+        min_gain=min_gain,
         split=split,
         baseline=base,
         evidence=evidence,
@@ -2054,6 +2077,29 @@ class _StructuralFits:
         return _structural_score(self, c, current, rms_cur)
 
 
+def gain_standard_error(r_base, r_ext) -> float:
+    """The standard error of a held-out gain `sqrt(mean(r_base^2) / mean(r_ext^2))` from
+    its paired samples (the same held-out samples under the two models; NaN if they do not
+    pair up). Delta method: `log gain^2 = log mean(a) - log mean(b)` (`a = r_base^2`,
+    `b = r_ext^2`) has variance `var(a / mean(a) - b / mean(b)) / n_eff`, with `n_eff = n
+    (1 - rho) / (1 + rho)` for a lag-1 autocorrelation `rho >= 0` of that difference (a
+    residual correlated in time holds fewer independent samples). Review: a false cause
+    passed the 1.1x bar at 1.1002x on ~1,000 held-out samples, well within the gain's own
+    scatter (the summary now marks such a cause as marginal)."""
+    a, b = np.square(np.asarray(r_base, float)), np.square(np.asarray(r_ext, float))
+    if a.shape != b.shape or a.size < 10 or not (a.mean() > 0 and b.mean() > 0):
+        return float("nan")
+    d = a / a.mean() - b / b.mean()
+    dc = d - d.mean()
+    var = float(np.mean(dc**2))
+    if var == 0.0:
+        return 0.0
+    rho = min(max(float(np.mean(dc[1:] * dc[:-1])) / var, 0.0), 0.99)
+    n_eff = d.size * (1.0 - rho) / (1.0 + rho)
+    gain = math.sqrt(a.mean() / b.mean())
+    return 0.5 * gain * math.sqrt(var / n_eff)
+
+
 def round_verdicts(scores) -> dict:
     """Label -> `"named"` for a round's first accepted candidate (the one the search
     names), `"passes, not named (the named one is better)"` for the others that pass both
@@ -2207,6 +2253,7 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
         bool(dbic < -bic_threshold and gain >= min_gain),
         k,
         intervals=intervals,
+        held_out_gain_se=gain_standard_error(np.asarray(current["ho"]), r_ho[used]),
     )
     fitted_params = [dataclasses.replace(p, guess=float(res.value[p.name])) for p in params]
     model = {

@@ -5,6 +5,7 @@ residuals, residual spectra with the model's modes, decay envelopes, candidate s
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import matplotlib
@@ -166,6 +167,7 @@ def markdown(diag, title: str = "") -> str:
             lines.append(
                 f"- **{c.name}** at `{c.where}`: {c.description} (dBIC {c.delta_bic:.1f}, held-out RMS gain "
                 f"{c.held_out_gain:.2f}x"
+                + (f", SE {c.held_out_gain_se:.2g}" if math.isfinite(c.held_out_gain_se) else "")
                 + (
                     f"; accepted together with {', '.join(f'`{w}`' for w in c.together_with)}, neither passing "
                     "alone: the scores are the pair's)"
@@ -180,6 +182,8 @@ def markdown(diag, title: str = "") -> str:
                 )
             for w in c.warnings:
                 lines.append(f"  - **Implausible:** {w}")
+            if c.marginal(diag.min_gain):
+                lines.append(f"  - **Marginal:** {diag.marginal_text(c)}")
     else:
         lines.append("## No cause named")
         lines.append("")
