@@ -10,6 +10,8 @@ eigenvalues of `A`.
 
 from __future__ import annotations
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -177,11 +179,34 @@ def modal_analysis(chain: Chain | AssembledChain, Q0=None) -> Modes:
         "from the mode shapes, M, K and the eigenproblem in float32",
         stacklevel=3,
     )
-    return _modal_analysis(chain, Q0)
+    modes, force, K = _modal_analysis(chain, Q0)
+    if not isinstance(force, jax.core.Tracer):
+        _warn_if_not_at_rest(modes.names, np.asarray(force), np.asarray(K))
+    return modes
+
+
+def _warn_if_not_at_rest(names, force: np.ndarray, K: np.ndarray) -> None:
+    """Warn when the generalised force at rest `force` (gravity, springs, bending) is not
+    zero to within `sqrt(eps)` of the stiffness `K` times a unit displacement: `Q0` is not
+    an equilibrium (review: a pendulum under gravity analysed horizontal gave `[0.]`, which
+    reads as a free rotation; the docstring said Q0 "should be an equilibrium", nothing
+    checked it)."""
+    tol = np.sqrt(np.finfo(force.dtype).eps) * float(np.max(np.abs(K), initial=0.0))
+    worst = int(np.argmax(np.abs(force)))
+    if abs(float(force[worst])) > tol:
+        warnings.warn(
+            f"modal_analysis: Q0 is not an equilibrium at rest: the generalised force there is "
+            f"{float(force[worst]):.3g} on {names[worst]} (gravity on a link not hanging, a bent link under no "
+            "load, ...), so the frequencies are those of a linearisation about a point the system accelerates "
+            "away from; pass the rest configuration (under gravity (0, -g) a pendulum hangs at theta1 = -pi/2), "
+            "or use linearize(chain, y0) about a steady motion",
+            stacklevel=3,
+        )
 
 
 @eqx.filter_jit
-def _modal_analysis(chain: Chain | AssembledChain, Q0) -> Modes:
+def _modal_analysis(chain: Chain | AssembledChain, Q0) -> tuple[Modes, jax.Array, jax.Array]:
+    """The modes, the generalised force at rest at `Q0` and the stiffness `K` there."""
     asm = assemble(chain)
     n = asm.layout.n_dof
     Q0 = jnp.zeros(n) if Q0 is None else jnp.asarray(Q0, dtype=float)
@@ -191,7 +216,9 @@ def _modal_analysis(chain: Chain | AssembledChain, Q0) -> Modes:
             f"(not the state [Q, Q_dot]: pass y0[:{n}]), got {Q0.shape}"
         )
     M = mass_matrix(asm, Q0)
-    K = stiffness_matrix(asm, Q0)
+    forces = lambda Q: generalised_forces(asm, Q, jnp.zeros(n), jnp.zeros(len(asm.layout.actuated)))  # noqa: E731
+    force, jvp = jax.linearize(forces, Q0)
+    K = -jax.vmap(jvp)(jnp.eye(n)).T  # stiffness_matrix's -dF/dQ, with F itself
     K = 0.5 * (K + K.T)
     L = jnp.linalg.cholesky(M)
     Linv = jax.scipy.linalg.solve_triangular(L, jnp.eye(n), lower=True)
@@ -204,7 +231,7 @@ def _modal_analysis(chain: Chain | AssembledChain, Q0) -> Modes:
     # (an unstable mode) gives a negative frequency (`Modes`)
     root = jnp.sqrt(jnp.where(nonzero, jnp.abs(w2), 1.0))
     natural = jnp.where(nonzero, jnp.sign(w2) * root, 0.0) / (2 * jnp.pi)
-    return Modes(natural, Linv.T @ V, asm.layout.names)
+    return Modes(natural, Linv.T @ V, asm.layout.names), force, K
 
 
 #: `damped_modes`: eigenvalues below this many `sqrt(eps) max|lambda|` count as zero

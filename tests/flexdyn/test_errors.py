@@ -500,3 +500,20 @@ def test_an_absent_optional_term_is_named_and_can_be_added():
     np.testing.assert_array_equal(np.asarray(neutral), np.asarray(plain))
     dry = fd.simulate(fd.with_parameters(added, {"joint1.coulomb": 1e-3}), y0, ts, dt=1e-3).Q[:, 0]
     assert float(jnp.max(jnp.abs(dry - plain))) > 1e-4
+
+
+def test_modal_analysis_away_from_an_equilibrium_is_warned_about():
+    """Physics review: a pendulum under gravity analysed horizontal gave `[0.]` (its
+    gravity stiffness vanishes there), read as a free rotation. The holding torque there is
+    m g c (closed form, named in the warning); hanging, nothing is said (warnings are errors
+    in this suite)."""
+    chain = fd.rigs.rigid_pendulum()
+    with pytest.warns(
+        UserWarning, match=r"Q0 is not an equilibrium at rest: the generalised force there is (\S+) on theta1"
+    ):
+        fd.modal_analysis(chain, jnp.array([0.0]))
+    hold = float(fd.inverse_dynamics(chain, jnp.array([0.0]), jnp.zeros(1), jnp.zeros(1))[0])  # m g c
+    assert abs(hold) > 0.1
+    with pytest.warns(UserWarning, match=f"{-hold:.3g} on theta1"):
+        fd.modal_analysis(chain, jnp.array([0.0]))
+    fd.modal_analysis(chain, jnp.array([-jnp.pi / 2]))
