@@ -505,8 +505,9 @@ def test_an_absent_optional_term_is_named_and_can_be_added():
 def test_modal_analysis_away_from_an_equilibrium_is_warned_about():
     """Physics review: a pendulum under gravity analysed horizontal gave `[0.]` (its
     gravity stiffness vanishes there), read as a free rotation. The holding torque there is
-    m g c (closed form, named in the warning); hanging, nothing is said (warnings are errors
-    in this suite)."""
+    m g c (closed form, named in the warning); hanging, or a milliradian off, nothing is
+    said (warnings are errors in this suite); 0.1 rad off, the first-order distance to the
+    rest is named."""
     chain = fd.rigs.rigid_pendulum()
     with pytest.warns(
         UserWarning, match=r"Q0 is not an equilibrium at rest: the generalised force there is (\S+) on theta1"
@@ -517,3 +518,7 @@ def test_modal_analysis_away_from_an_equilibrium_is_warned_about():
     with pytest.warns(UserWarning, match=f"{-hold:.3g} on theta1"):
         fd.modal_analysis(chain, jnp.array([0.0]))
     fd.modal_analysis(chain, jnp.array([-jnp.pi / 2]))
+    fd.modal_analysis(chain, jnp.array([-jnp.pi / 2 + 1e-3]))  # (a simulation's end, still swinging)
+    # 0.1 rad off hanging: the rest is -0.1 rad away to first order (tan(0.1) = 0.1003)
+    with pytest.warns(UserWarning, match=r"whose rest, to first order, is -5\.7\d deg away in theta1"):
+        fd.modal_analysis(chain, jnp.array([-jnp.pi / 2 + 0.1]))
