@@ -137,6 +137,29 @@ class LogData:
     offsets: tuple = ()
     name: str = "log"
 
+    @classmethod
+    def from_log(cls, log, n_joints: int, **entries) -> LogData:
+        """The `LogData` of a loaded log (`identify.load_log`'s `Log`): times from its first
+        sample, its output channels, its `torque<j>` columns as the torque of joint j (0
+        for a joint without one; None when it has none), `entries` (`initial`,
+        `fit_initial`, `offsets`, `name`) passed on. Review: users of `load_log` had to
+        write this conversion themselves."""
+        torque = None
+        if log.inputs:
+            torque = np.zeros((len(log.t_relative), n_joints))
+            for c, values in log.inputs.items():
+                j = int(c.removeprefix("torque"))
+                if not 1 <= j <= n_joints:
+                    raise ValueError(f"LogData.from_log: log {log.name!r} has {c}, the rig {n_joints} joint(s)")
+                torque[:, j - 1] = values
+        entries.setdefault("name", log.name)
+        return cls(
+            t=np.asarray(log.t_relative, float),
+            outputs={c: np.asarray(v, float) for c, v in log.outputs.items()},
+            torque=torque,
+            **entries,
+        )
+
 
 class _LogLabels:
     """The logs' names, carried as static data that compares equal whenever the number of
@@ -198,6 +221,13 @@ def _check_log_data(log: LogData) -> None:
     a NaN in an output read "SVD did not converge", a NaN in the torque "check guesses
     and bounds", arrays of the wrong length numpy's reshape errors), naming the log, the
     channel and the first bad sample."""
+    if not isinstance(log, LogData):
+        hint = (
+            ": convert it with identify.LogData.from_log(log, n_joints, fit_initial=..., ...)"
+            if hasattr(log, "t_relative")
+            else ""
+        )
+        raise TypeError(f"make_problem: expected identify.LogData entries, got {type(log).__name__}{hint}")
     where = f"log {log.name!r}"
     t = np.asarray(log.t, dtype=float)
     if t.ndim != 1 or t.size < 2:

@@ -537,3 +537,25 @@ def test_write_log_is_read_back_bit_for_bit_and_never_overwrites(tmp_path):
     with pytest.raises(ValueError, match=r"units for \['tip2'\]"):
         identify.write_log(log, tmp_path / "b.csv", units={"tip2": "mm"})
     assert not (tmp_path / "b.csv").exists()
+
+
+def test_a_loaded_log_converts_to_log_data(tmp_path):
+    """Review: passing `load_log`'s `Log` to `make_problem` raised a bare AttributeError
+    and the conversion was left to the user. `LogData.from_log` does it; `make_problem`
+    names it. Oracle: the values written (`write_log`) come back, torque per joint."""
+    import identify
+
+    t = np.linspace(1.0, 1.5, 51)  # a clock that does not start at 0
+    src = identify.LogData(t=t, outputs={"theta1": np.sin(t)}, torque=np.stack([t, -t], axis=1), name="x")
+    log = load_log(identify.write_log(src, tmp_path / "run.csv"))
+    data = identify.LogData.from_log(log, 2, fit_initial=("theta1",))
+    np.testing.assert_allclose(data.t, t - t[0], atol=1e-15)
+    np.testing.assert_array_equal(data.torque, np.stack([t, -t], axis=1))
+    assert (data.name, data.fit_initial) == ("run", ("theta1",))
+    with pytest.raises(ValueError, match="has torque2, the rig 1 joint"):
+        identify.LogData.from_log(log, 1)
+    import flexdyn as fd
+
+    params = [identify.Parameter("joint1.damping", 1e-3)]
+    with pytest.raises(TypeError, match=r"got Log: convert it with identify.LogData.from_log"):
+        identify.make_problem(fd.rigs.rigid_pendulum(), params, [log], {"theta1": 1e-3})
