@@ -731,6 +731,10 @@ def _jacobian_blocks(problem: Problem, x, y0_free, offset_free, sigma, step):
 #: drag and dry friction, 46x)
 GROSS_MISFIT = 300.0
 
+#: `FitResult.summary`: a channel weighted by a noise level this many times off its
+#: noise floor (either way) is named as a possible cause of its poor fit
+WEIGHT_MISMATCH = 3.0
+
 
 @dataclasses.dataclass
 class FitResult:
@@ -793,6 +797,25 @@ class FitResult:
         their model-free noise floor: a wrong basin or a missing effect."""
         return [c for c, q in self.fit_quality.items() if q["poor"]]
 
+    def _weight_hint(self, c: str, q: dict) -> str:
+        """For a poorly fitted channel of a fit with several channels whose weight (the
+        noise level it assumed) is over `WEIGHT_MISMATCH` times off its noise floor: the
+        weights as a cause (review: `fit_independent` on make_problem's default weights, 1 %
+        of each channel's RMS, left every log 5-9x its floor and blamed the model; with the
+        noise declared, all at the floor)."""
+        used, floor = self.sigma.get(c), q["noise_floor"]
+        if len(self.sigma) < 2 or not used or not floor > 0:
+            return ""
+        ratio = used / floor
+        if 1 / WEIGHT_MISMATCH <= ratio <= WEIGHT_MISMATCH:
+            return ""
+        scale, unit = display_unit(c)
+        return (
+            f"; its weight assumed a noise of {scale * used:.3g} {unit}, {ratio:.3g} times its floor: with several "
+            "channels, weights this far off let the others pull the fit (declare each channel's noise, or let fit "
+            "re-estimate it)"
+        )
+
     def summary(self) -> str:
         """The parameter table (value, standard error, 95 % interval assuming white residuals,
         guess, change, unit), cost and convergence, goodness of fit against the noise floor,
@@ -846,6 +869,7 @@ class FitResult:
                     if q["ratio"] > GROSS_MISFIT
                     else ""
                 )
+                + self._weight_hint(c, q)
             )
         for c, corr in self.reversed_channels.items():
             lines.append(

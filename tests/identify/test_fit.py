@@ -1135,3 +1135,16 @@ def test_the_noise_is_re_estimated_until_it_agrees_with_the_residuals():
         assert res.sigma[c] == pytest.approx(s, rel=0.1), (c, res.sigma, said)
     assert sum("noise re-estimated:" in m for m in said) >= 2 and any("within 10 %" in m for m in said), said
     assert res.value["link1.EI"] == pytest.approx(EI, rel=0.01)
+
+
+def test_a_poor_channel_weighted_far_off_its_floor_names_the_weights():
+    """Review: fit_independent on make_problem's default weights (1 % of each channel's
+    RMS) left every log 5-9x its floor and the summary blamed the basin or the model."""
+    import types
+
+    hint = identify.FitResult._weight_hint
+    two = types.SimpleNamespace(sigma={"theta1": math.radians(0.9), "tip1": 3e-6})
+    text = hint(two, "theta1", {"noise_floor": math.radians(0.05)})
+    assert "its weight assumed a noise of 0.9 deg, 18 times its floor" in text and "declare" in text
+    assert hint(two, "theta1", {"noise_floor": math.radians(0.5)}) == ""  # within 3x
+    assert hint(types.SimpleNamespace(sigma={"theta1": 1.0}), "theta1", {"noise_floor": 0.01}) == ""  # one channel
