@@ -129,14 +129,8 @@ class LogSpec:
         return out
 
     def torque(self, n_joints: int) -> np.ndarray | None:
-        """Applied torques, shape (T, n_joints), N m; joints without a torque column get 0.
-        None if the log has no torque at all."""
-        if not self.log.inputs:
-            return None
-        out = np.zeros((len(self.log), n_joints))
-        for name, values in self.log.inputs.items():
-            out[:, u.channel_kind_index(name)[1] - 1] = values
-        return out
+        """Applied torques, shape (T, n_joints), N m (`Log.torque`)."""
+        return self.log.torque(n_joints)
 
 
 def _looks_like_torque(header: str) -> bool:

@@ -144,14 +144,10 @@ class LogData:
         for a joint without one; None when it has none), `entries` (`initial`,
         `fit_initial`, `offsets`, `name`) passed on. Review: users of `load_log` had to
         write this conversion themselves."""
-        torque = None
-        if log.inputs:
-            torque = np.zeros((len(log.t_relative), n_joints))
-            for c, values in log.inputs.items():
-                j = int(c.removeprefix("torque"))
-                if not 1 <= j <= n_joints:
-                    raise ValueError(f"LogData.from_log: log {log.name!r} has {c}, the rig {n_joints} joint(s)")
-                torque[:, j - 1] = values
+        try:
+            torque = log.torque(n_joints)
+        except ValueError as e:
+            raise ValueError(f"LogData.from_log: {e}") from None
         entries.setdefault("name", log.name)
         return cls(
             t=np.asarray(log.t_relative, float),

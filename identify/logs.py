@@ -136,6 +136,22 @@ class Log:
     def __len__(self) -> int:
         return self.t.shape[0]
 
+    def torque(self, n_joints: int) -> np.ndarray | None:
+        """Applied torques, shape (T, n_joints), N m: column j-1 is `torque<j>`, 0 for a joint
+        without one (unpowered). None if the log has no torque column at all."""
+        if not self.inputs:
+            return None
+        out = np.zeros((len(self), n_joints))
+        for c, values in self.inputs.items():
+            j = int(c.removeprefix("torque"))
+            if not 1 <= j <= n_joints:
+                raise ValueError(
+                    f"log {self.name!r} has {c}, the rig {n_joints} joint(s) "
+                    f"(column {self.sources.get(c, c)!r} of {self.path})"
+                )
+            out[:, j - 1] = values
+        return out
+
     def summary(self) -> str:
         lines = [f"log {self.name!r} ({self.path}): {self.sampling}"]
         for ch in self.channels:

@@ -12,11 +12,9 @@ from .fit import FitResult, LogData, Parameter, Problem, fit, fitted_outputs, ma
 
 def log_data(spec: LogSpec, n_joints: int) -> LogData:
     """The `LogData` of one experiment log (times start at the log's first sample)."""
-    log = spec.log
-    return LogData(
-        t=np.asarray(log.t_relative, float),
-        outputs={c: np.asarray(v, float) for c, v in spec.outputs.items()},
-        torque=spec.torque(n_joints),
+    return LogData.from_log(
+        spec.log,
+        n_joints,
         initial=dict(spec.initial),
         fit_initial=tuple(spec.fit_initial),
         offsets=tuple(spec.offsets),
