@@ -244,7 +244,7 @@ def _check_log_data(log: LogData) -> None:
         warnings.warn(
             f"{where}: sampled at {rate:.3g} Hz over {t[-1] - t[0]:.4g} s, below any rig's log "
             f"({PLAUSIBLE_RATE_HZ[0]:g} Hz): are its times in milliseconds? (in seconds: t / 1000); a fit of it "
-            "can run for hours (review: one such log among 20 stalled the fit)",
+            "can run for hours",
             UserWarning,
             stacklevel=4,
         )
@@ -1617,14 +1617,20 @@ def fit_independent(
     first_damping: float = 1e-3,
     frequency_init: bool = True,
     restart_poor_fit: bool = True,
+    estimate_noise: Sequence[str] | bool = True,
     progress=None,
 ) -> list[FitResult]:
     """Independent fits of every log of `problem` (each log its own parameter values), all
     in one `vmap`ped call per stage: the batch runs in lockstep, each log with its own
     integration step. So every log must estimate the same `fit_initial` entries and
-    `offsets` (a `ValueError` names the first two logs that differ). The noise levels
-    are those of `problem` (not re-estimated); the first stage starts with the damping
-    `first_damping` (as in `fit` with one start).
+    `offsets` (a `ValueError` names the first two logs that differ). The first stage
+    starts with the damping `first_damping` (as in `fit` with one start).
+    `estimate_noise`: as in `fit`, but each log's own noise levels of these channels (True:
+    all) are re-estimated from its residuals and refitted, the whole batch at the full
+    horizon, until every log's agree within `NOISE_AGREEMENT` (at most `NOISE_ROUNDS`
+    passes); the other channels keep `problem`'s levels. Each result's `sigma` is its
+    log's. Review: with make_problem's default weights (1 % of each channel's RMS) and the
+    weights not re-estimated (as before), every log was fitted 5-9x above its noise floor.
     `frequency_init`: each log's free `link<i>.EI` guess from its own flexural spectrum,
     as in `fit` (`identify.frequency_init`), all logs' simulations batched.
     `restart_poor_fit`: when some logs end with a channel above
@@ -1661,8 +1667,12 @@ def fit_independent(
     from flexdyn import batch as fbatch
 
     mesh = fbatch.batch_mesh()
-    (stacked, z), _ = fbatch.shard_batch((stacked, z), mesh)
-    sigma = problem.sigma
+    sigma0 = jnp.tile(jnp.asarray(problem.sigma), (L, 1))  # each log its own noise levels
+    (stacked, z, sigma0), _ = fbatch.shard_batch((stacked, z, sigma0), mesh)
+    if estimate_noise is True:
+        estimate_noise = problem.channels
+    estimated = [j for j, c in enumerate(problem.channels) if c in (estimate_noise or ())]
+    rounds = NOISE_ROUNDS if estimated else 1
     horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
     _say_onsets(problem, horizons, say)
     # The stage-step simulations run each device's share on its own
@@ -1673,50 +1683,66 @@ def fit_independent(
     # warnings of its own remain): lineax's linear solve fails its structure check inside
     # `shard_map` (jax 0.10; lineax issue #185, "pytree does not match out_structure").
     grid = fbatch.sharded_vmap(_grid_step, (0, 0, None, None), mesh)
-    solve = eqx.filter_vmap(_solve, in_axes=(0, 0, None, None, 0, None, None, None, None, None))
+    solve = eqx.filter_vmap(_solve, in_axes=(0, 0, 0, None, 0, None, None, None, None, None))
     if frequency_init:
         z = _frequency_initialise_independent(problem, singles, stacked, z, x0, grid, grid_safety, say)
 
-    def grow(z, label=""):
-        """The growing horizon for the whole batch from `z`: the last stage's `z`, steps,
-        linearisation (on the host) and every log's stage records."""
+    def grow(z, sigma, label=""):
+        """The growing horizon for the whole batch from `z` with noise levels `sigma`
+        `(L', C)`, then the noise re-estimation rounds at the full horizon: the last
+        stage's `z`, noise levels, steps, linearisation (on the host) and every log's stage
+        records."""
         stages = [[] for _ in range(L)]
-        for k_stage, h in enumerate(horizons):
-            step, ok, _ = grid(stacked, z, jnp.asarray(h), grid_safety)
-            if not bool(jnp.all(ok)):
-                failed = [singles[k].log_names[0] for k in range(L) if not bool(ok[k])]
-                raise RuntimeError(
-                    f"fit_independent: the simulation of log(s) {failed} at their current parameters failed "
-                    f"(stage {k_stage + 1}, horizon {float(h):g} s)"
+        for rnd in range(rounds):
+            for k_stage, h in enumerate(horizons if rnd == 0 else horizons[-1:]):
+                step, ok, _ = grid(stacked, z, jnp.asarray(h), grid_safety)
+                if not bool(jnp.all(ok)):
+                    failed = [singles[k].log_names[0] for k in range(L) if not bool(ok[k])]
+                    raise RuntimeError(
+                        f"fit_independent: the simulation of log(s) {failed} at their current parameters failed "
+                        f"(stage {k_stage + 1}, horizon {float(h):g} s)"
+                    )
+                # each log's step aligned with its torque samples (`aligned_step`); padding
+                # entries repeat the last log
+                step = jnp.asarray(
+                    [float(aligned_step(singles[min(k, L - 1)], step[k])) for k in range(step.shape[0])],
+                    dtype=step.dtype,
                 )
-            # each log's step aligned with its torque samples (`aligned_step`); padding
-            # entries repeat the last log
-            step = jnp.asarray(
-                [float(aligned_step(singles[min(k, L - 1)], step[k])) for k in range(step.shape[0])], dtype=step.dtype
-            )
-            tau = jnp.asarray(first_damping if k_stage == 0 else 0.0, dtype=float)
-            z, result, steps, cost, lin = solve(
-                stacked, z, sigma, jnp.asarray(h), step, max_steps, tau, max_steps, rtol, atol
-            )
-            for k in range(L):
-                stages[k].append(
-                    {
-                        "horizon_s": float(h),
-                        "iterations": int(steps[k]),
-                        "cost": float(cost[k]),
-                        "result": _result_name(jax.tree_util.tree_map(lambda a: a[k], result)),
-                    }
+                tau = jnp.asarray(first_damping if rnd == 0 and k_stage == 0 else 0.0, dtype=float)
+                z, result, steps, cost, lin = solve(
+                    stacked, z, sigma, jnp.asarray(h), step, max_steps, tau, max_steps, rtol, atol
                 )
-            say(f"  {label}horizon {h:8.3f} s: {int(jnp.max(steps)):3d} iterations (slowest of {L} logs)")
-        return z, step, [np.asarray(a) for a in lin], stages  # lin: one host transfer, not one per log
+                for k in range(L):
+                    stages[k].append(
+                        {
+                            "horizon_s": float(h),
+                            "iterations": int(steps[k]),
+                            "cost": float(cost[k]),
+                            "result": _result_name(jax.tree_util.tree_map(lambda a: a[k], result)),
+                        }
+                    )
+                say(f"  {label}horizon {h:8.3f} s: {int(jnp.max(steps)):3d} iterations (slowest of {L} logs)")
+            lin = [np.asarray(a) for a in lin]  # one host transfer, not one per log
+            if rnd + 1 < rounds:
+                new = _reestimate_sigma_per_log(quality(z, sigma, step, lin), sigma, estimated)
+                change = float(np.max(np.abs(np.log(new[:L] / np.asarray(sigma)[:L]))))
+                if rnd > 0 and change < math.log1p(NOISE_AGREEMENT):
+                    say(
+                        f"  {label}noise re-estimated again: every log's within {100 * NOISE_AGREEMENT:g} % "
+                        "of its weights"
+                    )
+                    break
+                sigma = jax.device_put(jnp.asarray(new), sigma.sharding)
+                say(f"  {label}noise re-estimated per log: " + _noise_range_text(problem.channels, new[:L], estimated))
+        return z, sigma, step, lin, stages
 
-    def quality(z, step, lin):
+    def quality(z, sigma, step, lin):
         """Each log's `_residual_ms` at `z` (every sample: the last stage's horizon)."""
         return [
             _residual_ms(
                 singles[k],
                 {key: v[k] for key, v in z.items()},
-                sigma,
+                sigma[k],
                 step[k],
                 (tuple(a[k] for a in lin), horizons[-1]),
             )
@@ -1724,8 +1750,8 @@ def fit_independent(
         ]
 
     z_start = z
-    z, step, lin, stages = grow(z)
-    ms = quality(z, step, lin)
+    z, sigma, step, lin, stages = grow(z, sigma0)
+    ms = quality(z, sigma, step, lin)
     floors = [_floors(q) for q in singles]
     scores = np.asarray([nf.score(ms[k], *floors[k]) for k in range(L)])
     poor = [k for k in range(L) if any(q["poor"] for q in nf.goodness(problem.channels, ms[k], *floors[k]).values())]
@@ -1747,8 +1773,13 @@ def fit_independent(
         off = np.asarray(z["offset"]).copy()
         off[poor] = np.asarray(z_start["offset"])[poor]
         z2 = {key: jax.device_put(v, z[key].sharding) for key, v in (("phys", phys), ("y0", y0), ("offset", off))}
-        z2, step2, lin2, stages2 = grow(z2, "again: ")
-        ms2 = quality(z2, step2, lin2)
+        # the poor logs start again from the problem's noise levels too (their re-estimated
+        # ones are their poor residuals')
+        redo = np.zeros(sigma.shape[0], bool)
+        redo[poor] = True
+        sigma_start = jax.device_put(jnp.where(jnp.asarray(redo)[:, None], sigma0, sigma), sigma.sharding)
+        z2, sigma2, step2, lin2, stages2 = grow(z2, sigma_start, "again: ")
+        ms2 = quality(z2, sigma2, step2, lin2)
         better = [k for k in poor if nf.score(ms2[k], *floors[k]) < scores[k]]
         say(f"  kept the new fit of {len(better)} of {len(poor)} log(s)")
         if better:
@@ -1761,6 +1792,7 @@ def fit_independent(
                 for key, v in z.items()
             }
             step = jnp.where(jnp.asarray(pick), step2, step)
+            sigma = jnp.where(jnp.asarray(pick)[:, None], sigma2, sigma)
             lin = [np.where(pick.reshape(-1, *[1] * (a.ndim - 1)), a2, a) for a, a2 in zip(lin, lin2)]
             for k in better:
                 stages[k], ms[k] = stages[k] + stages2[k], ms2[k]
@@ -1774,7 +1806,7 @@ def fit_independent(
                     singles[k],
                     x[k],
                     {key: v[k] for key, v in z.items()},
-                    sigma,
+                    sigma[k],
                     step[k],
                     tuple(a[k] for a in lin),
                     horizons[-1],
@@ -1794,7 +1826,7 @@ def fit_independent(
             parameters,
             {key: v[k] for key, v in z.items()},
             x[k],
-            sigma,
+            sigma[k],
             step[k],
             cov_blocks[k][0],
             stages[k],
@@ -2044,6 +2076,32 @@ def _noise_text(channels, sigma, estimated) -> str:
 NOISE_ROUNDS = 4
 #: ... and it stops when every re-estimated level is within this fraction of the one used
 NOISE_AGREEMENT = 0.1
+
+
+def _reestimate_sigma_per_log(ms, sigma, estimated) -> np.ndarray:
+    """`fit_independent`'s noise levels `(L', C)` with those of channel indices `estimated`
+    replaced, for each of the `len(ms)` logs, by the RMS of its residuals (`ms[k]`, its
+    `_residual_ms` `(1, C)`; a channel a log does not record keeps its level). Padding rows
+    (`flexdyn.batch`) repeat the last log's."""
+    new = np.array(sigma, float)
+    L = len(ms)
+    for k in range(L):
+        for j in estimated:
+            if ms[k][0, j] > 0:
+                new[k, j] = max(math.sqrt(float(ms[k][0, j])), 1e-12)
+    new[L:] = new[L - 1]
+    return new
+
+
+def _noise_range_text(channels, sigma, estimated) -> str:
+    """`theta1 0.0497-0.0521 deg`: each re-estimated channel's range over the logs `sigma`
+    `(L, C)`, in display units."""
+    parts = []
+    for j in estimated:
+        scale, unit = display_unit(channels[j])
+        lo, hi = float(np.min(sigma[:, j])) * scale, float(np.max(sigma[:, j])) * scale
+        parts.append(f"{channels[j]} {lo:.3g}{'' if f'{lo:.3g}' == f'{hi:.3g}' else f'-{hi:.3g}'} {unit}")
+    return ", ".join(parts)
 
 
 def _reestimate_sigma(problem: Problem, z, sigma, channels, step):

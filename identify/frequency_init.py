@@ -59,23 +59,40 @@ link deflects more), where the fit would go too; with the gain free, at the trut
 
 The spectrum cannot always tell: when the best match is less than `MIN_GAIN` above
 the guess's (a record with no flexural motion, a drive whose response hardly depends on
-EI), the guess is kept. The links are initialised one at a time, each with the others'
-current values. A tip channel that records only noise (1 % of the true deflection's RMS)
-matched a 4 to 16 times stiffer link than the guess (8 trials, shape alone): the flattest
-simulated spectra; the data then say that the link hardly deflects, as the fit itself
-would. The progress line warns when no EI tried reaches a shape similarity of `POOR_MATCH`.
+EI), the guess is kept. Nor when the gain is within what noise alone gives
+(`spurious_gain`: a parametric bootstrap, `ROUNDS` logs simulated from the model at the
+guess plus white noise at the channel's noise level or its model-free floor, whichever
+is larger, each matched against every EI tried). Measured on the doublet log with its
+tip noise 3x the deflection's RMS and EI guessed 3.5 % off: some factor always beats the
+guess by chance (x2.25, match 0.864 against 0.842), noise alone gives up to 0.028, and
+the guess is kept (before the bootstrap, EI went to 2.3x the truth). When the model's
+flexural frequency at the guess is over 4x the logs' Nyquist frequency, no bin of the
+band is recorded and nothing is simulated. The links are initialised one at a time, each
+with the others' current values.
+
+A tip channel that records only noise (1 % of the true deflection's RMS) matched a 4 to
+16 times stiffer link than the guess (8 trials, shape alone): the flattest simulated
+spectra; the data then say that the link hardly deflects, as the fit itself would. The
+progress line warns when no EI tried reaches `POOR_MATCH` times the shape similarity that
+model would reach on its own output plus the channel's noise (`spectral_match`'s
+`ceiling`: noise makes each bin's amplitude random, so a band where noise dominates
+tops out near `sqrt(pi) / 2 = 0.886` even with the true model; a fixed bar of 0.9 warned
+"no EI matches" on such logs, review: at 0.899 with EI 3.5 % off the truth).
 """
 
 from __future__ import annotations
 
 import re
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
+from scipy.special import i0e, i1e
 
 import flexdyn as fd
 
+from .noise_floor import channel_floors
 from .residuals import _chain
 
 #: EI factors tried around the guess (flexural frequency ~ sqrt(EI): 1/4 to 4 times the
@@ -86,11 +103,15 @@ FACTORS = 2.0 ** (np.arange(-8, 9) / 2)
 BAND = (0.25, 4.0)
 #: the best factor replaces the guess only if its match exceeds the guess's by this
 MIN_GAIN = 1e-3
-#: below this best shape similarity (cosine) of any EI tried, the progress line warns that
-#: no EI matches the spectrum well (measured: >= 0.99 on every synthetic log the model
-#: generated; 0.75-0.86 for a tip channel of noise only; 0.79 on the spinning-link example,
-#: whose model lacks geometric stiffening)
+#: below this fraction of the model's own expected shape similarity (`spectral_match`'s
+#: `ceiling`) at the best shape of any EI tried, the progress line warns that no EI matches
+#: the spectrum well (measured: >= 0.99 of it on every synthetic log the model generated;
+#: 0.75-0.86 for a tip channel of noise only; 0.79 on the spinning-link example, whose
+#: model lacks geometric stiffening: these two with ceilings near 1)
 POOR_MATCH = 0.9
+#: noise realisations of `spurious_gain`'s parametric bootstrap (the largest of 16: a
+#: spurious move from a right guess in ~1 in 17 logs where noise alone decides)
+ROUNDS = 16
 #: zero padding of the FFT (a finer frequency grid)
 PAD = 4
 #: the spectra compare at most this many flexural periods of the model at the guess from
@@ -116,41 +137,115 @@ def amplitude_spectrum(t, y) -> tuple[np.ndarray, np.ndarray, float]:
     return np.fft.rfftfreq(n, dt), np.abs(np.fft.rfft((y - y.mean()) * w, n)), float(w @ w)
 
 
-def spectral_match(problem, j: int, predicted, band: tuple[float, float], span: float = np.inf) -> tuple[float, float]:
+class Match(NamedTuple):
+    """`spectral_match`'s result (see there)."""
+
+    shape: float
+    level: float
+    ceiling: float
+    f_top: float
+
+
+def expected_amplitude(signal, noise_power):
+    """`E|s + n|` of a spectrum bin whose noise-free value has modulus `signal` and whose
+    noise `n` is circular complex Gaussian with `E|n|^2 = noise_power`: the mean of the Rice
+    distribution, `sqrt(pi N) / 2 * ((1 + 2z) I0e(z) + 2z I1e(z))`, `z = s^2 / (2N)`
+    (`I0e`, `I1e` the exponentially scaled modified Bessel functions); `sqrt(pi N) / 2` for
+    noise alone (the Rayleigh mean), `-> s` as `N -> 0`."""
+    signal = np.asarray(signal, float)
+    if noise_power <= 0:
+        return signal
+    z = signal**2 / (2.0 * noise_power)
+    return 0.5 * np.sqrt(np.pi * noise_power) * ((1.0 + 2.0 * z) * i0e(z) + 2.0 * z * i1e(z))
+
+
+class _Spectra:
+    """Amplitude spectra (`amplitude_spectrum`) of channel index `j` of one problem's logs
+    in `band` (Hz), each log from its onset up to `span` s after it: the measured one once,
+    any simulated series on demand (logs with fewer than 16 such samples are left out)."""
+
+    def __init__(self, problem, j: int, band: tuple[float, float], span: float = np.inf):
+        valid, present = np.asarray(problem.valid), np.asarray(problem.present)
+        self.parts, self.measured, self.noise_power = [], [], []
+        self.f_top = 0.0
+        sigma = float(problem.sigma[j])
+        for l in range(valid.shape[0]):
+            if not present[l, j]:
+                continue
+            t = np.asarray(problem.t[l])
+            keep = valid[l] & (t >= float(problem.onset[l])) & (t <= float(problem.onset[l]) + span)
+            if keep.sum() < 16:
+                continue
+            f, a, white = amplitude_spectrum(t[keep], np.asarray(problem.measured[l, :, j])[keep])
+            inside = (f >= band[0]) & (f <= band[1])
+            self.parts.append((l, t[keep], keep, inside))
+            self.measured.append(a[inside])
+            self.noise_power.append(sigma**2 * white)
+            self.f_top = max(self.f_top, min(band[1], float(f[-1])))
+
+    def amplitudes(self, series) -> list[np.ndarray]:
+        """`|FFT(w (y - mean))|` in the band of each log's series `y` (`series` `(L, T)`)."""
+        series = np.asarray(series)
+        return [amplitude_spectrum(t, series[l][keep])[1][inside] for l, t, keep, inside in self.parts]
+
+    def match(self, measured, signal) -> Match:
+        """`spectral_match` of measured amplitudes against noise-free simulated ones (both
+        from `amplitudes`, or `self.measured`)."""
+        dot = meas_sq = sim_sq = expected_dot = 0.0
+        for a_meas, a_signal, noise_power in zip(measured, signal, self.noise_power):
+            a_sim = np.sqrt(a_signal**2 + noise_power)
+            dot += float(a_meas @ a_sim)
+            meas_sq += float(a_meas @ a_meas)
+            sim_sq += float(a_sim @ a_sim)
+            expected_dot += float(expected_amplitude(a_signal, noise_power) @ a_sim)
+        if not (meas_sq > 0 and sim_sq > 0 and np.isfinite(dot)):
+            return Match(0.0, 0.0, 0.0, self.f_top)
+        return Match(dot / np.sqrt(meas_sq * sim_sq), 2.0 * dot / (meas_sq + sim_sq), expected_dot / sim_sq, self.f_top)
+
+
+def spectral_match(problem, j: int, predicted, band: tuple[float, float], span: float = np.inf) -> Match:
     """How well the amplitude spectrum expected from `predicted` `(L, T, C)` plus the
     channel's white noise (`problem.sigma[j]`: `A_sim = sqrt(|FFT(w y_sim)|^2 + sigma^2
     sum(w^2))`) matches the measured one `A_meas` of channel index `j`, in `band` (Hz), each
     log from its onset up to `span` s after it, the inner products summed over the logs
-    that record the channel. Returns `(shape, level)`:
+    that record the channel. Returns a `Match`:
 
     - `shape = <A_meas, A_sim> / (|A_meas| |A_sim|)`, the cosine similarity: blind to the
       spectrum's scale;
     - `level = 2 <A_meas, A_sim> / (|A_meas|^2 + |A_sim|^2) = shape * 2r / (1 + r^2)`,
       `r = |A_sim| / |A_meas|`: 1 only when shape and scale both match (a factor-2 error
-      in scale alone gives 0.8).
+      in scale alone gives 0.8);
+    - `ceiling = <E A, A_sim> / |A_sim|^2`: the shape similarity expected if the log were
+      this model's output plus the channel's noise (`E A` per bin from
+      `expected_amplitude`, and `E A^2 = A_sim^2`). Noise makes a bin's amplitude random,
+      so a band where noise dominates cannot reach 1 even with the true model: noise alone
+      gives `sqrt(pi) / 2 = 0.886` (the Rayleigh mean over its RMS);
+    - `f_top`: the highest frequency compared, Hz (the band's top, or the logs' Nyquist
+      frequency if lower).
 
-    Both are 0 when either spectrum has no power in the band. Without the noise term, a
-    channel whose noise hides its flexural motion matched a model whose spectrum is as flat
-    as the noise's: the stiffest link tried."""
-    dot = meas_sq = sim_sq = 0.0
-    valid, present = np.asarray(problem.valid), np.asarray(problem.present)
-    for l in range(valid.shape[0]):
-        if not present[l, j]:
-            continue
-        t = np.asarray(problem.t[l])
-        keep = valid[l] & (t >= float(problem.onset[l])) & (t <= float(problem.onset[l]) + span)
-        if keep.sum() < 16:
-            continue
-        f, a_meas, _ = amplitude_spectrum(t[keep], np.asarray(problem.measured[l, :, j])[keep])
-        _, a_sim, white = amplitude_spectrum(t[keep], np.asarray(predicted[l, :, j])[keep])
-        a_sim = np.sqrt(a_sim**2 + float(problem.sigma[j]) ** 2 * white)
-        inside = (f >= band[0]) & (f <= band[1])
-        dot += float(a_meas[inside] @ a_sim[inside])
-        meas_sq += float(a_meas[inside] @ a_meas[inside])
-        sim_sq += float(a_sim[inside] @ a_sim[inside])
-    if not (meas_sq > 0 and sim_sq > 0 and np.isfinite(dot)):
-        return 0.0, 0.0
-    return dot / np.sqrt(meas_sq * sim_sq), 2.0 * dot / (meas_sq + sim_sq)
+    All but `f_top` are 0 when either spectrum has no power in the band. Without the noise
+    term, a channel whose noise hides its flexural motion matched a model whose spectrum is
+    as flat as the noise's: the stiffest link tried."""
+    spectra = _Spectra(problem, j, band, span)
+    return spectra.match(spectra.measured, spectra.amplitudes(np.asarray(predicted)[:, :, j]))
+
+
+def spurious_gain(spectra: _Spectra, signals, guess: int, series, sigma: float, level: bool, rng) -> float:
+    """The largest gain in match over the guess that noise alone gives: `ROUNDS` logs
+    simulated as `series` `(L, T)` (the model at the guess) plus white noise of standard
+    deviation `sigma`, each matched against every tried EI's spectrum `signals[i]` (from
+    `spectra.amplitudes`; `guess` the index of the guess's); the largest of the rounds'
+    `max_i match_i - match_guess` (`level` or shape, as the estimate compares). A parametric
+    bootstrap of the estimate under the hypothesis that the guess is right: a best match
+    that beats the guess's by less than this is what noise does, and the guess is kept."""
+    series = np.asarray(series)
+    out = 0.0
+    for _ in range(ROUNDS):
+        noisy = spectra.amplitudes(series + rng.normal(0.0, sigma, series.shape))
+        matches = [spectra.match(noisy, s) for s in signals]
+        scores = [m.level if level else m.shape for m in matches]
+        out = max(out, max(scores) - scores[guess])
+    return out
 
 
 def flexural_frequency(chain: fd.Chain, link: int) -> float | None:
@@ -211,6 +306,21 @@ def initialise_stiffness(
         j = first.channels.index(channel)
         f_model = _flexural_frequencies(problems, thetas, i)
         bands = [None if f is None else (BAND[0] * f, BAND[1] * f) for f in f_model]
+        # a mode over 4x the Nyquist frequency leaves no bin of the band in the spectrum
+        nyquist = [_nyquist(p, j) for p in problems]
+        unresolved = [b is not None and b[0] >= f for b, f in zip(bands, nyquist)]
+        if any(unresolved):
+            b = unresolved.index(True)
+            say(
+                f"  frequency initialisation: the model's flexural frequency at the guess of {name} "
+                f"({f_model[b]:.3g} Hz) is over 4x the Nyquist frequency of {channel} ({nyquist[b]:.3g} Hz)"
+                + (f" in {sum(unresolved)} of {n_items} logs" if n_items > 1 else "")
+                + f": the spectrum cannot tell {name}; guess kept"
+            )
+            if all(unresolved):
+                continue
+            bands = [None if u else b for b, u in zip(bands, unresolved)]
+            f_model = [None if u else f for f, u in zip(f_model, unresolved)]
         known = [f for f in f_model if f is not None]
         span = PERIODS / min(known) if known else np.inf
         guess = thetas[:, k].copy()
@@ -218,33 +328,45 @@ def initialise_stiffness(
         # link by ~ load / EI), unless a free gain of the channel's sensor absorbs it
         level = f"sensor.{channel}.gain" not in first.names
 
-        def scores_at(factors, k=k, j=j, bands=bands, guess=guess, span=span, level=level):
-            """`(score, shape)` `(B,)` each of every problem with EI at `guess * factors`:
-            `spectral_match`'s level (shape alone when `level` is False) and shape (-inf
-            where outside the limits, where its simulation failed or there is no band)."""
+        spectra = [None if band is None else _Spectra(p, j, band, span) for p, band in zip(problems, bands)]
+        signals = [[] for _ in range(n_items)]  # per problem: each tried EI's simulated spectra
+        at_unit = [None] * n_items  # per problem: the guess's simulated channel (L, T)
+
+        def scores_at(factors, k=k, j=j, guess=guess, level=level, spectra=spectra, signals=signals):
+            """`(score, shape, ceiling, f_top)` `(B,)` each of every problem with EI at
+            `guess * factors`: `spectral_match`'s level (shape alone when `level` is False),
+            shape, ceiling and top frequency (score and shape -inf where outside the limits,
+            where its simulation failed or there is no band)."""
             value = guess * factors
             inside = (value >= lower[k]) & (value <= upper[k])
-            score, shape = np.full(n_items, -np.inf), np.full(n_items, -np.inf)
+            out = np.full((4, n_items), -np.inf)
             if not inside.any():
-                return score, shape
+                return out
             trial = thetas.copy()
             trial[:, k] = np.clip(value, lower[k], upper[k])
             outputs, ok = simulate(trial, span)
             for b in range(n_items):
-                if inside[b] and ok[b] and bands[b] is not None:
-                    shape[b], matched = spectral_match(problems[b], j, outputs[b], bands[b], span)
-                    score[b] = matched if level else shape[b]
-            return score, shape
+                if inside[b] and ok[b] and spectra[b] is not None:
+                    series = np.asarray(outputs[b])[:, :, j]
+                    if factors[b] == 1.0:
+                        at_unit[b] = series
+                    signals[b].append(spectra[b].amplitudes(series))
+                    m = spectra[b].match(spectra[b].measured, signals[b][-1])
+                    out[:, b] = (m.level if level else m.shape, m.shape, m.ceiling, m.f_top)
+            return out
 
-        tried = [scores_at(np.full(n_items, f)) for f in FACTORS]
-        scores = np.stack([score for score, _ in tried], axis=1)  # (B, F)
-        shapes = np.stack([shape for _, shape in tried], axis=1)
+        tried = np.stack([scores_at(np.full(n_items, f)) for f in FACTORS], axis=2)  # (4, B, F)
+        scores, shapes, ceilings = tried[0], tried[1], tried[2]
+        f_top = np.max(tried[3], axis=1)
         best = np.argmax(scores, axis=1)
         factor = FACTORS[best].astype(float)
         similarity = scores[np.arange(n_items), best]
         # the warning's measure: the best shape of any EI tried (a channel whose scale is
-        # off matches its best shape at another EI than its best level)
-        best_shape = np.max(shapes, axis=1)
+        # off matches its best shape at another EI than its best level), against the shape
+        # that EI's model would reach on its own output plus the channel's noise
+        at_best_shape = np.argmax(shapes, axis=1)
+        best_shape = shapes[np.arange(n_items), at_best_shape]
+        ceiling = ceilings[np.arange(n_items), at_best_shape]
         # the vertex of the parabola through the best factor and its neighbours (log EI)
         vertex = factor.copy()
         refine = np.zeros(n_items, bool)
@@ -257,17 +379,32 @@ def initialise_stiffness(
                     vertex[b] = factor[b] * np.exp(0.5 * h * (s_m - s_p) / curvature)
                     refine[b] = True
         if refine.any():
-            at_vertex, shape_at_vertex = scores_at(vertex)
+            at_vertex, shape_at_vertex, ceiling_at_vertex, _ = scores_at(vertex)
             better = refine & (at_vertex > similarity)
             factor = np.where(better, vertex, factor)
             similarity = np.where(better, at_vertex, similarity)
-            best_shape = np.maximum(best_shape, np.where(refine, shape_at_vertex, -np.inf))
+            shape_better = refine & (shape_at_vertex > best_shape)
+            best_shape = np.where(shape_better, shape_at_vertex, best_shape)
+            ceiling = np.where(shape_better, ceiling_at_vertex, ceiling)
         at_guess = scores[:, unit]
         moved = np.isfinite(similarity) & (factor != 1.0) & (similarity >= at_guess + MIN_GAIN)
+        # a gain over the guess that noise alone gives does not move it (spurious_gain)
+        noise_gain = np.zeros(n_items)
+        for b in np.flatnonzero(moved):
+            if at_unit[b] is None:
+                continue
+            sigma = max(float(problems[b].sigma[j]), _floor(problems[b], j))
+            guess_index = int(np.sum(np.isfinite(scores[b, :unit])))  # tried factors before the guess
+            rng = np.random.default_rng(b)
+            noise_gain[b] = spurious_gain(spectra[b], signals[b], guess_index, at_unit[b], sigma, level, rng)
+        noisy = moved & (similarity - at_guess <= noise_gain)
+        moved &= ~noisy
         thetas[:, k] = np.where(moved, guess * factor, guess)
+        poor = np.isfinite(best_shape) & (best_shape < POOR_MATCH * ceiling)
         if n_items == 1:
-            one = (factor[0], similarity[0], at_guess[0], moved[0], best_shape[0])
-            _say_one(say, name, channel, bands[0], *one, level)
+            band = None if bands[0] is None else (bands[0][0], min(bands[0][1], f_top[0]))
+            one = (factor[0], similarity[0], at_guess[0], moved[0], best_shape[0], ceiling[0], poor[0])
+            _say_one(say, name, channel, band, *one, level, noise_gain[0] if noisy[0] else None)
         else:
             moved_by = factor[moved]
             say(
@@ -279,16 +416,42 @@ def initialise_stiffness(
                     else ""
                 )
                 + f"guess kept in {int((~moved).sum())}"
+                + (
+                    f" ({int(noisy.sum())} where the best match beat the guess's by no more than noise does)"
+                    if noisy.any()
+                    else ""
+                )
             )
-            poor = np.isfinite(best_shape) & (best_shape < POOR_MATCH)
             if poor.any():
+                worst = int(np.argmin(np.where(poor, best_shape / ceiling, np.inf)))
                 say(
                     f"  frequency initialisation: WARNING: in {int(poor.sum())} log(s) no {name} tried makes the "
-                    f"model's {channel} spectrum match the shape of the log's well (shape similarity "
-                    f"{best_shape[poor].min():.3f} at worst): little flexural motion recorded, or the model misses "
-                    "what shapes it"
+                    f"model's {channel} spectrum match the shape of the log's well (at worst shape similarity "
+                    f"{best_shape[worst]:.3f}, where the model with the channel's noise would reach "
+                    f"{ceiling[worst]:.3f}): little flexural motion recorded, noise above the channel's, or the "
+                    "model misses what shapes it"
                 )
     return thetas
+
+
+def _floor(problem, j: int) -> float:
+    """The model-free noise floor (`identify.noise_floor.series_floor`) of channel index
+    `j`, RMS over the logs that record it (by their samples)."""
+    floor, count = channel_floors(problem.t, problem.measured, problem.valid, problem.present)
+    n = count[:, j].sum()
+    return float(np.sqrt(np.sum(count[:, j] * floor[:, j] ** 2) / n)) if n else 0.0
+
+
+def _nyquist(problem, j: int) -> float:
+    """The highest Nyquist frequency (Hz, half the rate at the median interval) of the
+    problem's logs that record channel index `j`; 0 if none does."""
+    valid, present = np.asarray(problem.valid), np.asarray(problem.present)
+    out = 0.0
+    for l in range(valid.shape[0]):
+        t = np.asarray(problem.t[l])[valid[l]]
+        if present[l, j] and len(t) > 1:
+            out = max(out, 0.5 / float(np.median(np.diff(t))))
+    return out
 
 
 def _flexural_frequencies(problems, thetas, link: int) -> list[float | None]:
@@ -304,19 +467,29 @@ def _flexural_frequencies(problems, thetas, link: int) -> list[float | None]:
     return out
 
 
-def _say_one(say, name, channel, band, factor, similarity, at_guess, moved, best_shape, level):
+def _say_one(say, name, channel, band, factor, similarity, at_guess, moved, best_shape, ceiling, poor, level, noise):
+    if band is not None and band[1] <= 0:
+        say(f"  frequency initialisation: no log records 16 samples of {channel} from its onset: {name} kept")
+        return
     if band is None or not np.isfinite(similarity):
         say(f"  frequency initialisation: no spectrum of {channel} to compare (failed simulations): {name} kept")
         return
     where = f"{channel}'s spectrum ({band[0]:.3g}-{band[1]:.3g} Hz{'' if level else ', shape only: its gain is free'})"
-    if best_shape < POOR_MATCH:
+    if poor:
         say(
             f"  frequency initialisation: WARNING: no {name} tried makes the model match the shape of {where} well "
-            f"(best shape similarity {best_shape:.3f}): the channel may record little flexural motion "
-            "(noise only? units?), or the model misses what shapes it"
+            f"(best shape similarity {best_shape:.3f}, where the model with the channel's noise would reach "
+            f"{ceiling:.3f}): the channel may record little flexural motion (noise only? units?), its noise may be "
+            "larger than the fit assumes, or the model misses what shapes it"
         )
     if factor == 1.0:
         say(f"  frequency initialisation: {where} matches the model best at the guess of {name} ({similarity:.3f})")
+    elif noise is not None:
+        say(
+            f"  frequency initialisation: {where} does not single out {name}: its best match (x{factor:.3g}, "
+            f"{similarity:.3f}) beats the guess's ({at_guess:.3f}) by no more than noise alone does (up to "
+            f"{noise:.3f} in {ROUNDS} simulated logs of the model at the guess with the channel's noise): guess kept"
+        )
     elif not moved:
         say(
             f"  frequency initialisation: {where} does not single out {name} (match {similarity:.3f} at "

@@ -648,24 +648,58 @@ def _load_mat_variables(path: Path) -> dict:
         raise LogError(f"{path}: not a readable MATLAB .mat file ({type(e).__name__}: {e})") from None
 
 
+def _mat_kind(value) -> tuple[str, list[str]]:
+    """What a variable read by `scipy.io.loadmat` is, in MATLAB's words: `("numeric", [])`
+    for a real numeric array, `("a struct", fields)`, `("a cell array", [])`, `("text
+    (a char array)", [])`, `("complex numbers", [])`, or its type."""
+    if not isinstance(value, np.ndarray):
+        return type(value).__name__, []
+    if value.dtype.names:
+        return "a struct", list(value.dtype.names)
+    return {
+        "b": "numeric",
+        "i": "numeric",
+        "u": "numeric",
+        "f": "numeric",
+        "c": "complex numbers",
+        "O": "a cell array",
+        "U": "text (a char array)",
+        "S": "text (a char array)",
+    }.get(value.dtype.kind, f"dtype {value.dtype}"), []
+
+
 def _read_mat(path: Path, wanted, cals, strict, context):
     data = _load_mat_variables(path)
     variables = {k: v for k, v in data.items() if not k.startswith("__")}
     used = {}
     for w in wanted:
         if w.source not in variables:
+            structs = {k: _mat_kind(v)[1] for k, v in variables.items() if _mat_kind(v)[0] == "a struct"}
+            holder = next((k for k, fields in structs.items() if w.source in fields), None)
+            hint = (
+                f"; it is a field of the struct {holder!r}, and structs are not read: save its fields as "
+                f"variables in MATLAB, save('{path.name}', '-struct', '{holder}')"
+                if holder is not None
+                else ""
+            )
             raise LogError(
-                f"{path}: no variable {w.source!r} (mapped by {context}.{w.channel}); the file has {sorted(variables)}",
+                f"{path}: no variable {w.source!r} (mapped by {context}.{w.channel}); the file has "
+                f"{sorted(variables)}{hint}",
                 channel=w.channel,
             )
         where = f"{path}: variable {w.source!r}"
         unit, cal = _resolve_unit(path, w, None, where, cals)
         value = variables[w.source]
-        if not isinstance(value, np.ndarray) or value.dtype.kind not in "biuf":
-            kind = getattr(value, "dtype", type(value))
-            raise LogError(f"{where}: expected a real numeric vector, got {kind}")
+        kind, fields = _mat_kind(value)
+        if kind != "numeric":
+            extra = f" with fields {fields}" if fields else ""
+            raise LogError(f"{where}: expected a real numeric vector, got {kind}{extra}")
         if sum(d > 1 for d in value.shape) > 1:
             raise LogError(f"{where}: shape {value.shape}; expected a vector (one channel per variable)")
+        if w.channel == "time" and value.size < 2:
+            raise LogError(
+                f"{where} (time): holds {value.size} value(s); expected a vector of sample times, one per sample"
+            )
         used[w] = (value.astype(np.float64).ravel(), unit, cal)
     ignored = sorted(set(variables) - {w.source for w in wanted})
     if strict and ignored:

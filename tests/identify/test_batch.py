@@ -51,6 +51,43 @@ def test_independent_vmapped_fits_recover_each_logs_own_damping():
     assert_standard_errors_match(results[1], fresh_covariance(results[1]))
 
 
+def test_each_logs_noise_is_re_estimated_from_its_own_residuals():
+    """Three logs with different encoder noise (0.05, 0.2 and 0.5 mrad) and make_problem's
+    default weights (1 % of the channel's RMS over all logs): each log's re-estimated noise
+    is its injected one within 10 % (the oracle; the RMS of 300 samples scatters by ~4 %),
+    and its damping within its 95 % interval. With `estimate_noise=False` every log keeps the
+    default weight (review: fitted on default weights, every log's fit was left 5-9x above
+    its noise floor on a two-link arm)."""
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(0.0, 3.0, 1e-2)
+    rng = np.random.default_rng(5)
+    truth = [(1.5e-3, 5e-5), (2.0e-3, 2e-4), (2.5e-3, 5e-4)]
+    logs = [
+        identify.simulate_log(
+            fd.with_parameters(chain, {"joint1.damping": d}),
+            t,
+            initial={"theta1": 0.5},
+            channels=("theta1",),
+            noise={"theta1": noise},
+            rng=rng,
+            name=f"log{k}",
+        )
+        for k, (d, noise) in enumerate(truth)
+    ]
+    params = [identify.Parameter("joint1.damping", 1e-3, 1e-6, 1e-1)]
+    problem = identify.make_problem(chain, params, logs)
+    default = float(problem.sigma[0])
+    said = []
+    results = identify.fit_independent(problem, params, n_stages=2, progress=said.append)
+    print("\n".join(said))
+    assert any("noise re-estimated per log: theta1 " in m for m in said), said
+    for res, (d, noise) in zip(results, truth):
+        assert res.sigma["theta1"] == pytest.approx(noise, rel=0.10), (res.sigma, noise)
+        assert res.ci_low[0] <= d <= res.ci_high[0], (res.values[0], res.ci_low[0], res.ci_high[0], d)
+    kept = identify.fit_independent(problem, params, n_stages=2, estimate_noise=False)
+    assert [r.sigma["theta1"] for r in kept] == [default] * 3
+
+
 def test_a_failed_simulation_names_its_log(monkeypatch):
     """Review: the error said "a simulation at the current parameters failed" without
     naming the log. Here the stage's simulation is made to fail for every log."""

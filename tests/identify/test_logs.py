@@ -413,7 +413,35 @@ def test_mat_not_a_vector_or_not_numeric(tmp_path):
     with pytest.raises(LogError, match=msg("f.mat: variable 'enc'", "shape (12, 2)", "expected a vector")):
         load_log(path, MAT_COLUMNS)
     path = save_mat(tmp_path / "g.mat", t=np.arange(12.0), enc="twelve")
-    with pytest.raises(LogError, match=msg("g.mat: variable 'enc'", "expected a real numeric vector")):
+    with pytest.raises(LogError, match=msg("g.mat: variable 'enc'", "expected a real numeric vector", "text")):
+        load_log(path, MAT_COLUMNS)
+    # review: a cell array was "object", a struct a list of dtype fields
+    path = save_mat(tmp_path / "h.mat", t=np.arange(12.0), enc=np.array([np.zeros(12), "x"], dtype=object))
+    with pytest.raises(LogError, match=msg("h.mat: variable 'enc'", "got a cell array")):
+        load_log(path, MAT_COLUMNS)
+    path = save_mat(tmp_path / "i.mat", t=np.arange(12.0), enc={"deg": np.zeros(12), "raw": np.zeros(12)})
+    with pytest.raises(LogError, match=msg("i.mat: variable 'enc'", "got a struct with fields ['deg', 'raw']")):
+        load_log(path, MAT_COLUMNS)
+
+
+def test_mat_variables_inside_a_struct_are_named(tmp_path):
+    """A file holding one struct (`save('run.mat', 'data')` with `data.t`, `data.enc`):
+    the message says the variable is a field of it, and how to save the fields as
+    variables (review: only "no variable 't'; the file has ['data']")."""
+    path = save_mat(tmp_path / "s.mat", data={"t": np.arange(12.0), "enc": np.zeros(12)})
+    with pytest.raises(
+        LogError, match=msg("s.mat: no variable 't'", "field of the struct 'data'", "'-struct', 'data')")
+    ):
+        load_log(path, MAT_COLUMNS)
+
+
+def test_mat_scalar_time_is_named(tmp_path):
+    """A time variable holding one value (a sampling interval saved as `t`): the message
+    names the time variable, not the first channel whose length differs (review)."""
+    path = save_mat(tmp_path / "ts.mat", t=0.001, enc=np.zeros(12))
+    with pytest.raises(
+        LogError, match=msg("ts.mat: variable 't' (time)", "holds 1 value(s)", "vector of sample times")
+    ):
         load_log(path, MAT_COLUMNS)
 
 
