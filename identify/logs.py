@@ -51,11 +51,18 @@ class LogError(ValueError):
 @dataclasses.dataclass(frozen=True)
 class Calibration:
     """Conversion of a voltage channel: `value = scale * volts + offset`, in `unit`
-    (default: the channel's SI unit), then converted to SI."""
+    (default: the channel's SI unit), then converted to SI.
 
-    scale: float
+    A strain gauge's channel (`curvature<i>`) in a strain unit (`[ue]`), or in volts with a
+    `scale` to a strain `unit`, is converted to the root curvature the model predicts by
+    `neutral_axis_distance` `c` (m; half the thickness for a gauge bonded on the surface of
+    a symmetric strip): Euler-Bernoulli bending strain is `epsilon = c * kappa`, so
+    `kappa = epsilon / c`. A strain column needs no `scale`."""
+
+    scale: float | None = None
     offset: float = 0.0
     unit: str | None = None
+    neutral_axis_distance: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -232,7 +239,7 @@ def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibrati
     dim, dim_unit = u.channel_dimension(w.channel), u.unit_dimension(unit)
     cal = (calibration or {}).get(w.channel)
     if dim_unit == u.VOLTAGE and dim != u.TIME:
-        if cal is None:
+        if cal is None or cal.scale is None:
             raise LogError(
                 f"{where}: {w.channel} is in [{written}] and needs a calibration "
                 f"(SI = scale * V + offset): add calibration = {{ {w.channel} = {{ scale = ..., offset = ... }} }} "
@@ -240,10 +247,29 @@ def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibrati
                 channel=w.channel,
             )
         return unit, cal
+    if dim_unit == u.STRAIN and dim == u.CURVATURE:
+        if cal is None or cal.neutral_axis_distance is None:
+            raise LogError(
+                f"{where}: {w.channel} is a curvature (1/m) and [{written}] a strain: the root curvature is the "
+                "strain over the gauge's distance from the beam's neutral axis; add calibration = "
+                f'{{ {w.channel} = {{ neutral_axis_distance = "1 mm" }} }} to this log in the experiment file '
+                "(half the thickness for a gauge on the surface of a symmetric strip)",
+                channel=w.channel,
+            )
+        if cal.scale is not None:
+            raise LogError(
+                f"{where}: a calibration scale is given for {w.channel}, whose column is a strain [{written}], "
+                "not [V]; remove scale and offset (a strain column needs only neutral_axis_distance)",
+                channel=w.channel,
+            )
+        return unit, cal
     if dim_unit != dim:
+        extra = "" if dim == u.TIME else " or [V] with a calibration"
+        if dim == u.CURVATURE:
+            extra += ", or a strain ([ue], [strain]) with the gauge's neutral_axis_distance in its calibration"
         raise LogError(
             f"{where}: {w.channel} is {u.article(dim)} but [{written}] is {u.article(dim_unit)} "
-            f"unit; expected one of {_units_of(dim)}" + ("" if dim == u.TIME else " or [V] with a calibration"),
+            f"unit; expected one of {_units_of(dim)}" + extra,
             channel=w.channel,
         )
     if cal is not None:
@@ -266,37 +292,67 @@ def _units_of(dim: str) -> str:
 def _to_si(values: np.ndarray, unit: str, cal: Calibration | None, channel: str) -> np.ndarray:
     values = values * u.unit_factor(unit)
     if cal is not None:
-        values = cal.scale * values + cal.offset
-        if cal.unit is not None:
-            values = values * u.unit_factor(u.normalise_unit(cal.unit))
+        if cal.scale is not None:
+            values = cal.scale * values + cal.offset
+            if cal.unit is not None:
+                values = values * u.unit_factor(u.normalise_unit(cal.unit))
+        if cal.neutral_axis_distance is not None:  # strain -> curvature (`Calibration`)
+            values = values / cal.neutral_axis_distance
     return values
 
 
 def check_calibration(channel: str, spec, where: str) -> Calibration:
-    """A `Calibration` from an experiment-file table `{scale, offset, unit}`."""
+    """A `Calibration` from an experiment-file table `{scale, offset, unit,
+    neutral_axis_distance}`."""
     if not isinstance(spec, Mapping):
         raise LogError(f"{where}: expected a table {{ scale = ..., offset = ... }}, got {spec!r}")
-    extra = set(spec) - {"scale", "offset", "unit"}
+    keys = {"scale", "offset", "unit", "neutral_axis_distance"}
+    extra = set(spec) - keys
     if extra:
-        raise LogError(f"{where}: unknown key(s) {sorted(extra)}; expected scale, offset and optionally unit")
-    if "scale" not in spec:
+        raise LogError(
+            f"{where}: unknown key(s) {sorted(extra)}; expected scale, offset and optionally unit "
+            "(voltage columns), or neutral_axis_distance (strain gauges)"
+        )
+    dim = u.channel_dimension(channel)
+    if dim is None or dim == u.TIME:
+        raise LogError(f"{where}: calibrations apply to measured channels, not {channel!r}")
+    distance = spec.get("neutral_axis_distance")
+    if distance is not None:
+        if dim != u.CURVATURE:
+            raise LogError(
+                f"{where}.neutral_axis_distance: applies to a strain gauge's curvature<i> channel, not {channel} "
+                f"({u.article(dim)})"
+            )
+        try:
+            distance = u.parse_quantity(distance, u.LENGTH) if isinstance(distance, str) else distance
+        except ValueError as e:
+            raise LogError(f"{where}.neutral_axis_distance: {e}") from None
+        if isinstance(distance, bool) or not isinstance(distance, int | float) or not 0 < distance < math.inf:
+            raise LogError(f"{where}.neutral_axis_distance: expected a distance > 0 (m, or '1 mm'), got {distance!r}")
+    if "scale" not in spec and distance is None:
         raise LogError(f"{where}: missing 'scale' (SI = scale * V + offset)")
+    if "scale" not in spec and "offset" in spec:
+        raise LogError(
+            f"{where}: an offset without a scale; offset applies to voltage columns (SI = scale * V + offset)"
+        )
     for key in ("scale", "offset"):
         v = spec.get(key, 0.0)
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
             raise LogError(f"{where}.{key}: expected a finite number, got {v!r}")
-    if spec["scale"] == 0:
+    if spec.get("scale") == 0:
         raise LogError(f"{where}.scale: expected a non-zero number, got 0")
     unit = spec.get("unit")
-    dim = u.channel_dimension(channel)
-    if dim is None or dim == u.TIME:
-        raise LogError(f"{where}: calibrations apply to measured channels, not {channel!r}")
     if unit is not None:
         if not isinstance(unit, str) or u.normalise_unit(unit) is None:
             raise LogError(f"{where}.unit: unknown unit {unit!r}; known units: {u.known_units()}")
-        if u.unit_dimension(u.normalise_unit(unit)) != dim:
-            raise LogError(f"{where}.unit: [{unit}] is not {u.article(dim)} unit; expected one of {_units_of(dim)}")
-    return Calibration(float(spec["scale"]), float(spec.get("offset", 0.0)), unit)
+        want = u.STRAIN if distance is not None else dim
+        if u.unit_dimension(u.normalise_unit(unit)) != want:
+            raise LogError(
+                f"{where}.unit: [{unit}] is not {u.article(want)} unit; expected one of {_units_of(want)}"
+                + (" (with neutral_axis_distance, the scale gives a strain)" if distance is not None else "")
+            )
+    scale = float(spec["scale"]) if "scale" in spec else None
+    return Calibration(scale, float(spec.get("offset", 0.0)), unit, None if distance is None else float(distance))
 
 
 # ---------------------------------------------------------------------------
@@ -334,7 +390,7 @@ def load_log(
     path = Path(path)
     cals = {}
     for ch, c in (calibration or {}).items():
-        spec = dataclasses.asdict(c) if isinstance(c, Calibration) else c
+        spec = {k: v for k, v in dataclasses.asdict(c).items() if v is not None} if isinstance(c, Calibration) else c
         cals[ch] = check_calibration(ch, spec, f"{path}: calibration.{ch}")
     if not path.is_file():
         what = "is a directory" if path.is_dir() else "does not exist"

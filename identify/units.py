@@ -19,6 +19,9 @@ vocabulary), each with a dimension used to check a log's units:
 | `end_x/end_y`  | end-point position (base frame)                   | length       | m       |
 | `accel_x/_y`   | end-point acceleration (base frame)               | acceleration | m/s^2   |
 | `torque{i}`    | torque applied at joint i (input)                 | torque       | N m     |
+
+A strain gauge's column in a strain unit (`[ue]`) maps to `curvature{i}` with the gauge's
+distance from the neutral axis (`identify.logs.Calibration.neutral_axis_distance`).
 """
 
 from __future__ import annotations
@@ -34,6 +37,9 @@ ACCELERATION = "acceleration"
 TORQUE = "torque"
 VOLTAGE = "voltage"
 FREQUENCY = "frequency"
+#: a strain gauge's reading (dimensionless); a curvature once divided by the gauge's
+#: distance from the neutral axis (`identify.logs.Calibration.neutral_axis_distance`)
+STRAIN = "strain"
 
 #: SI unit of each dimension (volts have none: they need a calibration).
 SI_UNIT = {
@@ -45,6 +51,7 @@ SI_UNIT = {
     TORQUE: "N m",
     VOLTAGE: "V",
     FREQUENCY: "Hz",
+    STRAIN: "strain",
 }
 
 #: unit -> (dimension, factor to SI).
@@ -60,6 +67,8 @@ UNITS: dict[str, tuple[str, float]] = {
     "mm": (LENGTH, 1e-3),
     "um": (LENGTH, 1e-6),
     "1/m": (CURVATURE, 1.0),
+    "strain": (STRAIN, 1.0),
+    "ue": (STRAIN, 1e-6),
     "m/s^2": (ACCELERATION, 1.0),
     "g": (ACCELERATION, 9.80665),  # standard gravity, as accelerometers are rated
     "N m": (TORQUE, 1.0),
@@ -106,6 +115,13 @@ ALIASES = {
     "N·mm": "N mm",
     "mNm": "mN m",
     "hz": "Hz",
+    "m/m": "strain",
+    "µε": "ue",
+    "με": "ue",
+    "uε": "ue",
+    "microstrain": "ue",
+    "µstrain": "ue",
+    "ustrain": "ue",
     "mN*m": "mN m",
     "mN.m": "mN m",
 }
@@ -228,6 +244,12 @@ def parse_quantity(text: str, dimension: str) -> float:
     unit = normalise_unit(m["unit"])
     if unit is None:
         raise ValueError(f"unknown unit {m['unit']!r} in {text!r}; known units: {known_units()}")
+    if unit_dimension(unit) == STRAIN and dimension == CURVATURE:
+        raise ValueError(
+            f"{text!r} is a strain; expected a curvature: the strain over the gauge's distance c from the "
+            f"neutral axis (e.g. {m['value']} {m['unit']} with c = 1 mm is "
+            f"'{value * unit_factor(unit) / 1e-3:.6g} 1/m')"
+        )
     if unit_dimension(unit) != dimension:
         raise ValueError(
             f"{text!r} is {article(unit_dimension(unit))}; expected {article(dimension)} "

@@ -157,6 +157,71 @@ def test_volts_with_calibration(tmp_path):
     np.testing.assert_allclose(log.outputs["tip1"], 0.0125 * 0.1 * np.arange(10), rtol=1e-12, atol=1e-15)
 
 
+def test_strain_gauge_columns_become_root_curvature(tmp_path):
+    """A root strain gauge read in microstrain (or in volts with a bridge calibration to
+    microstrain) maps to `curvature1` through its distance `c` from the neutral axis:
+    Euler-Bernoulli bending strain is `epsilon = c * kappa` (the surface of a strip of
+    thickness 2c), so kappa = 1e-6 * reading / c."""
+    ue = 25.0 * np.sin(np.arange(10.0))
+    rows = [[f"{0.01 * k:.2f}", "0", repr(float(ue[k])), repr(float(ue[k] / 500.0))] for k in range(10)]
+    path = write_csv(tmp_path / "sg.csv", ["time [s]", "theta1 [rad]", "gauge [ue]", "bridge [V]"], rows)
+    columns = {"time": "time [s]", "theta1": "theta1 [rad]", "curvature1": "gauge [ue]"}
+    log = load_log(path, columns, calibration={"curvature1": {"neutral_axis_distance": "1 mm"}})
+    np.testing.assert_allclose(log.outputs["curvature1"], 1e-6 * ue / 1e-3, rtol=1e-12)
+    assert (
+        log.sources["curvature1"] == "column 3 ('gauge [ue]') (calibrated)" or "gauge [ue]" in log.sources["curvature1"]
+    )
+    # the bridge's volts: 500 ue per volt, then over the same distance
+    columns["curvature1"] = "bridge [V]"
+    cal = Calibration(scale=500.0, unit="ue", neutral_axis_distance=1e-3)
+    log = load_log(path, columns, calibration={"curvature1": cal})
+    np.testing.assert_allclose(log.outputs["curvature1"], 1e-6 * ue / 1e-3, rtol=1e-12)
+    # other spellings of microstrain
+    for spelling in ("µε", "microstrain"):
+        p2 = write_csv(
+            tmp_path / f"sg_{spelling}.csv", ["time [s]", "theta1 [rad]", f"gauge [{spelling}]"], [r[:3] for r in rows]
+        )
+        columns["curvature1"] = f"gauge [{spelling}]"
+        log = load_log(p2, columns, calibration={"curvature1": {"neutral_axis_distance": 0.002}})
+        np.testing.assert_allclose(log.outputs["curvature1"], 1e-6 * ue / 2e-3, rtol=1e-12)
+
+
+def test_strain_gauge_column_errors(tmp_path):
+    rows = [[f"{0.01 * k:.2f}", "0", "1.0"] for k in range(10)]
+    path = write_csv(tmp_path / "sg.csv", ["time [s]", "theta1 [rad]", "gauge [ue]"], rows)
+    columns = {"time": "time [s]", "theta1": "theta1 [rad]", "curvature1": "gauge [ue]"}
+    with pytest.raises(
+        LogError, match=msg("column 3", "curvature1 is a curvature", "a strain", "neutral_axis_distance")
+    ):
+        load_log(path, columns)
+    with pytest.raises(LogError, match=msg("column 3", "scale is given for curvature1", "only neutral_axis_distance")):
+        load_log(path, columns, calibration={"curvature1": {"scale": 2.0, "neutral_axis_distance": 1e-3}})
+    with pytest.raises(LogError, match=msg("column 3", "tip1 is a length but [ue] is a strain unit")):
+        load_log(path, {"time": "time [s]", "theta1": "theta1 [rad]", "tip1": "gauge [ue]"})
+    with pytest.raises(LogError, match=msg("column 3", "curvature1 is a curvature but [deg]", "or a strain ([ue]")):
+        load_log(
+            write_csv(tmp_path / "d.csv", ["time [s]", "theta1 [rad]", "gauge [deg]"], rows),
+            {"time": "time [s]", "theta1": "theta1 [rad]", "curvature1": "gauge [deg]"},
+        )
+    for spec, expected in (
+        ({"neutral_axis_distance": 0.0}, "expected a distance > 0"),
+        ({"neutral_axis_distance": "1 deg"}, "expected a length"),
+        ({"neutral_axis_distance": 1e-3, "offset": 1.0}, "an offset without a scale"),
+        ({"scale": 500.0, "unit": "mm", "neutral_axis_distance": 1e-3}, "[mm] is not a strain unit"),
+    ):
+        with pytest.raises(LogError, match=msg(expected)):
+            load_log(path, columns, calibration={"curvature1": spec})
+    with pytest.raises(
+        LogError, match=msg("neutral_axis_distance", "applies to a strain gauge's curvature<i>", "tip1")
+    ):
+        load_log(path, columns, calibration={"tip1": {"neutral_axis_distance": 1e-3}})
+    # a noise level in microstrain (experiment files' [noise]) says how to write it
+    from identify import units
+
+    with pytest.raises(ValueError, match=msg("'2 ue' is a strain; expected a curvature", "'0.002 1/m'")):
+        units.parse_quantity("2 ue", units.CURVATURE)
+
+
 def test_non_uniform_sampling_and_gap_accepted(tmp_path):
     t = np.concatenate([np.arange(10) * 0.01, 0.5 + np.arange(10) * 0.01, [0.6005, 0.6103]])
     rows = [[f"{ti:.4f}", "0", "0"] for ti in t]
