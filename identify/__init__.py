@@ -5,7 +5,9 @@
   standard errors, confidence intervals and identifiability warnings;
   `clustered_uncertainty(result)`: intervals that hold when the residual is model error
   (cluster-robust, each log a cluster).
-- `make_problem` / `fit`: the same on in-memory logs (`LogData`).
+- `make_problem` / `fit`: the same on in-memory logs (`LogData`); `fit_independent`: each
+  log its own values, all in one batch; `between_logs(results)`: do they agree (weighted
+  mean and a chi-square test per parameter)?
 - `residual_report`: residual whiteness and input cross-correlation (MATLAB `resid`).
 - `noise_floor`: each channel's noise level estimated from the data alone; every fit
   compares its residuals with it (`FitResult.fit_quality`, `poor_fit`: a wrong basin or a
@@ -53,12 +55,15 @@ from .measurement import Measurement as Measurement, Sensor as Sensor
 from .run import (
     evaluate_held_out as evaluate_held_out,
     fit_experiment as fit_experiment,
+    fit_experiment_independent as fit_experiment_independent,
     log_data as log_data,
     problem_from_experiment as problem_from_experiment,
     residual_report as residual_report,
 )
 from .synthetic import simulate_log as simulate_log
 from .uncertainty import (
+    BetweenLogs as BetweenLogs,
     ClusteredUncertainty as ClusteredUncertainty,
+    between_logs as between_logs,
     clustered_uncertainty as clustered_uncertainty,
 )

@@ -113,6 +113,13 @@ def _parser() -> argparse.ArgumentParser:
         help="restart only when a parameter ends on a bound, not on a poor fit (a model that misses an effect "
         "is poor from every start: the restart costs one more fit and the fit reports the misfit either way)",
     )
+    fit.add_argument(
+        "--independent",
+        action="store_true",
+        help="fit every fit log on its own (each log its own parameter values, all logs in one batch: "
+        "identify.fit_independent) and test whether they agree (weighted mean and a chi-square test per "
+        "parameter); the logs must estimate the same initial-state entries and offsets",
+    )
     fit.add_argument("--quiet", action="store_true", help="print no progress, only the results")
     fit.add_argument(
         "--any-rate",
@@ -196,9 +203,9 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 def output_files() -> tuple[str, ...]:
     """Every file name the commands write into their output folders."""
     from .diagnosis_report import FILES
-    from .report import PLOT_FILES
+    from .report import BY_LOG_PLOT, PLOT_FILES
 
-    return (MARKER, RESULT_FILE, *PLOT_FILES, *FILES)
+    return (MARKER, RESULT_FILE, *PLOT_FILES, BY_LOG_PLOT, *FILES)
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -585,6 +592,8 @@ def _fit_command(args) -> int:
         say(f"[{now - start:6.1f} s, +{now - last[0]:5.1f} s] {msg.strip()}")
         last[0] = now
 
+    if args.independent:
+        return _independent_fits(args, exp, inputs, out, start, say, progress)
     try:
         result = fit_experiment(
             exp,
@@ -739,6 +748,96 @@ def _fit_command(args) -> int:
             f"identify fit: exit status {NOT_CONVERGED}: the fit did not converge"
             + (f" ({', '.join(result.at_bounds)} on a bound)" if result.at_bounds else "")
             + "; the results above are written but are not an optimum of the model",
+            file=sys.stderr,
+        )
+        return NOT_CONVERGED
+    return 0
+
+
+def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
+    """`identify fit --independent`: every fit log on its own, then `between_logs`."""
+    from . import report as plots
+    from .fit import fitted_outputs
+    from .run import fit_experiment_independent, residual_report
+    from .uncertainty import between_logs
+
+    if len(exp.fit_logs) < 2:
+        print("identify fit: --independent needs at least 2 fit logs; this experiment has 1", file=sys.stderr)
+        return 2
+    if exp.validation_logs:
+        say(f"  --independent: the {len(exp.validation_logs)} validation log(s) are not used (each log is its own fit)")
+    try:
+        results = fit_experiment_independent(
+            exp,
+            n_stages=args.stages,
+            frequency_init=not args.no_frequency_init,
+            restart_poor_fit=not args.no_restart_poor_fit,
+            progress=progress,
+        )
+    except (RuntimeError, ValueError) as e:
+        print(f"identify fit: the fits failed: {_failure_text(e)}", file=sys.stderr, flush=True)
+        return 1
+    say(f"[{time.perf_counter() - start:6.1f} s] {len(results)} independent fits done")
+    try:
+        between = between_logs(results)
+    except ValueError as e:  # fewer than 2 converged logs
+        between, between_note = None, str(e)
+    print()
+    print(f"Independent fits ({exp.name}): each fit log on its own")
+    for r in results:
+        print()
+        print(r.summary())
+    print()
+    print(between.summary() if between is not None else f"no comparison between the logs: {between_note}")
+
+    try:
+        check_output_folder(out, inputs, args.force)  # again: the fits took a while
+    except _Refused as e:
+        print(f"identify fit: {e}", file=sys.stderr, flush=True)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    (out / MARKER).write_text(
+        "Written by `identify fit` (flexdyn). This folder holds its outputs; a new run may overwrite these "
+        f"files: {', '.join(output_files())}.\n"
+    )
+    outputs, reports = {}, {}
+    for r in results:
+        outputs.update(fitted_outputs(r))
+        reports.update(residual_report(r))
+    doc = {
+        "mode": "independent",
+        "experiment": {
+            "name": exp.name,
+            "description": exp.description,
+            "path": str(Path(exp.path).resolve()),
+            "logs": [
+                {"name": s.name, "file": str(Path(s.file).resolve()), "role": s.role, "samples": len(s.log)}
+                for s in exp.logs
+            ],
+        },
+        "logs": {", ".join(r.problem.log_names): r.to_dict() for r in results},
+        "between_logs": None if between is None else between.to_dict(),
+        "residuals": reports,
+        "options": {"stages": args.stages, "independent": True},
+        "command": ["identify", "fit", *map(str, _argv_tail(args))],
+        "versions": _versions(),
+    }
+    (out / RESULT_FILE).write_text(json.dumps(plots.jsonable(doc), indent=1) + "\n")
+    roles = {name: "fit" for name in outputs}
+    written = [out / RESULT_FILE]
+    written += plots.plot_fit(outputs, out, title=f"{exp.name}: each log fitted on its own", roles=roles)
+    written += plots.plot_residuals(outputs, out, roles=roles)
+    written += plots.plot_by_log(results, between, out)
+    print()
+    say(f"total {time.perf_counter() - start:.1f} s")
+    print(f"Results written to {out}/:")
+    for p in written:
+        print(f"  {p}")
+    failed = [", ".join(r.problem.log_names) for r in results if not r.converged]
+    if failed:
+        print(
+            f"identify fit: exit status {NOT_CONVERGED}: the fit of log(s) {', '.join(failed)} did not converge; "
+            "the results above are written but those logs' values are not optima of the model",
             file=sys.stderr,
         )
         return NOT_CONVERGED

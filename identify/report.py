@@ -19,6 +19,7 @@ RESIDUALS_PLOT = "residuals.png"
 SPECTRUM_PLOT = "residual_spectrum.png"
 AUTOCORRELATION_PLOT = "residual_autocorrelation.png"
 CORRELATION_PLOT = "parameter_correlation.png"
+BY_LOG_PLOT = "parameters_by_log.png"
 PLOT_FILES = (FIT_PLOT, RESIDUALS_PLOT, SPECTRUM_PLOT, AUTOCORRELATION_PLOT, CORRELATION_PLOT)
 
 DPI = 110
@@ -265,6 +266,43 @@ def plot_correlation(names, correlation, folder) -> list[Path]:
             )
     fig.colorbar(im, ax=a, shrink=0.8, label="correlation")
     path = folder / CORRELATION_PLOT
+    fig.savefig(path, dpi=DPI)
+    return [path]
+
+
+def plot_by_log(results, between, folder) -> list[Path]:
+    """Independent fits (`identify.fit_independent`'s results): each parameter's value per
+    log with its 95 % interval, and the logs' weighted mean with its standard error as a
+    band (`between`: `identify.between_logs(results)`, or None)."""
+    folder = Path(folder)
+    names = list(results[0].names)
+    labels = [", ".join(r.problem.log_names) for r in results]
+    fig, ax = _figure(len(names), 1, "Parameters fitted to each log", width=max(5.0, 0.5 * len(results) + 3.0))
+    x = np.arange(len(results))
+    for i, name in enumerate(names):
+        a = ax[i, 0]
+        v = np.asarray([r.values[i] for r in results], float)
+        lo = np.asarray([r.ci_low[i] for r in results], float)
+        hi = np.asarray([r.ci_high[i] for r in results], float)
+        ok = np.asarray([bool(r.converged) for r in results])
+        err = np.stack([np.clip(v - lo, 0, None), np.clip(hi - v, 0, None)])
+        err = np.where(np.isfinite(err), err, 0.0)
+        a.errorbar(x[ok], v[ok], yerr=err[:, ok], fmt="o", ms=4, capsize=3, label="log (95 %)")
+        if (~ok).any():
+            a.plot(x[~ok], v[~ok], "x", color="tab:red", label="not converged")
+        if between is not None:
+            m, s = float(between.mean[i]), float(between.mean_se[i])
+            a.axhline(m, color="k", lw=0.9, label="weighted mean (band: its SE)")
+            a.axhspan(m - s, m + s, color="k", alpha=0.12)
+            a.set_title(
+                f"{name}: p = {float(between.p[i]):.2g} (chi-square, same value in every log)", fontsize="small"
+            )
+        a.set_ylabel(name)
+        a.set_xlim(-0.5, len(results) - 0.5)
+        a.set_xticks(x, labels=labels if i == len(names) - 1 else [""] * len(x), rotation=45, ha="right")
+        if i == 0:
+            a.legend(fontsize="small")
+    path = folder / BY_LOG_PLOT
     fig.savefig(path, dpi=DPI)
     return [path]
 

@@ -7,7 +7,7 @@ import numpy as np
 
 from . import diagnostics
 from .experiment import Experiment, LogSpec
-from .fit import FitResult, LogData, Parameter, Problem, fit, fitted_outputs, make_problem
+from .fit import FitResult, LogData, Parameter, Problem, fit, fit_independent, fitted_outputs, make_problem
 
 
 def log_data(spec: LogSpec, n_joints: int) -> LogData:
@@ -41,6 +41,16 @@ def fit_experiment(exp: Experiment, *, progress=None, **options) -> FitResult:
     estimate = [c for c in problem.channels if exp.noise.get(c) is None]
     options.setdefault("extra_starts", exp.starts)
     return fit(problem, parameters(exp), estimate_noise=estimate or False, progress=progress, **options)
+
+
+def fit_experiment_independent(exp: Experiment, *, progress=None, **options) -> list[FitResult]:
+    """Fit the experiment's free parameters to each fit log on its own
+    (`identify.fit_independent`, all logs in one batch): one `FitResult` per log. Channels
+    without a declared noise level get each log's own estimate. `options` go to
+    `fit_independent`."""
+    problem = problem_from_experiment(exp)
+    estimate = [c for c in problem.channels if exp.noise.get(c) is None]
+    return fit_independent(problem, parameters(exp), estimate_noise=estimate or False, progress=progress, **options)
 
 
 def evaluate_held_out(result: FitResult, exp: Experiment, logs=None, *, progress=None) -> FitResult:

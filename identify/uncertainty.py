@@ -169,3 +169,145 @@ def clustered_uncertainty(result: FitResult, level: float = 0.95) -> ClusteredUn
         log_scale=tuple(bool(v) for v in problem.log_scale),
         null_space=null,
     )
+
+
+#: `between_logs`: a parameter whose logs' values have a chi-square p-value below this
+#: differs between the logs beyond their intervals
+DISAGREEMENT_P = 0.01
+
+
+@dataclasses.dataclass
+class BetweenLogs:
+    """Do independent fits of several logs (`identify.fit_independent`) agree? Per
+    parameter (`names`, in the natural coordinate: `log theta` for log-scaled ones, where
+    the standard error is relative):
+
+    - `mean`, `mean_se`: the inverse-variance weighted mean of the logs' values (SI) and its
+      standard error (SI, from the logs' own standard errors);
+    - `chi2`, `dof = n - 1`, `p`: `chi2 = sum_l ((x_l - mean) / se_l)^2` and its p-value
+      under the hypothesis that every log measures the same value with its stated error
+      (chi-square with n - 1 degrees of freedom);
+    - `birge`: `sqrt(chi2 / dof)` (the Birge ratio: ~1 when the spread is what the
+      intervals say; the factor by which they understate it otherwise);
+    - `spread`: the logs' relative standard deviation (log-scaled) or standard deviation
+      (SI);
+    - `differs`: `p < DISAGREEMENT_P`: the value changes from log to log (a parameter that
+      really varies, such as a payload), or every log's intervals are too narrow (a model
+      error common to the logs: compare `identify.clustered_uncertainty`).
+
+    `logs`: the logs' names; `values`, `std_errors`: `(n_logs, n_params)`, SI. Logs whose
+    fit did not converge or whose standard error is not finite are left out (`excluded`)."""
+
+    names: list[str]
+    logs: list[str]
+    values: np.ndarray
+    std_errors: np.ndarray
+    log_scale: tuple[bool, ...]
+    mean: np.ndarray
+    mean_se: np.ndarray
+    chi2: np.ndarray
+    dof: np.ndarray
+    p: np.ndarray
+    birge: np.ndarray
+    spread: np.ndarray
+    excluded: dict
+
+    @property
+    def differs(self) -> np.ndarray:
+        return self.p < DISAGREEMENT_P
+
+    def summary(self) -> str:
+        """A table: each parameter's weighted mean, spread, chi-square test and verdict."""
+        lines = [f"between the {len(self.logs)} logs' independent fits (inverse-variance weighted mean, chi-square):"]
+        width = max(len(n) for n in self.names)
+        for i, name in enumerate(self.names):
+            spread = f"{100 * self.spread[i]:.3g} %" if self.log_scale[i] else f"{self.spread[i]:.4g}"
+            verdict = (
+                f"DIFFERS between logs beyond their intervals (x{self.birge[i]:.3g} their spread)"
+                if self.differs[i]
+                else "consistent"
+            )
+            lines.append(
+                f"  {name:<{width}}  mean {self.mean[i]:.6g} +/- {self.mean_se[i]:.2g}, spread {spread}, "
+                f"chi2 {self.chi2[i]:.3g} / {int(self.dof[i])} (p {self.p[i]:.2g}): {verdict}"
+            )
+        for name, why in self.excluded.items():
+            lines.append(f"  (log {name!r} left out: {why})")
+        if self.differs.any():
+            lines.append(
+                "  a parameter that differs either varies between the logs (a payload, a temperature) or every "
+                "log's intervals are too narrow for the same reason (model error: see the residual tests)"
+            )
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        return {
+            "names": list(self.names),
+            "logs": list(self.logs),
+            "mean": self.mean.tolist(),
+            "mean_se": self.mean_se.tolist(),
+            "chi2": self.chi2.tolist(),
+            "dof": self.dof.tolist(),
+            "p": self.p.tolist(),
+            "birge_ratio": self.birge.tolist(),
+            "spread": self.spread.tolist(),
+            "spread_is_relative": list(self.log_scale),
+            "differs": self.differs.tolist(),
+            "excluded": dict(self.excluded),
+        }
+
+
+def between_logs(results) -> BetweenLogs:
+    """`BetweenLogs` of independent fits (`identify.fit_independent`'s results, one per
+    log, or any `FitResult`s of the same parameters). Raises `ValueError` with fewer than
+    two usable logs."""
+    results = list(results)
+    if not results:
+        raise ValueError("between_logs: no results")
+    names = list(results[0].names)
+    for r in results[1:]:
+        if list(r.names) != names:
+            raise ValueError(f"between_logs: the results fit different parameters ({names} and {list(r.names)})")
+    log_scale = tuple(bool(v) for v in results[0].problem.log_scale)
+    keep, logs, excluded = [], [], {}
+    for r in results:
+        label = ", ".join(r.problem.log_names)
+        se = np.asarray(r.std_errors, float)
+        if not r.converged:
+            excluded[label] = "its fit did not converge" + (
+                f" ({', '.join(r.at_bounds)} on a bound)" if r.at_bounds else ""
+            )
+        elif not np.all(np.isfinite(se) & (se > 0)):
+            excluded[label] = "a standard error is not finite (a parameter the log does not determine)"
+        else:
+            keep.append(r)
+            logs.append(label)
+    if len(keep) < 2:
+        raise ValueError(f"between_logs: {len(keep)} usable log(s); needs 2 ({excluded})")
+    values = np.stack([np.asarray(r.values, float) for r in keep])
+    se = np.stack([np.asarray(r.std_errors, float) for r in keep])
+    log = np.asarray(log_scale)
+    x = np.where(log, np.log(values), values)
+    s = np.where(log, se / values, se)
+    w = 1.0 / s**2
+    mean_x = np.sum(w * x, axis=0) / np.sum(w, axis=0)
+    mean_s = 1.0 / np.sqrt(np.sum(w, axis=0))
+    chi2 = np.sum(((x - mean_x) / s) ** 2, axis=0)
+    dof = np.full(len(names), len(keep) - 1)
+    p = scipy.stats.chi2.sf(chi2, dof)
+    mean = np.where(log, np.exp(mean_x), mean_x)
+    return BetweenLogs(
+        names=names,
+        logs=logs,
+        values=values,
+        std_errors=se,
+        log_scale=log_scale,
+        mean=mean,
+        mean_se=np.where(log, mean * mean_s, mean_s),
+        chi2=chi2,
+        dof=dof,
+        p=p,
+        birge=np.sqrt(chi2 / dof),
+        spread=np.std(x, axis=0, ddof=1),
+        excluded=excluded,
+    )

@@ -41,6 +41,10 @@ def test_independent_vmapped_fits_recover_each_logs_own_damping():
         assert res.values[0] == pytest.approx(d, rel=0.01)
         (name,) = res.initial_states
         assert res.initial_states[name]["theta1"][0] == pytest.approx(np.radians(deg), abs=5e-4)
+    # the three logs' dampings (1.5, 2.0, 2.5e-3, each known to ~0.1 %) differ: the
+    # chi-square test of one common value rejects it
+    between = identify.between_logs(results)
+    assert between.differs[0] and between.p[0] < 1e-6, between.summary()
     # Review: a per-log summary did not say which log it was, and its time was the batch's
     # divided among the logs without saying so.
     for k, res in enumerate(results):

@@ -72,7 +72,11 @@ def test_fit_independent_sharded_over_four_devices_equals_one_device():
     # Iteration counts may differ by a few: XLA's per-device programs round differently
     # from the batched one (1e-16), which can move an RMS-change termination by an iteration
     # or two near the optimum; the optima agree to 1e-8 (asserted above).
-    assert all(len(a) in (2, 4) and len(a) == len(b) for a, b in zip(four["iterations"], one["iterations"]))
+    # (2 stages, then the noise re-estimation's refits at the full horizon; 2 more with the retry)
+    assert all(len(a) >= 3 and len(a) == len(b) for a, b in zip(four["iterations"], one["iterations"])), (
+        four["iterations"],
+        one["iterations"],
+    )
     # log2's unfitted sensor offset (0.02 rad, 20x the noise) leaves it poor while the others
     # fit theirs: the retry from the others' median runs on the sharded batch too
     assert one["poor"] == four["poor"] == [[], [], ["theta1"]] and one["retried"] and four["retried"]

@@ -498,3 +498,25 @@ def test_the_compile_estimate_allows_for_a_single_core(monkeypatch, tmp_path):
     monkeypatch.setattr(cli, "_cores", lambda: 1)
     assert cli._compile_estimate(exp) == pytest.approx(2 * two)
     assert 10 < two < 20  # measured 10.6 s for this example on 2 cores (the docstring's)
+
+
+def test_fit_independent_fits_each_log_and_compares_them(tmp_path, capsys):
+    """`identify fit --independent`: each fit log of the example on its own (the two drops
+    from 0 and -45 deg, the same rig): every log's 95 % intervals hold the truth the logs
+    were made with, the chi-square test finds them consistent, and result.json, the plots
+    and the per-log table are written; the validation log is said to be unused."""
+    exp = _copy_example(tmp_path / "example")
+    out = tmp_path / "out"
+    assert main(["fit", str(exp), "--out", str(out), "--stages", "2", "--independent"]) == 0
+    printed = capsys.readouterr().out
+    assert "the 1 validation log(s) are not used" in printed
+    assert "between the 2 logs' independent fits" in printed and "DIFFERS" not in printed, printed
+    doc = json.loads((out / "result.json").read_text())
+    assert doc["mode"] == "independent" and sorted(doc["logs"]) == ["drop_0deg", "drop_m45deg"]
+    for name, res in doc["logs"].items():
+        for p in res["parameters"]:
+            assert p["ci95"][0] <= TRUTH[p["name"]] <= p["ci95"][1], (name, p)
+    between = doc["between_logs"]
+    assert between["names"] == [p["name"] for p in res["parameters"]] and not any(between["differs"]), between
+    for name in ("measured_vs_fitted.png", "residuals.png", "parameters_by_log.png"):
+        assert (out / name).is_file(), name
