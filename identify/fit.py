@@ -1044,9 +1044,9 @@ def fit(
       whose simulated channel's amplitude spectrum, under the logs' own inputs, is most
       similar to the measured one (`identify.frequency_init`): a frequency-domain
       initialisation, blind to phase, that puts the first stage in the right basin when EI
-      is far off. 17-18 simulations of the logs per EI (measured: ~1 s for the 1.2 s test
-      log, ~6 s for a 3 s one, ~11 s for the spinning-link example's two 4 s logs, on 2
-      cores).
+      is far off. 25 simulations of the logs per EI (17 on a grid, 8 refining; measured
+      with the 18 before the refinement grew: ~1 s for the 1.2 s test log, ~6 s for a 3 s
+      one, ~11 s for the spinning-link example's two 4 s logs, on 2 cores).
     - `first_damping`: `tau` of the Levenberg-Marquardt solve that starts from the guess when
       there is one start (`n_starts=1`, or no free physical parameter): its first damping
       is `tau * max diag(J^T J)` at the guess (`identify.trust_region`; 0 keeps

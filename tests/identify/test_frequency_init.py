@@ -108,10 +108,14 @@ INPUTS = {
 )
 def test_matched_spectra_find_the_stiffness_where_peak_picking_fails(arm, name, factor_ei):
     """From a guess of EI x0.5 or x2 (flexural frequency x0.71 or x1.41), the initialisation
-    puts EI within 10 % of the truth (the factor grid's step is 41 % in EI before the
-    parabolic refinement), where the largest peak of the measured spectrum, taken as the
-    flexural frequency, puts it more than 40 % off (measured: 0.14, 3.0, 0.05 and 0.52 of
-    the truth)."""
+    puts EI within 12 % of the truth (the factor grid's step is 41 % in EI before the
+    golden-section refinement), where the largest peak of the measured spectrum, taken as
+    the flexural frequency, puts it more than 40 % off (measured: 0.14, 3.0, 0.05 and 0.52
+    of the truth). The other three parameters are 20 % off, and the match's maximum moves
+    with them: under the 1.5 Hz sine from x0.5 it lies at 0.894 of the truth (a search of
+    20 simulations), at 1.0007 with them at the truth (next test). The bar was 10 % while a
+    parabola through three grid points refined the estimate: its vertex missed that maximum
+    (and landed nearer the truth here)."""
     duration, drive = INPUTS[name]
     t = np.arange(0.0, duration, DT)
     problem, params = _problem(arm, t, drive(t)[:, None], factor_ei)
@@ -122,9 +126,26 @@ def test_matched_spectra_find_the_stiffness_where_peak_picking_fails(arm, name, 
         problem, fit_module._x_from_theta(problem, [p.guess for p in params]), said.append
     )
     print(name, f"x{factor_ei}:", said, f"{time.perf_counter() - start:.1f} s")
-    assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.10), said
+    assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.12), said
     # the other parameters are not touched
     np.testing.assert_array_equal(x0[1:], fit_module._x_from_theta(problem, [p.guess for p in params])[1:])
+
+
+def test_with_the_other_parameters_right_the_match_peaks_at_the_truth(arm):
+    """The 1.5 Hz sine from EI x0.5 with the other three parameters at the truth: the grid
+    and its golden-section refinement put EI within 1 % of the truth (measured 1.0000)."""
+    duration, drive = INPUTS["sine 1.5 Hz"]
+    t = np.arange(0.0, duration, DT)
+    log = identify.simulate_log(
+        arm.chain, t, torque=drive(t)[:, None], channels=CHANNELS, noise=arm.noise, rng=np.random.default_rng(1)
+    )
+    params = [identify.Parameter(n, v * (0.5 if n == "link1.EI" else 1.0), v * 1e-2, v * 1e2) for n, v in TRUTH.items()]
+    problem = identify.make_problem(arm.chain, params, [log], noise=arm.noise)
+    said = []
+    x0 = fit_module._frequency_initialise(
+        problem, fit_module._x_from_theta(problem, [p.guess for p in params]), said.append
+    )
+    assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.01), said
 
 
 def test_a_log_without_flexural_motion_keeps_the_guess(arm):
@@ -272,7 +293,8 @@ def test_a_long_log_is_compared_over_its_first_flexural_periods(arm, monkeypatch
     said = []
     theta = frequency_init.initialise_stiffness([problem], guesses[None], limits, simulate, said.append)
     print(said, f"model {f_model:.3g} Hz")
-    assert len(spans) in (17, 18) and all(s == pytest.approx(8.0 / f_model, rel=1e-12) for s in spans), spans
+    n_sims = len(frequency_init.FACTORS) + frequency_init.REFINE_EVALS
+    assert len(spans) in (17, n_sims) and all(s == pytest.approx(8.0 / f_model, rel=1e-12) for s in spans), spans
     assert 8.0 / f_model < 0.5 * t[-1]
     assert theta[0, 0] == pytest.approx(TRUTH["link1.EI"], rel=0.10), said
 
@@ -407,3 +429,31 @@ def test_a_channel_with_a_free_gain_is_matched_in_shape_only(arm):
     assert found[True] == pytest.approx(TRUTH["link1.EI"], rel=0.10), said
     assert "shape only: its gain is free" in said[True][-1]
     assert found[False] < 0.9 * TRUTH["link1.EI"], said
+
+
+def test_a_lightly_damped_curvature_peak_is_matched_by_the_refinement():
+    """Review case: a flexible link on a light hub (0.6 m, 0.3 kg/m, EI 2.3 N m^2, two
+    modes at damping ratio 0.01, hub 4e-3 kg m^2), torque pulses, 3 s at 1 kHz, its root
+    curvature (a strain gauge, 2 microstrain of noise on a 2 mm strip) dominated by a
+    29 Hz mode whose peak (~0.6 Hz wide) is narrower than the factor grid's 9 % steps in
+    frequency. From EI 1.5 (and the damping 5x low), the parabola through the grid's best
+    put EI 6 % low, matching in shape 0.83, with a warning that no EI matches; the
+    golden-section search puts it within 1 % (measured 2.302), without a warning."""
+    chain = fd.Chain(
+        [fd.FlexibleLink(0.6, 0.3, 2.3, n_modes=2, damping_ratio=0.01)],
+        [fd.RigidJoint(damping=5e-3)],
+        [fd.Hub(inertia=4e-3)],
+    )
+    t = np.arange(3001) / 1000.0
+    tau = np.where((t >= 0.2) & (t < 0.5), 0.2, 0.0) - np.where((t >= 0.5) & (t < 0.8), 0.2, 0.0)
+    noise = {"theta1": math.radians(0.05), "curvature1": 2e-6 / 1e-3}
+    log = identify.simulate_log(
+        chain, t, torque=tau[:, None], channels=("theta1", "curvature1"), noise=noise, rng=np.random.default_rng(1)
+    )
+    params = [identify.Parameter("link1.EI", 1.5, 0.1, 20.0), identify.Parameter("joint1.damping", 1e-3, 1e-6, 0.1)]
+    problem = identify.make_problem(chain, params, [log], noise=noise)
+    said = []
+    x0 = fit_module._frequency_initialise(problem, fit_module._x_from_theta(problem, [1.5, 1e-3]), said.append)
+    print(said)
+    assert math.exp(x0[0]) == pytest.approx(2.3, rel=0.01), said
+    assert not any("WARNING" in m for m in said), said
