@@ -206,6 +206,8 @@ class Problem(eqx.Module):
     atol: float = eqx.field(static=True)
     dt: float | None = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
+    # the channels whose noise level make_problem was given (`fit` keeps them by default)
+    declared: tuple[str, ...] = eqx.field(static=True, default=())
 
     @property
     def log_names(self) -> tuple[str, ...]:
@@ -325,7 +327,8 @@ def make_problem(
     measurement: Measurement | None = None,
 ) -> Problem:
     """Build a `Problem`. `noise` maps channels to their standard deviation (SI); channels
-    not in it start at 1 % of the channel's measured RMS and are re-estimated by `fit`.
+    not in it start at 1 % of the channel's measured RMS and are re-estimated by `fit`
+    (by default only those: `fit(estimate_noise=True)` re-estimates the given ones too).
 
     `measurement` (`identify.measurement.Measurement`): sensor gains, offsets, delays,
     high-pass cut-offs and actuator lags between the model and the log; its parameters
@@ -468,6 +471,7 @@ def make_problem(
         atol=atol,
         dt=dt,
         max_steps=max_steps,
+        declared=tuple(c for c in channels if noise.get(c) is not None),
     )
 
 
@@ -975,7 +979,7 @@ def fit(
     *,
     horizons: Sequence[float] | None = None,
     n_stages: int = 4,
-    estimate_noise: Sequence[str] | bool = True,
+    estimate_noise: Sequence[str] | bool | None = None,
     max_steps: int = 200,
     rtol: float = 1e-3,
     atol: float = 1e-10,
@@ -1000,12 +1004,14 @@ def fit(
       plain single shooting). A stage that ends before a log does simulates that log
       from its onset, from its initial state (the rest before it skipped:
       `identify.residuals._simulate_log`); the last stage simulates every log whole.
-    - `estimate_noise`: re-estimate the noise level of these channels (True: all) from
-      the residuals after the first pass and refit with the new weights, again until the
-      residuals' RMS agrees with the weights within `NOISE_AGREEMENT` (at most
-      `NOISE_ROUNDS` passes). Review: from make_problem's default weights (1 % of each
-      channel's RMS) one refit left the angle's weight at 0.259 deg while its residual
-      was 0.050 deg (the noise), and the intervals 3.5x too wide.
+    - `estimate_noise`: re-estimate the noise level of these channels (True: all; None,
+      the default: those `make_problem` was given no noise for) from the residuals after
+      the first pass and refit with the new weights, again until the residuals' RMS agrees
+      with the weights within `NOISE_AGREEMENT` (at most `NOISE_ROUNDS` passes). Review:
+      from make_problem's default weights (1 % of each channel's RMS) one refit left the
+      angle's weight at 0.259 deg while its residual was 0.050 deg (the noise), and the
+      intervals 3.5x too wide. (Until 2026-12-05 the default re-estimated declared levels
+      too, which make_problem's docstring said it would not: review.)
     - `max_steps`, `rtol`, `atol`: Levenberg-Marquardt settings per stage (termination on
       the RMS change of the residuals and parameters, see `_solve`).
     - `grid_safety`: each stage integrates with a constant step, `grid_safety` times the
@@ -1077,8 +1083,7 @@ def fit(
     horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
     _say_onsets(problem, horizons, say)
     stages = []
-    if estimate_noise is True:
-        estimate_noise = problem.channels
+    estimate_noise = _noise_to_estimate(problem, estimate_noise)
     rounds = NOISE_ROUNDS if estimate_noise else 1
     candidates = [z]
     # one compiled Levenberg-Marquardt program for every stage and start: the iteration
@@ -1181,7 +1186,7 @@ def fit(
             # (review: 8 starts at the same cost, a poor fit, and no trace of whether the
             # documented restart had run)
             say(
-                f"  {why}; not restarted: "
+                f"  {'this attempt: ' if attempt else ''}{why}; not restarted: "
                 + (
                     "no other start (n_starts=1 and no extra starts)"
                     if len(candidates) == 1 and not (n_starts > 1 or len(extra))
@@ -1190,7 +1195,16 @@ def fit(
                 )
                 + ": the misfit is more likely the model's or the data's than the start's"
             )
-    _, _, z, sigma, step, lin, tried, ms = min(outcomes, key=lambda o: (o[0], o[1]))
+    kept = min(range(len(outcomes)), key=lambda k: (outcomes[k][0], outcomes[k][1]))
+    if len(outcomes) > 1:
+        # (review: "a parameter ended on its bound" was read as said of the result, which
+        # was the first attempt, off the bounds)
+        say(
+            f"  keeping attempt {kept + 1} of {len(outcomes)}"
+            + (" (on a bound)" if outcomes[kept][0] else ", off the bounds")
+            + ", the one that explains the data best (residual RMS against the noise floor)"
+        )
+    _, _, z, sigma, step, lin, tried, ms = outcomes[kept]
     stages.extend(tried)
     say("  computing standard errors (exact Jacobian at the optimum) ...")
     x = _x_from_z(problem, z["phys"])
@@ -1617,7 +1631,7 @@ def fit_independent(
     first_damping: float = 1e-3,
     frequency_init: bool = True,
     restart_poor_fit: bool = True,
-    estimate_noise: Sequence[str] | bool = True,
+    estimate_noise: Sequence[str] | bool | None = None,
     progress=None,
 ) -> list[FitResult]:
     """Independent fits of every log of `problem` (each log its own parameter values), all
@@ -1625,10 +1639,11 @@ def fit_independent(
     integration step. So every log must estimate the same `fit_initial` entries and
     `offsets` (a `ValueError` names the first two logs that differ). The first stage
     starts with the damping `first_damping` (as in `fit` with one start).
-    `estimate_noise`: as in `fit`, but each log's own noise levels of these channels (True:
-    all) are re-estimated from its residuals and refitted, the whole batch at the full
-    horizon, until every log's agree within `NOISE_AGREEMENT` (at most `NOISE_ROUNDS`
-    passes); the other channels keep `problem`'s levels. Each result's `sigma` is its
+    `estimate_noise`: as in `fit` (default: the channels make_problem was given no noise
+    for), but each log's own noise levels of these channels are re-estimated from its
+    residuals and refitted, the whole batch at the full horizon, until every log's agree
+    within `NOISE_AGREEMENT` (at most `NOISE_ROUNDS` passes); the other channels keep
+    `problem`'s levels. Each result's `sigma` is its
     log's. Review: with make_problem's default weights (1 % of each channel's RMS) and the
     weights not re-estimated (as before), every log was fitted 5-9x above its noise floor.
     `frequency_init`: each log's free `link<i>.EI` guess from its own flexural spectrum,
@@ -1669,9 +1684,8 @@ def fit_independent(
     mesh = fbatch.batch_mesh()
     sigma0 = jnp.tile(jnp.asarray(problem.sigma), (L, 1))  # each log its own noise levels
     (stacked, z, sigma0), _ = fbatch.shard_batch((stacked, z, sigma0), mesh)
-    if estimate_noise is True:
-        estimate_noise = problem.channels
-    estimated = [j for j, c in enumerate(problem.channels) if c in (estimate_noise or ())]
+    estimate_noise = _noise_to_estimate(problem, estimate_noise)
+    estimated = [j for j, c in enumerate(problem.channels) if c in estimate_noise]
     rounds = NOISE_ROUNDS if estimated else 1
     horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
     _say_onsets(problem, horizons, say)
@@ -2076,6 +2090,16 @@ def _noise_text(channels, sigma, estimated) -> str:
 NOISE_ROUNDS = 4
 #: ... and it stops when every re-estimated level is within this fraction of the one used
 NOISE_AGREEMENT = 0.1
+
+
+def _noise_to_estimate(problem: Problem, estimate_noise) -> list[str]:
+    """`fit`'s `estimate_noise` as a list of channels: None, the channels make_problem was
+    given no noise for; True, all; False, none."""
+    if estimate_noise is None:
+        return [c for c in problem.channels if c not in problem.declared]
+    if estimate_noise is True:
+        return list(problem.channels)
+    return list(estimate_noise or ())
 
 
 def _reestimate_sigma_per_log(ms, sigma, estimated) -> np.ndarray:

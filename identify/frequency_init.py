@@ -28,11 +28,13 @@ through the best factor and its neighbours (in log EI) refined it with one more
 simulation until 2026-12-05; a lightly damped mode's peak is narrower than that: on a
 flexible link whose root curvature is dominated by a 29 Hz mode at damping ratio 0.01,
 the parabola's vertex put EI 6 % low with a shape similarity of 0.83 (and a warning that
-no EI matches), the golden-section search puts it 0.1 % off at 0.999. Both spectra see the same input, window and record length, so whatever the
-input puts into the spectrum (a driving sine's line, a square wave's harmonics, the
-leakage of a short record) is in both. At most `PERIODS` (60) flexural periods of the
-model at the guess are compared from each log's onset, and simulated: a long log costs
-no more than one of that length.
+no EI matches), the golden-section search puts it 0.1 % off at 0.999.
+
+Both spectra see the same input, window and record length, so whatever the input puts
+into the spectrum (a driving sine's line, a square wave's harmonics, the leakage of a
+short record) is in both. At most `PERIODS` (60) flexural periods of the model at the
+guess are compared from each log's onset, and simulated: a long log costs no more than
+one of that length.
 
 Picking the largest peak of the measured spectrum and scaling EI by the squared ratio of
 its frequency to the model's natural frequency (what `identify.fit` did before) assumed
