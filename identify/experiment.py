@@ -49,7 +49,7 @@ JOINT_TYPES = {"rigid": fd.RigidJoint, "elastic": fd.ElasticJoint}
 _TOP_KEYS = ("experiment", "rig", "parameters", "starts", "noise", "logs", "sensors", "actuators")
 _EXPERIMENT_KEYS = ("name", "description", "strict", "min_samples")
 _RIG_KEYS = ("base", "options", "set", "gravity", "links", "joints", "hubs", "payload")
-_LOG_KEYS = ("file", "name", "role", "columns", "calibration", "initial", "fit_initial", "offsets", "strict")
+_LOG_KEYS = ("file", "name", "role", "columns", "calibration", "initial", "fit_initial", "offsets", "strict", "set")
 _PARAMETER_KEYS = ("guess", "lower", "upper")
 _SENSOR_KEYS = ("gain", "offset", "delay", "highpass")
 _ACTUATOR_KEYS = ("lag",)
@@ -84,6 +84,8 @@ class LogSpec:
     - `offsets`: output channels whose constant sensor offset is estimated for this log.
     - `log`: the loaded data (SI).
     - `measured`: the entries of `initial` given as `"measured"` (the log's first sample).
+    - `set`: this log's known parameter values that differ from the rig's (SI; a payload
+      sweep: `{"payload.mass": 0.02}`), `identify.LogData.set`.
     """
 
     name: str
@@ -96,6 +98,7 @@ class LogSpec:
     offsets: tuple[str, ...]
     log: Log
     measured: tuple[str, ...] = ()
+    set: dict[str, float] = dataclasses.field(default_factory=dict)
 
     @property
     def outputs(self) -> dict[str, np.ndarray]:
@@ -215,6 +218,9 @@ class Experiment:
             lines.append(f"  measurement {n} = {float(meas.get_parameter(self.measurement, n)):g} {unit}".rstrip())
         for entry in self.logs:
             lines.append(f"  [{entry.role}] " + entry.log.summary().replace("\n", "\n    "))
+            if entry.set:
+                units = {n: fd.parameter_unit(self.chain, n) for n in entry.set}
+                lines.append("    set: " + ", ".join(f"{n} = {v:g} {units[n]}" for n, v in entry.set.items()))
             lines.extend(f"  warning: {w}" for w in entry.warnings())
         return "\n".join(lines)
 
@@ -428,6 +434,15 @@ def load_experiment(path) -> Experiment:
     free, measurement, chain = _free_parameters(
         r, chain, measurement, logs, r.table(doc.get("parameters", {}), ("parameters",))
     )
+    free_names = {p.name for p in free}
+    for k, entry in enumerate(logs, start=1):
+        for pname in entry.set:
+            if pname in free_names:
+                raise r.error(
+                    ("logs", k, "set", pname),
+                    f"{pname} is also a free parameter in [parameters]; a known value per log and a fitted one "
+                    "exclude each other (to fit it in each log on its own: identify fit --independent)",
+                )
     starts = _starts(r, free, doc.get("starts", []))
     return Experiment(
         path=path,
@@ -883,7 +898,27 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
         offsets=tuple(offsets),
         log=log,
         measured=tuple(measured),
+        set=_log_set(r, chain, spec.get("set", {}), key + ("set",)),
     )
+
+
+def _log_set(r: _Reader, chain: fd.Chain, table, key: tuple) -> dict[str, float]:
+    """A log's `set` table: known values of the rig's parameters for this log (SI)."""
+    out = {}
+    valid = fd.parameter_names(chain)
+    for name, value in r.table(table, key).items():
+        pkey = key + (name,)
+        if name not in valid:
+            raise _unknown_parameter(r, chain, pkey, value)
+        v = r.number(value, pkey)
+        if not fd.is_signed(chain, name) and v < 0:
+            raise r.error(pkey, f"expected a value >= 0 [{fd.parameter_unit(chain, name)}], got {v!r}")
+        try:  # the part's own checks (e.g. EI > 0)
+            fd.with_parameters(chain, {name: v})
+        except ValueError as e:
+            raise r.error(pkey, str(e)) from None
+        out[name] = v
+    return out
 
 
 def _noise(r: _Reader, logs: list[LogSpec], table: Mapping) -> dict[str, float | None]:

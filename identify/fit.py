@@ -127,6 +127,9 @@ class LogData:
       entries not given are 0.
     - `fit_initial`: initial-state entries to estimate for this log.
     - `offsets`: output channels whose constant sensor offset is estimated for this log.
+    - `set`: known parameter values of this log that differ from the rig's, SI (a payload
+      sweep: `{'payload.mass': 0.02}`); the rig's values elsewhere. A parameter set in any
+      log cannot be a free one.
     """
 
     t: np.ndarray
@@ -136,6 +139,7 @@ class LogData:
     fit_initial: tuple = ()
     offsets: tuple = ()
     name: str = "log"
+    set: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
     def from_log(cls, log, n_joints: int, **entries) -> LogData:
@@ -196,6 +200,7 @@ class Problem(eqx.Module):
     torque_v: jax.Array  # (L, T, n_joints)
     y0_known: jax.Array  # (L, 2n)
     onset: jax.Array  # (L,) s, on each log's clock: where its input or motion starts (`log_onset`)
+    log_set: jax.Array  # (L, K): each log's values of the parameters `log_set_names` (`LogData.set`)
     names: tuple[str, ...] = eqx.field(static=True)
     log_scale: tuple[bool, ...] = eqx.field(static=True)
     channels: tuple[str, ...] = eqx.field(static=True)
@@ -208,10 +213,48 @@ class Problem(eqx.Module):
     max_steps: int = eqx.field(static=True)
     # the channels whose noise level make_problem was given (`fit` keeps them by default)
     declared: tuple[str, ...] = eqx.field(static=True, default=())
+    log_set_names: tuple[str, ...] = eqx.field(static=True, default=())
 
     @property
     def log_names(self) -> tuple[str, ...]:
         return self.labels.names
+
+
+def _log_set(chain, measurement, logs, free: set, known: set) -> tuple[tuple[str, ...], np.ndarray]:
+    """The parameters some log sets (`LogData.set`) and each log's values `(L, K)` (the
+    rig's where a log does not set one), each log's checked as the rig would check it."""
+    names = sorted({n for log in logs for n in log.set})
+    for log in logs:
+        for n in log.set:
+            if n not in known:
+                raise ValueError(
+                    f"log {log.name!r}: set {n!r} is not a parameter{fd.params.did_you_mean(n, known)}; "
+                    f"this chain has: {', '.join(sorted(known))}"
+                )
+            if n in free:
+                raise ValueError(
+                    f"log {log.name!r}: set {n!r} is also a free parameter; a known value per log and a fitted "
+                    "one exclude each other (fit it per log with fit_independent, or drop it from the parameters)"
+                )
+    base = [
+        float(meas.get_parameter(measurement, n) if meas.is_measurement_parameter(n) else fd.get_parameter(chain, n))
+        for n in names
+    ]
+    values = np.tile(np.asarray(base, float), (len(logs), 1)).reshape(len(logs), len(names))
+    for l, log in enumerate(logs):
+        for k, n in enumerate(names):
+            if n in log.set:
+                v = log.set[n]
+                if isinstance(v, bool) or not isinstance(v, int | float | np.floating | np.integer):
+                    raise ValueError(f"log {log.name!r}: set {n!r} expected a number (SI), got {v!r}")
+                values[l, k] = float(v)
+        chain_values, sensor_values = meas.split_values(dict(zip(names, values[l])))
+        try:  # the rig's own checks (a negative mass, a NaN)
+            fd.with_parameters(chain, chain_values)
+            meas.with_parameters(measurement, sensor_values)
+        except ValueError as e:
+            raise ValueError(f"log {log.name!r}: set: {e}") from None
+    return tuple(names), values
 
 
 def _check_log_data(log: LogData) -> None:
@@ -382,6 +425,7 @@ def make_problem(
     channels = sorted({c for log in logs for c in log.outputs})
     for c in channels:
         ch.check_channel(chain, c)
+    log_set_names, log_set = _log_set(chain, measurement, logs, set(names), known)
     states = state_names(chain)
     n2 = len(states)
     L = len(logs)
@@ -461,6 +505,7 @@ def make_problem(
         torque_v=jnp.asarray(torque_v),
         y0_known=jnp.asarray(y0_known),
         onset=jnp.asarray(onset, dtype=float),
+        log_set=jnp.asarray(log_set),
         names=tuple(names),
         log_scale=tuple(log_scale),
         channels=tuple(channels),
@@ -472,6 +517,7 @@ def make_problem(
         dt=dt,
         max_steps=max_steps,
         declared=tuple(c for c in channels if noise.get(c) is not None),
+        log_set_names=log_set_names,
     )
 
 
@@ -838,6 +884,11 @@ class FitResult:
                 f"{n:<28} {self.values[i]:>12.{d}g} {self.std_errors[i]:>10.3g} {ci:>25} "
                 f"{self.guesses[i]:>12.4g} {100 * change:>7.1f}%  {unit}"
             )
+        if self.problem is not None and self.problem.log_set_names:  # (`LogData.set`)
+            values = np.asarray(self.problem.log_set)
+            for k, n in enumerate(self.problem.log_set_names):
+                per_log = ", ".join(f"{v:g} ({log})" for v, log in zip(values[:, k], self.problem.log_names))
+                lines.append(f"known per log: {n} = {per_log} {parameter_unit(self.problem, n)}")
         its = sum(s["iterations"] for s in self.stages)
         lines.append(
             f"cost {self.cost:.6g} over {self.n_residuals} residuals, residual variance {self.residual_variance:.4g}, "
@@ -912,6 +963,12 @@ class FitResult:
                 }
                 for i, n in enumerate(self.names)
             ],
+            "known_per_log": {
+                log: {n: float(v) for n, v in zip(self.problem.log_set_names, row)}
+                for log, row in zip(self.problem.log_names, np.asarray(self.problem.log_set).tolist())
+            }
+            if self.problem is not None and self.problem.log_set_names
+            else {},
             "correlation": self.correlation.tolist(),
             "correlation_names": list(self.names),  # the rows' and columns' order (review: only implied)
             # per log: {entry: {value, std_error, unit}} (review: bare [value, SE] pairs)
@@ -1601,7 +1658,7 @@ def _split(problem: Problem) -> tuple[Problem, list[Problem]]:
                     f"{what} entries; log {problem.log_names[0]!r} has {what} {first}, "
                     f"log {problem.log_names[k]!r} has {other}"
                 )
-    fields = ("t", "valid", "measured", "present", "torque_t", "torque_v", "y0_known", "onset")
+    fields = ("t", "valid", "measured", "present", "torque_t", "torque_v", "y0_known", "onset", "log_set")
     singles = []
     for k in range(L):
         singles.append(

@@ -487,7 +487,8 @@ def _flexural_frequencies(problems, thetas, link: int) -> list[float | None]:
     for problem, theta in zip(problems, thetas):
         key = theta.tobytes()
         if key not in seen:
-            seen[key] = flexural_frequency(_chain(problem, jnp.asarray(theta)), link)
+            first = problem.log_set[0] if problem.log_set_names else None  # (the first log's known values)
+            seen[key] = flexural_frequency(_chain(problem, jnp.asarray(theta), first), link)
         out.append(seen[key])
     return out
 

@@ -331,7 +331,7 @@ def check_calibration(channel: str, spec, where: str) -> Calibration:
             raise LogError(f"{where}.neutral_axis_distance: expected a distance > 0 (m, or '1 mm'), got {distance!r}")
     if "scale" not in spec and distance is None:
         raise LogError(f"{where}: missing 'scale' (SI = scale * V + offset)")
-    if "scale" not in spec and "offset" in spec:
+    if "scale" not in spec and spec.get("offset", 0.0) != 0.0:
         raise LogError(
             f"{where}: an offset without a scale; offset applies to voltage columns (SI = scale * V + offset)"
         )

@@ -39,13 +39,23 @@ from flexdyn.simulate import adaptive_controller as _adaptive_controller
 from . import channels as ch, measurement as meas
 
 
-def _chain(problem, theta):
+def _chain(problem, theta, log_values=None):
+    """The problem's chain at parameters `theta`, with a log's known values `log_values`
+    (a row of `Problem.log_set`) if given."""
     values = {n: theta[i] for i, n in enumerate(problem.names) if not meas.is_measurement_parameter(n)}
+    if log_values is not None:
+        values.update(
+            {n: log_values[k] for k, n in enumerate(problem.log_set_names) if not meas.is_measurement_parameter(n)}
+        )
     return fd.with_parameters(problem.chain, values)
 
 
-def _measurement(problem, theta):
+def _measurement(problem, theta, log_values=None):
     values = {n: theta[i] for i, n in enumerate(problem.names) if meas.is_measurement_parameter(n)}
+    if log_values is not None:
+        values.update(
+            {n: log_values[k] for k, n in enumerate(problem.log_set_names) if meas.is_measurement_parameter(n)}
+        )
     return meas.with_parameters(problem.measurement, values)
 
 
@@ -94,7 +104,7 @@ def _admissible(problem, theta, y0):
     return jnp.where(good, theta, 1.0), jnp.where(y0_good, y0, 0.0), ok
 
 
-def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: bool):
+def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: bool, log_values=None):
     """Outputs `(T, C)` of one log (times `t`, commanded torque samples `torque_v`,
     initial state `y0`, onset time `onset`: `Problem.onset`) and whether its solve
     succeeded.
@@ -109,10 +119,11 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     at rest for 3 s before 1.2 s of doublets, 8 seeds, two fits at a time on 2 cores:
     19-94 s warm per fit, 5-17 s with the rest skipped, the same optima to 1e-12). The
     last stage simulates the whole log. Parameters or an initial state the model would
-    refuse (`_admissible`) count as a failed solve."""
+    refuse (`_admissible`) count as a failed solve. `log_values`: the log's row of
+    `Problem.log_set`."""
     theta, y0, admissible = _admissible(problem, theta, y0)
-    asm = fd.assemble(_chain(problem, theta))
-    sensors = _measurement(problem, theta)
+    asm = fd.assemble(_chain(problem, theta, log_values))
+    sensors = _measurement(problem, theta, log_values)
     if horizon is None:
         t_begin, t_end = t[0], t[-1]
     else:
@@ -168,8 +179,11 @@ def predict(problem, theta, y0s, horizon=None, step=None, *, stats: bool = False
     the problem's fixed `dt` (RK4) or its adaptive tolerances are used. With `stats`,
     also return the number of accepted steps per log (`stats="limit"`: whether the
     solve reached `problem.max_steps`, instead)."""
-    one = lambda t, tv, y0, on: _simulate_log(problem, theta, t, tv, y0, on, horizon, step, stats)  # noqa: E731
-    return jax.vmap(one)(problem.t, problem.torque_v, y0s, problem.onset)
+
+    def one(t, tv, y0, on, values):
+        return _simulate_log(problem, theta, t, tv, y0, on, horizon, step, stats, values)
+
+    return jax.vmap(one)(problem.t, problem.torque_v, y0s, problem.onset, problem.log_set)
 
 
 def _used(problem, horizon):
@@ -307,10 +321,11 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
     offsets = _offsets(problem, offset_free)
     mask = _used(problem, horizon)
 
-    def one(t, tv, y0_known, onset, measured, off, used, idx, u_l, slot_used):
+    def one(t, tv, y0_known, onset, values, measured, off, used, idx, u_l, slot_used):
         def f(flat_, u_):
             y0 = y0_known.at[idx].add(jnp.where(slot_used, u_ - y0_known[idx], 0.0))
-            out, ok = _simulate_log(problem, theta_of(unravel(flat_)), t, tv, y0, onset, horizon, step, False)
+            theta = theta_of(unravel(flat_))
+            out, ok = _simulate_log(problem, theta, t, tv, y0, onset, horizon, step, False, values)
             r = jnp.where(ok, (out + off - measured) / sigma, FAILED_RESIDUAL)
             r = jnp.where(used, r, 0.0).reshape(-1)
             return r, (r, ok)
@@ -323,6 +338,7 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
         problem.torque_v,
         problem.y0_known,
         problem.onset,
+        problem.log_set,
         problem.measured,
         offsets,
         mask,

@@ -19,6 +19,7 @@ def log_data(spec: LogSpec, n_joints: int) -> LogData:
         fit_initial=tuple(spec.fit_initial),
         offsets=tuple(spec.offsets),
         name=spec.name,
+        set=dict(spec.set),
     )
 
 
