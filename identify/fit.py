@@ -903,7 +903,22 @@ class FitResult:
                 + ", ".join(f"{c} {q['ratio']:.3g}" for c, q in self.fit_quality.items())
             )
         for name in self.at_bounds:
-            lines.append(f"warning: {name} ended on its bound: widen the bounds or improve the guess")
+            i = self.names.index(name)
+            at_lower = False  # (on the lower of its two bounds, in the natural coordinate)
+            if self.problem is not None and self.problem.log_scale[i]:
+                x, lo, hi = math.log(self.values[i]), float(self.problem.lower[i]), float(self.problem.upper[i])
+                at_lower = abs(x - lo) < abs(x - hi)
+            hint = (
+                f"; {name} is positive and fitted in log space, so it cannot reach 0: if its true value may be 0 "
+                "(no payload, no damping), fix it at 0 instead of fitting it"
+                if at_lower
+                else ""
+            )
+            lines.append(
+                f"warning: {name} ended on its bound: widen the bounds or improve the guess{hint}. The intervals "
+                "above assume an interior optimum and do not hold on a bound (nor, for the parameters correlated "
+                "with it, off it)"
+            )
         for c in self.poor_fit:
             q = self.fit_quality[c]
             scale, unit = display_unit(c)
