@@ -218,6 +218,13 @@ class Experiment:
             lines.append(f"  measurement {n} = {float(meas.get_parameter(self.measurement, n)):g} {unit}".rstrip())
         for entry in self.logs:
             lines.append(f"  [{entry.role}] " + entry.log.summary().replace("\n", "\n    "))
+            estimated = [
+                f"{what} {', '.join(items)}"
+                for what, items in (("initial state", entry.fit_initial), ("sensor offset of", entry.offsets))
+                if items
+            ]
+            if estimated:
+                lines.append("    estimated for this log: " + "; ".join(estimated))
             if entry.set:
                 units = {n: fd.parameter_unit(self.chain, n) for n in entry.set}
                 lines.append("    set: " + ", ".join(f"{n} = {v:g} {units[n]}" for n, v in entry.set.items()))
