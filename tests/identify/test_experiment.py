@@ -776,9 +776,9 @@ def test_a_log_sets_its_own_known_parameter_values(tmp_path):
     exp = load_experiment(path)
     assert exp.logs[0].set == {"payload.mass": 0.02} and exp.name == "exp"  # (review: the name was overwritten)
     assert "set: payload.mass = 0.02 kg" in exp.summary()
-    path = experiment(tmp_path, RIG + LOG + 'fit_initial = ["theta1"]\noffsets = ["tip1"]\n')
+    other = experiment(tmp_path, RIG + LOG + 'fit_initial = ["theta1"]\noffsets = ["tip1"]\n', name="other.toml")
     # (review: `identify check` did not list what each log estimates)
-    assert "estimated for this log: initial state theta1; sensor offset of tip1" in load_experiment(path).summary()
+    assert "estimated for this log: initial state theta1; sensor offset of tip1" in load_experiment(other).summary()
     assert log_data(exp.logs[0], exp.chain.n_links).set == {"payload.mass": 0.02}
     line = line_of(path, "set =")
     for body, expected in (
