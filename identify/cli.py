@@ -687,21 +687,9 @@ def _fit_command(args) -> int:
         check_output_folder(out, inputs, args.force)  # again: the fit took a while
     except _Refused as e:
         return error(str(e))
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text(
-        "Written by `identify fit` (flexdyn). This folder holds its outputs; a new run may overwrite these "
-        f"files: {', '.join(output_files())}.\n"
-    )
+    _write_marker(out)
     doc = result.to_dict()
-    doc["experiment"] = {
-        "name": exp.name,
-        "description": exp.description,
-        "path": str(Path(exp.path).resolve()),
-        "logs": [
-            {"name": s.name, "file": str(Path(s.file).resolve()), "role": s.role, "samples": len(s.log)}
-            for s in exp.logs
-        ],
-    }
+    doc["experiment"] = _experiment_doc(exp)
     doc["residuals"] = resid
     doc["validation"] = {
         name: {
@@ -754,6 +742,28 @@ def _fit_command(args) -> int:
     return 0
 
 
+def _write_marker(out: Path) -> None:
+    """Create `out` and mark it as `identify fit`'s (`check_output_folder`)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / MARKER).write_text(
+        "Written by `identify fit` (flexdyn). This folder holds its outputs; a new run may overwrite these "
+        f"files: {', '.join(output_files())}.\n"
+    )
+
+
+def _experiment_doc(exp) -> dict:
+    """The experiment's part of result.json: name, description, path, logs."""
+    return {
+        "name": exp.name,
+        "description": exp.description,
+        "path": str(Path(exp.path).resolve()),
+        "logs": [
+            {"name": s.name, "file": str(Path(s.file).resolve()), "role": s.role, "samples": len(s.log), "set": s.set}
+            for s in exp.logs
+        ],
+    }
+
+
 def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
     """`identify fit --independent`: every fit log on its own, then `between_logs`."""
     from . import report as plots
@@ -795,26 +805,14 @@ def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
     except _Refused as e:
         print(f"identify fit: {e}", file=sys.stderr, flush=True)
         return 2
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text(
-        "Written by `identify fit` (flexdyn). This folder holds its outputs; a new run may overwrite these "
-        f"files: {', '.join(output_files())}.\n"
-    )
+    _write_marker(out)
     outputs, reports = {}, {}
     for r in results:
         outputs.update(fitted_outputs(r))
         reports.update(residual_report(r))
     doc = {
         "mode": "independent",
-        "experiment": {
-            "name": exp.name,
-            "description": exp.description,
-            "path": str(Path(exp.path).resolve()),
-            "logs": [
-                {"name": s.name, "file": str(Path(s.file).resolve()), "role": s.role, "samples": len(s.log)}
-                for s in exp.logs
-            ],
-        },
+        "experiment": _experiment_doc(exp),
         "logs": {", ".join(r.problem.log_names): r.to_dict() for r in results},
         "between_logs": None if between is None else between.to_dict(),
         "residuals": reports,
