@@ -1535,6 +1535,11 @@ def _residual_ms(problem: Problem, z, sigma, step, lin=None) -> np.ndarray:
 #: `_reversed_channels`: a channel whose first response to the torque and the simulation's
 #: have a cosine below this moves against the model
 REVERSED_CORRELATION = -0.5
+#: ... over the first push: where the drive first exceeds this fraction of its peak, until it
+#: falls below it or reverses
+PUSH_LEVEL = 0.3
+#: ... a log's push counts only if it moves the measured channel by this many noise floors
+PUSH_MOTION = 10.0
 
 
 def _reversed_channels(problem: Problem, z, sigma, step, channels) -> dict:
@@ -1563,11 +1568,17 @@ def _reversed_channels(problem: Problem, z, sigma, step, channels) -> dict:
         idx = np.flatnonzero(k)
         j = int(np.argmax(np.max(np.abs(tau[l][idx]), axis=0)))
         drive = tau[l][idx, j]
-        first = int(np.flatnonzero(drive != 0)[0])
-        flips = np.flatnonzero(np.sign(drive[first:]) == -np.sign(drive[first]))
-        stop = first + (int(flips[0]) if flips.size else len(idx))
+        # the push: from the first sample above PUSH_LEVEL of the drive's peak to where it
+        # falls below that level or reverses (review: a logged torque with 1 % noise made
+        # the first nonzero sample the noise's, a push of 2 samples of encoder noise, and a
+        # correct encoder was called reversed)
+        level = PUSH_LEVEL * float(np.max(np.abs(drive)))
+        first = int(np.flatnonzero(np.abs(drive) > level)[0])
+        ends = np.flatnonzero(drive[first:] * np.sign(drive[first]) <= level)
+        stop = first + (int(ends[0]) if ends.size else len(idx))
         stop = min(stop, first + max(len(idx) // 4, 4))
         pushes.append((l, idx[: stop + 1]))
+    floors = nf.channel_floors(problem.t, meas_, valid, present)[0]
     out = {}
     for jc, c in enumerate(problem.channels):
         if c not in channels:
@@ -1575,8 +1586,11 @@ def _reversed_channels(problem: Problem, z, sigma, step, channels) -> dict:
         ps, ms = [], []
         for l, w in pushes:
             if present[l, jc] and w.size >= 4:
+                m = meas_[l, w, jc] - meas_[l, w[0], jc]
+                if np.max(np.abs(m)) < PUSH_MOTION * floors[l, jc]:  # the push moved it less than its noise
+                    continue
                 ps.append(pred[l, w, jc] - pred[l, w[0], jc])
-                ms.append(meas_[l, w, jc] - meas_[l, w[0], jc])
+                ms.append(m)
         if not ps:
             continue
         p_all, m_all = np.concatenate(ps), np.concatenate(ms)
