@@ -821,6 +821,9 @@ class FitResult:
     # channels whose simulation moves against the measurement (`_reversed_channels`):
     # channel -> correlation of the two (below REVERSED_CORRELATION); checked on a poor fit
     reversed_channels: dict = dataclasses.field(default_factory=dict)
+    # fitted initial-state entries far from their log's first sample (`_initial_far`):
+    # log -> {entry: (fitted + offset, first sample, noise)}, SI
+    initial_far: dict = dataclasses.field(default_factory=dict)
 
     @property
     def value(self) -> dict:
@@ -937,6 +940,16 @@ class FitResult:
                 )
                 + self._weight_hint(c, q)
             )
+        for log, entries in self.initial_far.items():
+            for e, (start, first, noise) in entries.items():
+                scale, unit = display_unit(e)
+                lines.append(
+                    f"warning: log {log!r}: the fitted initial {e} ({scale * start:.4g} {unit}, with its offset) is "
+                    f"{scale * abs(start - first):.3g} {unit} from the log's first sample "
+                    f"({scale * first:.4g} {unit}), "
+                    f"{abs(start - first) / noise:.0f}x the channel's noise: the fit moved the start to absorb a "
+                    "misfit (a missing effect, or a log that does not start as declared)"
+                )
         for c, corr in self.reversed_channels.items():
             lines.append(
                 f"warning: {c} first moves against the simulation's push (cosine {corr:.2f} of the two traces over "
@@ -1012,6 +1025,10 @@ class FitResult:
             "converged": self.converged,
             "at_bounds": self.at_bounds,
             "reversed_channels": self.reversed_channels,
+            "initial_far": {
+                log: {e: {"fitted_with_offset": a, "first_sample": b, "noise": n} for e, (a, b, n) in d.items()}
+                for log, d in self.initial_far.items()
+            },
             "identifiability_warnings": self.identifiability,
             "fit_quality": self.fit_quality,
             "singular_values": self.singular_values.tolist(),
@@ -1601,6 +1618,39 @@ def _reversed_channels(problem: Problem, z, sigma, step, channels) -> dict:
     return out
 
 
+#: `_initial_far`: a fitted initial angle this many noise levels from its first sample
+INITIAL_FAR = 20.0
+
+
+def _initial_far(problem: Problem, init: dict, offs: dict, sigma) -> dict:
+    """Fitted initial-state entries that a log also measures (`theta<i>`, `alpha<i>`, ...:
+    a coordinate whose name is a channel), more than `INITIAL_FAR` times the channel's
+    noise from the log's first sample (fitted value plus the log's fitted offset of that
+    channel, if any): log -> {entry: (fitted + offset, first sample, noise)}. A fit that
+    cannot explain a log moves its start to absorb what it can (review: fitted initial
+    angles 5-15 deg from encoders reading 12.3 deg at rest, on a model without the rig's dry
+    friction), and said nothing of it."""
+    measured, valid = np.asarray(problem.measured), np.asarray(problem.valid)
+    sig = np.asarray(sigma, float)
+    # (a channel with a sensor model, gain, high-pass, delay, does not read the state itself)
+    sensed = {
+        n.split(".")[1] for n in [*meas.parameter_names(problem.measurement), *problem.names] if n.startswith("sensor.")
+    }
+    out = {}
+    for l, name in enumerate(problem.log_names):
+        for entry, (value, _) in init.get(name, {}).items():
+            if entry not in problem.channels or entry in sensed:
+                continue
+            j = problem.channels.index(entry)
+            if not np.asarray(problem.present)[l, j]:
+                continue
+            first = float(measured[l, np.flatnonzero(valid[l])[0], j])
+            start = value + offs.get(name, {}).get(entry, (0.0, 0.0))[0]
+            if abs(start - first) > INITIAL_FAR * sig[j]:
+                out.setdefault(name, {})[entry] = (start, first, float(sig[j]))
+    return out
+
+
 def _floors(problem: Problem):
     """`identify.noise_floor.channel_floors` of the problem's logs."""
     return nf.channel_floors(problem.t, problem.measured, problem.valid, problem.present)
@@ -1637,6 +1687,7 @@ def _finish(
     quality = nf.goodness(problem.channels, residual_ms, *_floors(problem))
     poor = [c for c, q in quality.items() if q["poor"]]
     reversed_channels = _reversed_channels(problem, z, sigma, step, poor) if poor else {}
+    initial_far = _initial_far(problem, init, offs, sigma)
     # A parameter on its bound is not an interior optimum: the standard errors mean nothing
     # there and the bound, not the data, decided the value.
     converged = stages[-1]["result"] == "successful" and not at_bounds
@@ -1662,6 +1713,7 @@ def _finish(
         wall_time=wall_time,
         fit_quality=quality,
         reversed_channels=reversed_channels,
+        initial_far=initial_far,
         problem=problem,
         z=z,
         step=step,
