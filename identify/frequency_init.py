@@ -82,8 +82,9 @@ spectra; the data then say that the link hardly deflects, as the fit itself woul
 progress line warns when no EI tried reaches `POOR_MATCH` times the shape similarity that
 model would reach on its own output plus the channel's noise (`spectral_match`'s
 `ceiling`: noise makes each bin's amplitude random, so a band where noise dominates
-tops out near `sqrt(pi) / 2 = 0.886` even with the true model; a fixed bar of 0.9 warned
-"no EI matches" on such logs, review: at 0.899 with EI 3.5 % off the truth).
+tops out near `sqrt(pi) / 2 = 0.886` even with the true model, where a fixed bar of 0.9
+would warn "no EI matches"; a review's warning at 0.899 with EI 3.5 % off the truth was
+more likely a narrow peak the grid missed: see the golden-section search above).
 """
 
 from __future__ import annotations
