@@ -484,13 +484,14 @@ def _nyquist(problem, j: int) -> float:
 
 def _flexural_frequencies(problems, thetas, link: int) -> list[float | None]:
     """`flexural_frequency` of each problem's rig at its parameters (one modal analysis per
-    distinct parameter vector: at the start, every independent fit has the same guess)."""
+    distinct parameter vector and known values: at the start, every independent fit has the
+    same guess, but each log may set its own payload, `LogData.set`)."""
     seen = {}
     out = []
     for problem, theta in zip(problems, thetas):
-        key = theta.tobytes()
+        first = np.asarray(problem.log_set[0]) if problem.log_set_names else None  # (the first log's known values)
+        key = theta.tobytes() + (b"" if first is None else first.tobytes())
         if key not in seen:
-            first = problem.log_set[0] if problem.log_set_names else None  # (the first log's known values)
             seen[key] = flexural_frequency(_chain(problem, jnp.asarray(theta), first), link)
         out.append(seen[key])
     return out

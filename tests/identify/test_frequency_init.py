@@ -8,6 +8,7 @@ largest peak (what `identify.fit` did before) is shown to be far off first.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import time
@@ -457,3 +458,31 @@ def test_a_lightly_damped_curvature_peak_is_matched_by_the_refinement():
     print(said)
     assert math.exp(x0[0]) == pytest.approx(2.3, rel=0.01), said
     assert not any("WARNING" in m for m in said), said
+
+
+def test_each_independent_log_is_banded_at_its_own_payload(arm):
+    """`fit_independent` starts every log at the same guess, but a log's known payload
+    (`LogData.set`) moves its flexural frequency: the band searched for each log is centred
+    on its own rig's frequency (oracle: `flexural_frequency` of the chain built with that
+    payload). Before, the frequencies were cached by parameter vector alone, so every log
+    got the first log's."""
+    t = np.arange(0.0, 0.5, DT)
+    masses = (0.0, 0.05, 0.2)
+    logs = [
+        dataclasses.replace(
+            identify.simulate_log(arm.chain, t, torque=doublets(t), channels=CHANNELS),
+            set={"payload.mass": m},
+            name=f"m{k}",
+        )
+        for k, m in enumerate(masses)
+    ]
+    params = [identify.Parameter("link1.EI", 2.0, 0.1, 20.0)]
+    problem = identify.make_problem(arm.chain, params, logs, noise={"theta1": 1e-4, "tip1": 1e-6})
+    _, singles = fit_module._split(problem)
+    got = frequency_init._flexural_frequencies(singles, [np.asarray([2.0])] * 3, 0)
+    expected = [
+        frequency_init.flexural_frequency(fd.with_parameters(arm.chain, {"link1.EI": 2.0, "payload.mass": m}), 0)
+        for m in masses
+    ]
+    np.testing.assert_allclose(got, expected, rtol=1e-9)
+    assert expected[0] > 1.2 * expected[2], expected  # the check can fail
