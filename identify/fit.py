@@ -824,6 +824,9 @@ class FitResult:
     # fitted initial-state entries far from their log's first sample (`_initial_far`):
     # log -> {entry: (fitted + offset, first sample, noise)}, SI
     initial_far: dict = dataclasses.field(default_factory=dict)
+    # the channels whose `sigma` the fit re-estimated from its residuals (`estimate_noise`);
+    # the others' were given (`make_problem`'s `noise`, or its default)
+    sigma_estimated: tuple = ()
 
     @property
     def value(self) -> dict:
@@ -851,7 +854,11 @@ class FitResult:
         noise level it assumed) is over `WEIGHT_MISMATCH` times off its noise floor: the
         weights as a cause (review: `fit_independent` on make_problem's default weights, 1 %
         of each channel's RMS, left every log 5-9x its floor and blamed the model; with the
-        noise declared, all at the floor)."""
+        noise declared, all at the floor). A weight the fit re-estimated itself is named as
+        such (review: on a rig missing its dry friction, the strain gauge's re-estimated
+        noise grew to 42x its floor over the rounds, the declared encoder kept its weight,
+        the fit traded the gauge away and EI came out 2.8x low; the old hint advised
+        re-estimating, which it had done)."""
         used, floor = self.sigma.get(c), q["noise_floor"]
         if len(self.sigma) < 2 or not used or not floor > 0:
             return ""
@@ -859,6 +866,15 @@ class FitResult:
         if 1 / WEIGHT_MISMATCH <= ratio <= WEIGHT_MISMATCH:
             return ""
         scale, unit = display_unit(c)
+        if c in self.sigma_estimated and ratio > WEIGHT_MISMATCH:
+            return (
+                f"; its weight was re-estimated from the residuals as a noise of {scale * used:.3g} {unit}, "
+                f"{ratio:.3g} times its floor: a model that misses an effect inflates a re-estimated noise with its "
+                "misfit, and the fit then trades that channel away against those of declared noise, biasing what it "
+                "informs "
+                f"(declare its noise, about {scale * floor:.3g} {unit} from its floor, to keep its weight; "
+                "`identify diagnose` looks for the missing effect)"
+            )
         return (
             f"; its weight assumed a noise of {scale * used:.3g} {unit}, {ratio:.3g} times its floor: with several "
             "channels, weights this far off let the others pull the fit (declare each channel's noise, or let fit "
@@ -1008,6 +1024,7 @@ class FitResult:
                 k: {c: _valued(v, se, ch.channel_unit(c)) for c, (v, se) in d.items()} for k, d in self.offsets.items()
             },
             "noise_sigma": self.sigma,
+            "noise_sigma_estimated": list(self.sigma_estimated),
             # the SI unit of every per-channel value here (noise_sigma, fit_quality's
             # residual_rms and noise_floor; `identify fit` adds residual RMS in the same units)
             "channel_units": {c: ch.channel_unit(c) for c in self.sigma},
@@ -1298,7 +1315,8 @@ def fit(
     say("  computing standard errors (exact Jacobian at the optimum) ...")
     x = _x_from_z(problem, z["phys"])
     cov, blocks = _covariance_at(problem, x, z, sigma, step, *lin)
-    return _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, ms, blocks)
+    result = _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, ms, blocks)
+    return dataclasses.replace(result, sigma_estimated=tuple(estimate_noise))
 
 
 #: `_distinct`: two optima of the multi-start stage are the same when their costs agree to
@@ -1988,7 +2006,7 @@ def fit_independent(
         )
         for k in range(L)
     ]
-    return [dataclasses.replace(r, batch_size=L) for r in results]
+    return [dataclasses.replace(r, batch_size=L, sigma_estimated=tuple(estimate_noise)) for r in results]
 
 
 def _result_name(result) -> str:
