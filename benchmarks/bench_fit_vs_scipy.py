@@ -8,6 +8,9 @@ The 4-parameter flexible-arm problem of `bench_fit_convergence.py` / `tests/iden
 - ours, single shooting: `identify.fit(..., n_stages=1, n_starts=1, frequency_init=False,
   estimate_noise=False)`: Levenberg-Marquardt (optimistix) with exact forward-mode
   Jacobians through the diffrax solve, the same single-shooting problem the peer solves;
+- ours, single shooting at the tight step (`grid_error=None`: each stage's constant step
+  at `grid_safety` times the adaptive solver's mean step, not coarsened; the fit before
+  2026-12-05), side by side;
 - ours, default: `identify.fit` with its defaults (frequency initialisation, 8-start
   growing horizon) but `estimate_noise=False`;
 - peer: `scipy.optimize.least_squares` (trust-region reflective, `jac="2-point"`,
@@ -131,7 +134,11 @@ def main(argv=None):
     runs = {
         "ours: identify.fit, single shooting (LM, exact forward-mode Jacobian)": dict(
             n_stages=1, n_starts=1, frequency_init=False, max_restarts=0
-        )
+        ),
+        # the integration step as before 2026-12-05, side by side (`identify.fit.GRID_ERROR`)
+        "ours: single shooting, tight step (grid_error=None)": dict(
+            n_stages=1, n_starts=1, frequency_init=False, max_restarts=0, grid_error=None
+        ),
     }
     if not args.skip_default:
         runs["ours: identify.fit, defaults (freq. init, 8 starts, growing horizon)"] = {}

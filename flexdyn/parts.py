@@ -224,7 +224,9 @@ class ElasticJoint(eqx.Module):
     and link angle `theta` are separate coordinates joined by a torsional spring.
 
     The input torque acts on the rotor coordinate. `alpha` is the rotor angle
-    referred to the link side (motor angle / G).
+    referred to the link side (motor angle / G), and the input torque is referred to the
+    link side too: G times the motor's torque (review: a logged motor torque must be
+    multiplied by G, a motor-side encoder's angle divided by G).
 
     **Arguments:**
     - `stiffness`: k_s, N m/rad.

@@ -836,7 +836,11 @@ def diagnose_logs(
     )
     estimate = [c for c in base_problem.channels if noise.get(c) is None]
     # the baseline misses an effect on purpose: no restarts for its poor fit (`fit`)
-    options = {"restart_poor_fit": False, **(fit_options or {})}
+    # `grid_error=None`: the tight integration step (`identify.fit.GRID_ERROR`), which the
+    # candidates' fits reuse: a candidate's fit moves into stiffer models (dry friction is a
+    # stiff damper at rest, an elastic joint's stiffness ranges over a factor 3 either
+    # side) than the baseline's optimum at which a coarser step would be checked.
+    options = {"restart_poor_fit": False, "grid_error": None, **(fit_options or {})}
     base = fit(base_problem, parameters, estimate_noise=estimate or False, progress=progress, **options)
     sigma = np.asarray([base.sigma[c] for c in base_problem.channels])
     sigma_j = jnp.asarray(sigma)
@@ -1665,11 +1669,30 @@ def _after_continuous_at_noise(labels: set, scores, fits, problem, min_gain: flo
     residual to the noise (`_no_headroom` of its held-out residual; the decision goes to
     `notes`)."""
     passing = [s for s in scores if s.accepted and not s.members and s.label in fits["labels"]]
+    fitted = [s for s in scores if not s.screened and not s.members]
+    # review: a two-link arm's round printed nothing for 15 minutes of structural fits, and
+    # its continuous results (dry friction screened 20x ahead) only after them
+    structural = f"fitting the structural candidates ({', '.join(sorted(labels))}; each a model of its own)"
     if not passing:
+        lead = min(fitted, key=lambda s: s.delta_bic, default=None)
+        say(
+            f"  round {rnd}: no continuous candidate passes"
+            + (
+                f" (best: {lead.label}, dBIC {lead.delta_bic:.1f}, held-out gain {lead.held_out_gain:.3f}x)"
+                if lead is not None
+                else ""
+            )
+            + f": {structural}"
+        )
         return labels
     best = min(passing, key=lambda s: s.delta_bic)
     full, why = _no_headroom(problem, fits["ho"][fits["labels"].index(best.label)], min_gain)
     if not full:
+        ratio = held_out_headroom(problem, fits["ho"][fits["labels"].index(best.label)]).ratio
+        say(
+            f"  round {rnd}: {best.label} passes (dBIC {best.delta_bic:.1f}, held-out gain {best.held_out_gain:.3f}x) "
+            f"but leaves the held-out residual at {ratio:.3g} times its noise floor: {structural}"
+        )
         return labels
     text = (
         f"{', '.join(sorted(labels))} not fitted: {best.label} passes and brings the held-out residual to the "
@@ -2202,6 +2225,7 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
             frequency_init=False,
             restart_poor_fit=False,
             max_steps=60,
+            grid_error=None,  # as the baseline's (`diagnose_logs`)
         )
         fitted = fd.with_parameters(struct_chain, {n: v for n, v in res.value.items()})
         ho_problem = make_problem(

@@ -429,20 +429,33 @@ def test_structural_candidates_are_not_fitted_after_a_continuous_one_reaches_the
     labels = {"missing_mode:link1", "geometric_stiffening:link1"}
 
     def score(label, dbic, accepted):
-        return types.SimpleNamespace(label=label, delta_bic=dbic, accepted=accepted, members=())
+        return types.SimpleNamespace(
+            label=label, delta_bic=dbic, accepted=accepted, members=(), screened=False, held_out_gain=3.0
+        )
+
+    said = []
 
     def run(scores, residuals):
         fits = {"labels": [s.label for s in scores], "ho": [r.reshape(-1) for r in residuals]}
         notes = []
-        return D._after_continuous_at_noise(labels, scores, fits, _traces(white), 1.1, 1, notes, print), notes
+        said.clear()
+        return D._after_continuous_at_noise(labels, scores, fits, _traces(white), 1.1, 1, notes, said.append), notes
 
     friction, drag = score("coulomb_friction:joint2", -9000.0, True), score("quadratic_damping:link1", -50.0, True)
     kept, notes = run([friction, drag], [white, misfit])
     assert kept == set() and notes[0]["text"].startswith(
         "geometric_stiffening:link1, missing_mode:link1 not fitted: coulomb_friction:joint2 passes"
     )
+    # review: when they are fitted, the round says why before the minutes they take
     assert run([friction, drag], [misfit, white])[0] == labels  # the best one is above the noise
+    assert said[0].startswith("  round 1: coulomb_friction:joint2 passes (dBIC -9000.0, held-out gain 3.000x) but ")
+    assert "times its noise floor: fitting the structural candidates (geometric_stiffening:link1, missing" in said[0]
     assert run([score("coulomb_friction:joint2", -9000.0, False)], [white])[0] == labels  # none passes
+    assert said == [
+        "  round 1: no continuous candidate passes (best: coulomb_friction:joint2, dBIC -9000.0, held-out gain "
+        "3.000x): fitting the structural candidates (geometric_stiffening:link1, missing_mode:link1; each a model "
+        "of its own)"
+    ], said
 
 
 def test_a_baseline_with_undetermined_parameters_is_noted_first():

@@ -113,6 +113,26 @@ def test_a_link_at_the_end_of_a_spinning_link_feels_its_roots_centripetal_pull(o
     assert ev.link_root_accelerations(chain, partial)["link2"] is None
 
 
+def test_joint_ringing_at_a_links_root_counts_by_its_mean_axial_pull():
+    """Review (two-link arm, elastic joints): the peak of the raw second derivative of the
+    first link's angle (45-78 Hz joint ringing) was counted as link 2's axial pull, a 64 %
+    stiffening of its first mode. Oracle: link 1 ringing as `A sin(nu t)` with link 2 in
+    line; its root's acceleration is `R A nu^2 sin(nu t)` across link 2 (bends it) and
+    `-R (A nu cos(nu t))^2` along it, whose mean over the mode's period (many ringing
+    periods) is `R A^2 nu^2 / 2`. The old measure, the peak of the acceleration's
+    magnitude, `R A nu^2`, was 2/A = 200 times more."""
+    R, A, nu = 0.3, 0.01, 2 * np.pi * 60.0
+    chain = fd.Chain([fd.RigidLink(R, 0.1), fd.FlexibleLink(L, RHO, EI, n_modes=2)])
+    t = np.arange(0.0, 4.0, 1e-4)
+    traces = {"log1": {"t": t, "baseline": {"theta1": A * np.sin(nu * t), "theta2": 0.0 * t}}}
+    raw = ev.link_root_accelerations(chain, traces)["link2"]
+    assert raw == pytest.approx(R * A * nu**2 * A, rel=0.05)  # the axial part only: R (A nu)^2 at its peak
+    (check,) = ev.stiffening_checks_of(chain, traces)
+    assert 2 * np.pi / SCALE / 3.516 > 10 * 2 * np.pi / nu  # the mode's period spans many ringing periods
+    assert check["root_acceleration_max_m_s2"] == pytest.approx(R * A**2 * nu**2 / 2, rel=0.05), check
+    assert "% from its root's pull)" in check["message"], check["message"]
+
+
 def _measured(x, t, rng, offset=0.09, noise=2e-3, lsb=1.5e-3):
     """`x(t)` as an encoder logs it: off its centre by `offset`, noisy, quantised by `lsb`
     (flat tops at the turning points, as on the real pendulum's logs)."""

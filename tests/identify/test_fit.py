@@ -1259,6 +1259,19 @@ def test_logs_at_known_different_payloads_are_fitted_together():
     assert res.poor_fit == [], res.summary()
 
 
+def test_a_free_optional_term_the_chain_lacks_says_how_to_add_it():
+    """Review: `Parameter("joint2.coulomb", ...)` on a chain without dry friction listed the
+    chain's 30 parameter names and not `fd.with_optional_terms`; with the term added, the
+    same problem is built."""
+    t = np.arange(0.0, 0.2, 1e-2)
+    log = identify.simulate_log(_sweep_chain(), t, torque=np.full((len(t), 1), 0.1), channels=("theta1",), name="a")
+    params = [identify.Parameter("joint1.coulomb", 1e-3, 1e-6, 1.0)]
+    with pytest.raises(ValueError, match=r"'joint1.coulomb' is an optional term .*fd.with_optional_terms\(chain"):
+        identify.make_problem(_sweep_chain(), params, [log])
+    problem = identify.make_problem(fd.with_optional_terms(_sweep_chain(), ["joint1.coulomb"]), params, [log])
+    assert problem.names == ("joint1.coulomb",)
+
+
 def test_a_log_setting_is_checked_against_the_rig_and_the_free_parameters():
     t = np.arange(0.0, 0.2, 1e-2)
     log = identify.simulate_log(_sweep_chain(), t, torque=np.full((len(t), 1), 0.1), channels=("theta1",), name="a")
