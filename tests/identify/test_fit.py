@@ -1259,6 +1259,30 @@ def test_logs_at_known_different_payloads_are_fitted_together():
     assert res.poor_fit == [], res.summary()
 
 
+def test_a_residual_well_below_a_floor_raised_by_fast_motion_gets_a_note():
+    """Review (two-link arm, elastic joints, 500 Hz): motor encoders at 0.46-0.51 of their
+    floor with the residual equal to the true noise. Oracle: the floor's closed-form signal
+    leakage (`identify.noise_floor`): white noise `sigma` plus a 150 Hz ringing of amplitude
+    `A` at 500 Hz reads `sqrt(sigma^2 + (A (2 sin(pi f dt))^4 / sqrt(140))^2)`; a model that
+    explains the ringing leaves `sigma`, well under that floor."""
+    from identify import noise_floor as nf
+
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 4.0, 2e-3)
+    sigma, amplitude, f = 1e-3, 0.05, 150.0
+    noise = sigma * rng.standard_normal(t.size)
+    y = amplitude * np.sin(2 * np.pi * f * t) + noise
+    floor, count = nf.channel_floors(t[None], y[None, :, None], np.ones((1, t.size), bool), np.ones((1, 1), bool))
+    leak = amplitude * (2 * np.sin(np.pi * f * 2e-3)) ** 4 / math.sqrt(140)
+    assert floor[0, 0] == pytest.approx(math.sqrt(sigma**2 + leak**2), rel=0.05)
+    quality = nf.goodness(("alpha2",), np.asarray([[np.mean(noise**2)]]), floor, count)
+    assert quality["alpha2"]["ratio"] < fit_module.FLOOR_ABOVE_RESIDUAL
+    (note,) = fit_module._floor_above_residual_notes(quality)
+    assert note.startswith("note: the residual of alpha2 is 0.") and "near the Nyquist frequency" in note
+    at_floor = nf.goodness(("alpha2",), np.asarray([[np.mean(noise**2)]]), np.asarray([[sigma]]), count)
+    assert fit_module._floor_above_residual_notes(at_floor) == []
+
+
 def test_a_free_optional_term_the_chain_lacks_says_how_to_add_it():
     """Review: `Parameter("joint2.coulomb", ...)` on a chain without dry friction listed the
     chain's 30 parameter names and not `fd.with_optional_terms`; with the term added, the
