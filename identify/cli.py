@@ -57,6 +57,9 @@ import warnings
 from pathlib import Path
 
 MARKER = ".identify-output"
+#: `identify diagnose` writes every progress line here as it goes (review: a diagnosis
+#: stopped after 20 minutes left nothing on disk)
+PROGRESS_FILE = "progress.log"
 NOT_CONVERGED = 3  # exit status when the fit (`diagnose`: the baseline fit) did not converge
 RESULT_FILE = "result.json"
 
@@ -205,7 +208,7 @@ def output_files() -> tuple[str, ...]:
     from .diagnosis_report import FILES
     from .report import BY_LOG_PLOT, PLOT_FILES
 
-    return (MARKER, RESULT_FILE, *PLOT_FILES, BY_LOG_PLOT, *FILES)
+    return (MARKER, RESULT_FILE, PROGRESS_FILE, *PLOT_FILES, BY_LOG_PLOT, *FILES)
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -743,10 +746,10 @@ def _fit_command(args) -> int:
 
 
 def _write_marker(out: Path) -> None:
-    """Create `out` and mark it as `identify fit`'s (`check_output_folder`)."""
+    """Create `out` and mark it as `identify`'s (`check_output_folder`)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / MARKER).write_text(
-        "Written by `identify fit` (flexdyn). This folder holds its outputs; a new run may overwrite these "
+        "Written by `identify` (flexdyn). This folder holds its outputs; a new run may overwrite these "
         f"files: {', '.join(output_files())}.\n"
     )
 
@@ -871,15 +874,28 @@ def _diagnose_command(args) -> int:
     from .diagnose import diagnose
     from .diagnosis_report import write_report
 
-    say(f"identify diagnose: experiment {exp.name!r} ({exp.path})")
+    # The output folder is made now and every progress line goes to its progress.log as
+    # it is said, so that a diagnosis stopped part way (Ctrl-C, a job's time limit) leaves
+    # what it found so far: the baseline fit, the screening, each round's scores.
+    out.mkdir(parents=True, exist_ok=True)
+    _write_marker(out)
+    log_path = out / PROGRESS_FILE
+    log_file = log_path.open("w", encoding="utf-8")
+
+    def record(msg: str):
+        say(msg)
+        log_file.write(msg + "\n")
+        log_file.flush()
+
+    record(f"identify diagnose: experiment {exp.name!r} ({exp.path})")
     for line in _set_up_checks(exp):
-        say(f"  {line}")
-    say(f"  catalogue: {', '.join(catalogue)}; compiling takes most of the first minutes")
+        record(f"  {line}")
+    record(f"  catalogue: {', '.join(catalogue)}; compiling takes most of the first minutes")
     last = [time.perf_counter()]
 
     def progress(msg: str):
         now = time.perf_counter()
-        say(f"[{now - start:6.1f} s, +{now - last[0]:5.1f} s] {msg.strip()}")
+        record(f"[{now - start:6.1f} s, +{now - last[0]:5.1f} s] {msg.strip()}")
         last[0] = now
 
     try:
@@ -891,19 +907,27 @@ def _diagnose_command(args) -> int:
             **({"n_fit": None} if args.fit_all else {}),
         )
     except (RuntimeError, ValueError) as e:
+        record(f"identify diagnose: failed: {_failure_text(e)}")
+        log_file.close()
         print(f"identify diagnose: failed: {_failure_text(e)}", file=sys.stderr, flush=True)
         return 1
+    except KeyboardInterrupt:
+        record(f"identify diagnose: interrupted after {time.perf_counter() - start:.1f} s")
+        log_file.close()
+        print(
+            f"identify diagnose: interrupted; what it had found so far is in {log_path}",
+            file=sys.stderr,
+            flush=True,
+        )
+        return 130
+    log_file.close()
     print()
     print(diag.summary())
     try:
         check_output_folder(out, inputs, args.force, "diagnosis")
     except _Refused as e:
         return error(str(e))
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text(
-        "Written by `identify` (flexdyn). This folder holds its outputs; a new run may overwrite these "
-        f"files: {', '.join(output_files())}.\n"
-    )
+    _write_marker(out)
     extra = {
         "experiment": {"name": exp.name, "path": str(Path(exp.path).resolve())},
         "command": ["identify", "diagnose", str(args.experiment)],
@@ -912,7 +936,7 @@ def _diagnose_command(args) -> int:
     written = write_report(diag, out, title=exp.name, extra=extra)
     print()
     print(f"total {time.perf_counter() - start:.1f} s. Report: {out / 'report.md'} (open it; plots beside it)")
-    for p in written:
+    for p in [*written, log_path]:
         print(f"  {p}")
     if not diag.baseline_converged:  # found in review: exit 0, and nothing said
         print(

@@ -527,3 +527,29 @@ def test_fit_independent_fits_each_log_and_compares_them(tmp_path, capsys):
     assert between["names"] == [p["name"] for p in res["parameters"]] and not any(between["differs"]), between
     for name in ("measured_vs_fitted.png", "residuals.png", "parameters_by_log.png"):
         assert (out / name).is_file(), name
+
+
+def test_an_interrupted_diagnosis_leaves_its_progress_on_disk(tmp_path, monkeypatch, capsys):
+    """Review: a diagnosis stopped after 20 minutes (two-link arm) left nothing on disk.
+    Every progress line goes to the output folder's progress.log as it is said; Ctrl-C
+    exits 130 and says where it is."""
+    import sys
+
+    D = sys.modules["identify.diagnose"]
+
+    def stopped(experiment, *, progress, **kw):
+        progress("baseline: cost 123 over 45 residuals")
+        progress("screening (one Gauss-Newton step per start), predicted costs: coulomb_friction:joint1 12")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(D, "diagnose", stopped)
+    out = tmp_path / "diag"
+    assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(out)]) == 130
+    text = (out / "progress.log").read_text()
+    assert "baseline: cost 123 over 45 residuals" in text and "coulomb_friction:joint1 12" in text
+    assert "identify diagnose: interrupted after" in text.splitlines()[-1]
+    assert f"what it had found so far is in {out / 'progress.log'}" in capsys.readouterr().err
+    assert (out / MARKER).is_file()
+    # the folder is ours: a rerun into it is allowed (no --force)
+    monkeypatch.setattr(D, "diagnose", stopped)
+    assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(out)]) == 130
