@@ -313,6 +313,23 @@ def test_log_onset_is_where_the_input_or_the_motion_starts():
     assert identify.log_onset(t, _rest_then(t, 600, rng)[1], np.zeros((len(t), 0)), np.zeros(0)) == t[599]
 
 
+def test_the_onset_of_a_channel_given_no_noise_level_is_judged_against_its_floor():
+    """Review (two-link arm): logs driven from 0.1 s got onsets at 0.012-0.018 s, the strain
+    gauges' noise (no level declared: make_problem's start is 1 % of the channel's RMS,
+    under the noise here) read as motion. The rest is judged against at least the log's own
+    model-free floor of such a channel; the oracle is the torque's known start."""
+    t = np.arange(0.0, 1.0, 2e-3)
+    tau = np.where((t >= 0.1) & (t < 0.3), 0.2, 0.0)[:, None]
+    noise = {"theta1": math.radians(0.01), "curvature1": 2e-3}
+    log = identify.simulate_log(
+        _sweep_chain(), t, torque=tau, channels=("theta1", "curvature1"), noise=noise, rng=np.random.default_rng(0)
+    )
+    params = [identify.Parameter("link1.EI", 2.0, 0.1, 20.0)]
+    problem = identify.make_problem(_sweep_chain(), params, [log], noise={"theta1": noise["theta1"]})
+    assert float(problem.sigma[problem.channels.index("curvature1")]) < noise["curvature1"]  # 1 % of the RMS
+    assert float(problem.onset[0]) == pytest.approx(0.1 - 2e-3, abs=1e-9)
+
+
 # ---------------------------------------------------------------------------
 # CI-sized: multi-log fit
 # ---------------------------------------------------------------------------
