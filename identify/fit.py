@@ -1570,7 +1570,14 @@ def _grow(
             stages.append(
                 {"horizon_s": float(h), "iterations": int(steps), "cost": float(cost), "result": _result_name(result)}
             )
-            say(f"  horizon {h:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1]['result']})")
+            say(
+                f"  horizon {h:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1]['result']}"
+                + (
+                    f": an early stage's budget, early_max_steps={early_max_steps}; the next stage goes on from here)"
+                    if not last and stages[-1]["result"] == "max_steps_reached"
+                    else ")"
+                )
+            )
         if rnd + 1 < rounds:
             new = _reestimate_sigma(problem, z, sigma, estimate_noise, step)
             change = float(np.max(np.abs(np.log(np.asarray(new) / np.asarray(sigma)))))

@@ -1276,6 +1276,23 @@ def test_logs_at_known_different_payloads_are_fitted_together():
     assert res.poor_fit == [], res.summary()
 
 
+def test_an_early_stage_that_uses_its_budget_says_the_next_one_goes_on():
+    """Review: "horizon 0.617 s: 60 iterations ... (max_steps_reached)" passed without a
+    word, and a user could not tell whether it mattered. An early stage's budget is
+    `early_max_steps`, and the next stage continues from where it stopped."""
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(0.0, 2.0, 1e-2)
+    log = identify.simulate_log(chain, t, initial={"theta1": 0.5}, channels=("theta1",), name="a")
+    params = [identify.Parameter("joint1.damping", 1e-4, 1e-6, 1e-1)]
+    problem = identify.make_problem(chain, params, [log], noise={"theta1": 1e-3})
+    said = []
+    identify.fit(problem, params, n_stages=2, n_starts=1, early_max_steps=1, frequency_init=False, progress=said.append)
+    early = [m for m in said if "horizon" in m and "iterations" in m][0]
+    assert early.endswith(
+        "(max_steps_reached: an early stage's budget, early_max_steps=1; the next stage goes on from here)"
+    ), said
+
+
 def test_a_residual_well_below_a_floor_raised_by_fast_motion_gets_a_note():
     """Review (two-link arm, elastic joints, 500 Hz): motor encoders at 0.46-0.51 of their
     floor with the residual equal to the true noise. Oracle: the floor's closed-form signal
