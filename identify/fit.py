@@ -1172,8 +1172,8 @@ def fit(
       at the stage's start; after the last stage the step is checked again at the optimum
       and, over `GRID_RECHECK` times that, the stage is solved again at the tight step.
       None: the tight step (as before 2026-12-05). Measured on a 2-mode flexible link
-      (two 2 s logs at 500 Hz, 3 parameters): the warm fit 14.0 -> 5.5 s, the same values
-      to 8 digits.
+      (two 2 s logs at 500 Hz, 3 parameters): the warm fit 14.0 -> 6.3 s, the same values
+      to 8 digits (`benchmarks/README.md`: the fit benchmark side by side).
     - `n_starts`, `start_spread`: the first (shortest) stage is solved from `n_starts`
       points (the guess and a deterministic design within a factor `start_spread` of it,
       see `_starts`), and the best continues. Measured on the
@@ -1587,9 +1587,8 @@ def _grow(
             sigma = new
             say("  noise re-estimated: " + _noise_text(problem.channels, sigma, estimate_noise))
     if grid.error and step is not None:
-        tight = _stage_step(problem, z, h, grid.safety)
+        tight, error = _step_error(problem, z, h, grid, jnp.asarray(sigma), step)
         if float(step) > float(tight) * (1 + 1e-9):
-            error = _step_error(problem, z, h, grid, jnp.asarray(sigma), step)
             if not error <= GRID_RECHECK * grid.error:
                 # the optimum moved the modes up (or made the step unstable): the last stage
                 # again, at the tight step
@@ -1937,7 +1936,7 @@ def fit_independent(
     # warnings of its own remain): lineax's linear solve fails its structure check inside
     # `shard_map` (jax 0.10; lineax issue #185, "pytree does not match out_structure").
     grid = fbatch.sharded_vmap(_grid_step, (0, 0, None, None), mesh)
-    errors_of = fbatch.sharded_vmap(_grid_errors, (0, 0, None, 0, 0, 0), mesh)
+    errors_of = fbatch.sharded_vmap(_grid_errors, (0, 0, None, 0, 0, 0, None), mesh)
 
     def stage_steps(z, sigma, h, k_stage, coarsen=True):
         """Each log's constant step for a stage at horizon `h` (`_stage_step`, per log:
@@ -1955,8 +1954,13 @@ def fit_independent(
         chosen = list(tight)
         tried = [_coarser_steps(singles[min(k, L - 1)], adaptive[k], tight[k]) for k in range(n)]
         if grid_error and coarsen and any(tried):
-            padded = jnp.stack([_padded_steps(tried[k], tight[k]) for k in range(n)])
-            errors = np.asarray(errors_of(stacked, z, jnp.asarray(h), padded, reference, sigma))
+            # (a log with nothing to try pads with its coarsest factor, unaligned: not read)
+            padded = jnp.stack(
+                [_padded_steps(tried[k], tried[k][0] if tried[k] else tight[k] * GRID_COARSEN[0]) for k in range(n)]
+            )
+            errors = np.asarray(
+                errors_of(stacked, z, jnp.asarray(h), padded, reference, sigma, jnp.asarray(grid_error, dtype=float))
+            )
             for k in range(n):
                 passing = [step for step, e in zip(tried[k], errors[k]) if e <= grid_error]
                 chosen[k] = passing[0] if passing else tight[k]
@@ -1980,7 +1984,9 @@ def fit_independent(
             if grid_error:  # the steps checked again at the optimum (`GRID_RECHECK`, as in `fit`)
                 _, tight, reference = stage_steps(z, sigma, h, len(horizons), coarsen=False)
                 padded = jnp.tile(step[:, None], (1, len(GRID_COARSEN)))
-                errors = np.asarray(errors_of(stacked, z, jnp.asarray(h), padded, reference, sigma))[:, 0]
+                errors = np.asarray(
+                    errors_of(stacked, z, jnp.asarray(h), padded, reference, sigma, jnp.asarray(jnp.inf, dtype=float))
+                )[:, 0]
                 off = [
                     k
                     for k in range(L)
@@ -2322,7 +2328,17 @@ def _stage_step(problem: Problem, z, horizon, grid, sigma=None):
     tried = _coarser_steps(problem, step, tight)
     if not tried:
         return tight
-    errors = np.asarray(_grid_errors(problem, z, jnp.asarray(horizon), _padded_steps(tried, tight), reference, sigma))
+    errors = np.asarray(
+        _grid_errors(
+            problem,
+            z,
+            jnp.asarray(horizon),
+            _padded_steps(tried, tried[0]),
+            reference,
+            sigma,
+            jnp.asarray(grid.error, dtype=float),
+        )
+    )
     for h, e in zip(tried, errors):
         if e <= grid.error:
             return jnp.asarray(h, dtype=jnp.asarray(tight).dtype)
@@ -2336,18 +2352,21 @@ def _coarser_steps(problem: Problem, step, tight) -> list[float]:
     return [h for h in out if h > float(tight) * (1 + 1e-9)]
 
 
-def _padded_steps(steps, tight):
-    """`steps` padded with `tight` to `len(GRID_COARSEN)` (one compiled `_grid_errors`)."""
-    return jnp.asarray(list(steps) + [float(tight)] * (len(GRID_COARSEN) - len(steps)), dtype=float)
+def _padded_steps(steps, pad):
+    """`steps` padded to `len(GRID_COARSEN)` (one compiled `_grid_errors`) with `pad`, a
+    step as coarse as the coarsest tried (cheap to simulate; its results are not read)."""
+    return jnp.asarray(list(steps) + [float(pad)] * (len(GRID_COARSEN) - len(steps)), dtype=float)
 
 
 @eqx.filter_jit
-def _grid_errors(problem: Problem, z, horizon, steps, reference, sigma):
-    """For each constant step of `steps`: the largest deviation, in noise levels `sigma`,
-    of the outputs simulated at that step from `reference` (`_grid_step`'s adaptive
-    outputs) over the used samples up to `horizon`; inf where a simulation failed. The
-    steps are simulated one after another (`lax.map`: under `vmap` every one would take
-    as many steps as the finest)."""
+def _grid_errors(problem: Problem, z, horizon, steps, reference, sigma, bar):
+    """For each constant step of `steps`, in order: the largest deviation, in noise levels
+    `sigma`, of the outputs simulated at that step from `reference` (`_grid_step`'s
+    adaptive outputs) over the used samples up to `horizon`; inf where a simulation failed,
+    and for every step after the first within `bar` (not simulated: the caller takes the
+    first that passes; `bar` = inf simulates the first step only). The steps are simulated
+    one after another (a `scan`: under `vmap` every one would take as many steps as the
+    finest; under `fit_independent`'s vmap the skip is a select, both sides computed)."""
     theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
     y0s = _initial_states(problem, z["y0"])
     mask = _used(problem, horizon)
@@ -2357,17 +2376,33 @@ def _grid_errors(problem: Problem, z, horizon, steps, reference, sigma):
         dev = jnp.where(mask, jnp.abs(outputs - reference) / sigma, 0.0)
         return jnp.where(jnp.all(ok) & jnp.all(jnp.isfinite(dev)), jnp.max(dev), jnp.inf)
 
-    return jax.lax.map(one, steps)
+    def body(done, h):
+        e = jax.lax.cond(done, lambda: jnp.asarray(jnp.inf, dtype=reference.dtype), lambda: one(h))
+        return done | (e <= bar), e
+
+    return jax.lax.scan(body, jnp.asarray(False), steps)[1]
 
 
-def _step_error(problem: Problem, z, horizon, grid, sigma, step) -> float:
-    """How far (noise levels) the outputs at the constant `step` are from the adaptive
-    solution at `z` (`_grid_errors` of that one step)."""
-    _, ok, reference = _grid_step(problem, z, jnp.asarray(horizon), grid.safety)
+def _step_error(problem: Problem, z, horizon, grid, sigma, step) -> tuple:
+    """The tight step at `z` (as `_stage_step` without coarsening) and how far (noise
+    levels) the outputs at the constant `step` are from the adaptive solution there
+    (`_grid_errors` of that one step): one adaptive solve for both."""
+    adaptive, ok, reference = _grid_step(problem, z, jnp.asarray(horizon), grid.safety)
     if not bool(ok):
-        return math.inf
-    return float(
-        _grid_errors(problem, z, jnp.asarray(horizon), _padded_steps([float(step)], step), reference, sigma)[0]
+        raise _simulation_failure(problem, z, horizon)
+    tight = aligned_step(problem, adaptive)
+    if not float(step) > float(tight) * (1 + 1e-9):
+        return tight, 0.0  # (not coarser than the tight step: nothing to check)
+    return tight, float(
+        _grid_errors(
+            problem,
+            z,
+            jnp.asarray(horizon),
+            _padded_steps([float(step)], step),
+            reference,
+            sigma,
+            jnp.asarray(jnp.inf, dtype=float),
+        )[0]
     )
 
 
