@@ -76,7 +76,7 @@ class LogSpec:
     - `file`: the log's path, resolved against the experiment file's folder.
     - `role`: `'fit'` or `'validation'` (held out of the fit).
     - `columns`: channel -> `'column [unit]'` as written (empty if the CSV header was used).
-    - `calibration`: channel -> `Calibration` for voltage columns.
+    - `calibration`: channel -> `Calibration` for voltage, strain-gauge and motor-side columns.
     - `initial`: known initial-state entries, coordinate or `<coordinate>_rate` -> SI value
       (entries not listed are 0, except rotor angles/rates of elastic joints, which default
       to the link's: see FORMAT.md). Also the starting guess of entries in `fit_initial`.

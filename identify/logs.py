@@ -57,12 +57,20 @@ class Calibration:
     `scale` to a strain `unit`, is converted to the root curvature the model predicts by
     `neutral_axis_distance` `c` (m; half the thickness for a gauge bonded on the surface of
     a symmetric strip): Euler-Bernoulli bending strain is `epsilon = c * kappa`, so
-    `kappa = epsilon / c`. A strain column needs no `scale`."""
+    `kappa = epsilon / c`. A strain column needs no `scale`.
+
+    `gear_ratio` `G` (motor turns per link turn; negative for a gear that reverses the
+    direction) refers a motor-side column to the link side, where the model's
+    `theta<i>`, `alpha<i>` and `torque<i>` are (`fd.ElasticJoint`): an angle is divided by
+    `G`, a torque multiplied by `G` (gear losses aside). It applies last, after any volt
+    `scale` and `offset` (which are then motor-side), and to a column in any unit of the
+    channel's dimension: a motor encoder in `[deg]` with `{ gear_ratio = 70 }`."""
 
     scale: float | None = None
     offset: float = 0.0
     unit: str | None = None
     neutral_axis_distance: float | None = None
+    gear_ratio: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -272,13 +280,16 @@ def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibrati
             f"unit; expected one of {_units_of(dim)}" + extra,
             channel=w.channel,
         )
-    if cal is not None:
+    if cal is not None and (cal.scale is not None or cal.gear_ratio is None):
         raise LogError(
-            f"{where}: a calibration is given for {w.channel} but its unit is [{written}], not [V]; "
-            "remove the calibration (it applies to voltage columns only)",
+            f"{where}: a calibration scale is given for {w.channel} but its unit is [{written}], not [V]; "
+            "remove the scale and offset (they apply to voltage columns only"
+            + (
+                "; a gear_ratio alone refers a motor-side column to the link side)" if _GEARED.match(w.channel) else ")"
+            ),
             channel=w.channel,
         )
-    return unit, None
+    return unit, cal
 
 
 def _si(channel: str) -> str:
@@ -298,7 +309,23 @@ def _to_si(values: np.ndarray, unit: str, cal: Calibration | None, channel: str)
                 values = values * u.unit_factor(u.normalise_unit(cal.unit))
         if cal.neutral_axis_distance is not None:  # strain -> curvature (`Calibration`)
             values = values / cal.neutral_axis_distance
+        if cal.gear_ratio is not None:  # motor side -> link side (`Calibration`)
+            values = values * cal.gear_ratio if channel.startswith("torque") else values / cal.gear_ratio
     return values
+
+
+def _calibration_note(cal: Calibration | None) -> str:
+    """How a column was converted, for `Log.sources`."""
+    if cal is None:
+        return ""
+    parts = ["calibrated"] if cal.scale is not None or cal.neutral_axis_distance is not None else []
+    if cal.gear_ratio is not None:
+        parts.append(f"gear ratio {cal.gear_ratio:g}: motor side to link side")
+    return f" ({', '.join(parts)})"
+
+
+#: the channels a `Calibration.gear_ratio` applies to: joint, rotor angles and joint torques
+_GEARED = re.compile(r"^(theta|alpha|torque)\d+$")
 
 
 def check_calibration(channel: str, spec, where: str) -> Calibration:
@@ -306,16 +333,29 @@ def check_calibration(channel: str, spec, where: str) -> Calibration:
     neutral_axis_distance}`."""
     if not isinstance(spec, Mapping):
         raise LogError(f"{where}: expected a table {{ scale = ..., offset = ... }}, got {spec!r}")
-    keys = {"scale", "offset", "unit", "neutral_axis_distance"}
+    keys = {"scale", "offset", "unit", "neutral_axis_distance", "gear_ratio"}
     extra = set(spec) - keys
     if extra:
         raise LogError(
             f"{where}: unknown key(s) {sorted(extra)}; expected scale, offset and optionally unit "
-            "(voltage columns), or neutral_axis_distance (strain gauges)"
+            "(voltage columns), neutral_axis_distance (strain gauges), or gear_ratio (motor-side angles "
+            "and torques)"
         )
     dim = u.channel_dimension(channel)
     if dim is None or dim == u.TIME:
         raise LogError(f"{where}: calibrations apply to measured channels, not {channel!r}")
+    gear = spec.get("gear_ratio")
+    if gear is not None:
+        if not _GEARED.match(channel):
+            raise LogError(
+                f"{where}.gear_ratio: applies to a joint's theta<i>, alpha<i> or torque<i> read on the motor side "
+                f"of its gear, not {channel}"
+            )
+        if isinstance(gear, bool) or not isinstance(gear, int | float) or not math.isfinite(gear) or gear == 0:
+            raise LogError(
+                f"{where}.gear_ratio: expected a non-zero number (motor turns per link turn; negative for a gear "
+                f"that reverses the direction), got {gear!r}"
+            )
     distance = spec.get("neutral_axis_distance")
     if distance is not None:
         if dim != u.CURVATURE:
@@ -329,8 +369,10 @@ def check_calibration(channel: str, spec, where: str) -> Calibration:
             raise LogError(f"{where}.neutral_axis_distance: {e}") from None
         if isinstance(distance, bool) or not isinstance(distance, int | float) or not 0 < distance < math.inf:
             raise LogError(f"{where}.neutral_axis_distance: expected a distance > 0 (m, or '1 mm'), got {distance!r}")
-    if "scale" not in spec and distance is None:
+    if "scale" not in spec and distance is None and gear is None:
         raise LogError(f"{where}: missing 'scale' (SI = scale * V + offset)")
+    if "scale" not in spec and spec.get("unit") is not None:
+        raise LogError(f"{where}.unit: the unit of a volt scale's result, but no scale is given")
     if "scale" not in spec and spec.get("offset", 0.0) != 0.0:
         raise LogError(
             f"{where}: an offset without a scale; offset applies to voltage columns (SI = scale * V + offset)"
@@ -352,7 +394,13 @@ def check_calibration(channel: str, spec, where: str) -> Calibration:
                 + (" (with neutral_axis_distance, the scale gives a strain)" if distance is not None else "")
             )
     scale = float(spec["scale"]) if "scale" in spec else None
-    return Calibration(scale, float(spec.get("offset", 0.0)), unit, None if distance is None else float(distance))
+    return Calibration(
+        scale,
+        float(spec.get("offset", 0.0)),
+        unit,
+        None if distance is None else float(distance),
+        None if gear is None else float(gear),
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -377,7 +425,9 @@ def load_log(
     - `columns`: channel -> `'column [unit]'` (CSV header name or .mat variable, with its
       unit in brackets; for CSV the unit may be left out when the header has it). For CSV,
       None maps every column whose name is a channel (`time [s]`, `theta1 [deg]`, ...).
-    - `calibration`: channel -> `Calibration` (or `{scale, offset, unit}`) for `[V]` columns.
+    - `calibration`: channel -> `Calibration` (or `{scale, offset, unit}`) for `[V]` columns;
+      `{neutral_axis_distance}` for a strain gauge's, `{gear_ratio}` for a motor-side
+      angle or torque (`Calibration`).
     - `strict`: if True, columns or variables that no channel uses are an error (default:
       they are ignored and listed in `Log.ignored`).
     - `min_samples`: fewest samples accepted.
@@ -619,7 +669,7 @@ def _read_csv(path: Path, wanted, cals, strict, context):
         _check_samples(path, w.channel, raw, where_for(c))
         channels[w.channel] = _to_si(raw, unit, cal, w.channel)
         _warn_if_turns(path, f"column {c} ({header[c - 1]!r})", w.channel, channels[w.channel], unit)
-        sources[w.channel] = f"column {c} {header[c - 1]!r}" + (" (calibrated)" if cal else "")
+        sources[w.channel] = f"column {c} {header[c - 1]!r}" + _calibration_note(cal)
         if w.channel == "time":
             t_relative = _relative_time(raw, unit)
     t = channels.pop("time")
@@ -773,7 +823,7 @@ def _read_mat(path: Path, wanted, cals, strict, context):
         _check_samples(path, w.channel, raw, where)
         channels[w.channel] = _to_si(raw, unit, cal, w.channel)
         _warn_if_turns(path, f"variable {w.source!r}", w.channel, channels[w.channel], unit)
-        sources[w.channel] = f"variable {w.source!r} [{w.unit}]" + (" (calibrated)" if cal else "")
+        sources[w.channel] = f"variable {w.source!r} [{w.unit}]" + _calibration_note(cal)
         if w.channel == "time":
             t_relative = _relative_time(raw, unit)
     t = channels.pop("time")

@@ -581,8 +581,21 @@ def test_calibration_errors(tmp_path):
     with pytest.raises(ExperimentError, match=msg("line 9: logs[1].calibration.tip1", "missing 'scale'")):
         load_experiment(path)
     path = experiment(tmp_path, RIG + LOG + "calibration = { tip1 = { scale = 1.0 } }\n")
-    with pytest.raises(LogError, match=msg("column 3", "calibration is given for tip1", "not [V]")):
+    with pytest.raises(LogError, match=msg("column 3", "calibration scale is given for tip1", "not [V]")):
         load_experiment(path)
+    path = experiment(tmp_path, RIG + LOG + "calibration = { tip1 = { gear_ratio = 70 } }\n")
+    with pytest.raises(ExperimentError, match=msg("line 9: logs[1].calibration.tip1.gear_ratio", "not tip1")):
+        load_experiment(path)
+
+
+def test_a_motor_side_encoder_through_the_experiment_file(tmp_path):
+    """`gear_ratio` refers a motor-side angle column to the link side: theta1 = motor / G."""
+    plain = load_experiment(experiment(tmp_path, RIG + LOG)).logs[0]
+    geared = load_experiment(
+        experiment(tmp_path, RIG + LOG + "calibration = { theta1 = { gear_ratio = -20 } }\n", name="g.toml")
+    ).logs[0]
+    np.testing.assert_allclose(geared.log.outputs["theta1"], -plain.log.outputs["theta1"] / 20.0, rtol=1e-15)
+    np.testing.assert_array_equal(geared.log.outputs["tip1"], plain.log.outputs["tip1"])
 
 
 @pytest.mark.parametrize(

@@ -157,6 +157,61 @@ def test_volts_with_calibration(tmp_path):
     np.testing.assert_allclose(log.outputs["tip1"], 0.0125 * 0.1 * np.arange(10), rtol=1e-12, atol=1e-15)
 
 
+def test_motor_side_columns_referred_to_the_link_side_by_the_gear_ratio(tmp_path):
+    """A motor encoder and a motor torque behind a gear of ratio G (motor turns per link
+    turn): the link-side angle is the motor angle / G, the link-side torque G x the motor
+    torque (power through an ideal gear: tau_m omega_m = tau_l omega_l). A volt column's
+    scale and offset apply first, on the motor side."""
+    motor_deg = 700.0 * np.sin(np.arange(10.0))
+    motor_mNm = 12.0 * np.cos(np.arange(10.0))
+    volts = 0.5 * np.arange(10.0)
+    rows = [
+        [f"{0.01 * k:.2f}", repr(float(motor_deg[k])), repr(float(motor_mNm[k])), repr(float(volts[k]))]
+        for k in range(10)
+    ]
+    header = ["time [s]", "motor [deg]", "tau_m [mN m]", "current [V]"]
+    path = write_csv(tmp_path / "m.csv", header, rows)
+    columns = {"time": "time [s]", "alpha1": "motor [deg]", "torque1": "tau_m [mN m]"}
+    log = load_log(path, columns, calibration={"alpha1": {"gear_ratio": 70}, "torque1": Calibration(gear_ratio=70.0)})
+    np.testing.assert_allclose(log.outputs["alpha1"], np.radians(motor_deg) / 70.0, rtol=1e-12)
+    np.testing.assert_allclose(log.inputs["torque1"], 70.0 * 1e-3 * motor_mNm, rtol=1e-12)
+    # power balance through the ideal gear, sample by sample
+    omega_m = np.gradient(np.radians(motor_deg), log.t)
+    omega_l = np.gradient(log.outputs["alpha1"], log.t)
+    np.testing.assert_allclose(1e-3 * motor_mNm * omega_m, log.inputs["torque1"] * omega_l, rtol=1e-12)
+    assert "gear ratio 70: motor side to link side" in log.sources["alpha1"]
+    # a reversing gear; a rigid joint's motor encoder (theta); a motor current amplifier in
+    # volts: 0.02 N m per volt (k_t x amplifier gain) on the motor side, then x G
+    columns = {"time": "time [s]", "theta1": "motor [deg]", "torque1": "current [V]"}
+    cal = {"theta1": {"gear_ratio": -50}, "torque1": {"scale": 0.02, "offset": 0.001, "gear_ratio": 50}}
+    log = load_log(path, columns, calibration=cal)
+    np.testing.assert_allclose(log.outputs["theta1"], -np.radians(motor_deg) / 50.0, rtol=1e-12)
+    np.testing.assert_allclose(log.inputs["torque1"], 50.0 * (0.02 * volts + 0.001), rtol=1e-12)
+    assert log.sources["torque1"].endswith("(calibrated, gear ratio 50: motor side to link side)")
+
+
+def test_gear_ratio_errors(tmp_path):
+    rows = [[f"{0.01 * k:.2f}", "1.0", "2.0"] for k in range(10)]
+    path = write_csv(tmp_path / "g.csv", ["time [s]", "motor [deg]", "gauge [mm]"], rows)
+    columns = {"time": "time [s]", "theta1": "motor [deg]", "tip1": "gauge [mm]"}
+    for channel, spec, expected in (
+        ("tip1", {"gear_ratio": 10}, ("calibration.tip1.gear_ratio", "theta<i>, alpha<i> or torque<i>", "not tip1")),
+        ("theta1", {"gear_ratio": 0}, ("calibration.theta1.gear_ratio", "a non-zero number", "got 0")),
+        ("theta1", {"gear_ratio": "70:1"}, ("calibration.theta1.gear_ratio", "got '70:1'")),
+        ("theta1", {"gear_ratio": 70, "offset": 1.0}, ("calibration.theta1", "an offset without a scale")),
+        ("theta1", {"gear_ratio": 70, "unit": "deg"}, ("calibration.theta1.unit", "no scale is given")),
+        ("theta1", {"ratio": 70}, ("calibration.theta1", "unknown key(s) ['ratio']", "gear_ratio")),
+        # a volt scale on a column in degrees: it would convert twice; the gear alone is the way
+        (
+            "theta1",
+            {"scale": 2.0, "gear_ratio": 70},
+            ("column 2", "scale is given for theta1", "not [V]", "a gear_ratio alone"),
+        ),
+    ):
+        with pytest.raises(LogError, match=msg(*expected)):
+            load_log(path, columns, calibration={channel: spec})
+
+
 def test_strain_gauge_columns_become_root_curvature(tmp_path):
     """A root strain gauge read in microstrain (or in volts with a bridge calibration to
     microstrain) maps to `curvature1` through its distance `c` from the neutral axis:
@@ -409,7 +464,7 @@ def test_volts_need_calibration(tmp_path):
     with pytest.raises(LogError, match=msg("v.csv, line 1, column 3", "tip1 is in [V]", "needs a calibration")):
         load_log(path, columns)
     columns = {"time": "time [s]", "theta1": "theta1"}
-    with pytest.raises(LogError, match=msg("column 2", "calibration is given for theta1", "not [V]")):
+    with pytest.raises(LogError, match=msg("column 2", "calibration scale is given for theta1", "not [V]")):
         load_log(path, columns, calibration={"theta1": {"scale": 2.0}})
 
 
