@@ -73,6 +73,8 @@ def test_main_job_diagnose_names_the_hidden_friction_of_the_example(tmp_path):
     lo, hi = cause["parameters"]["joint1.coulomb"]["ci95"]
     assert lo <= 1.0e-3 <= hi  # make_logs.py's hidden value
     assert doc["held_out"]["gain"]["theta1"] >= 2.0
+    # the friction model needs a finer step than the baseline's (`STEP_RECHECK`), and says so
+    assert any("the candidates' fits go on, and the search, at" in n["text"] for n in doc["notes"]), doc["notes"]
     # what the rig rules out is said, not silently skipped: a rigid pendulum released from rest
     assert set(doc["not_tried"]) == {
         "actuator_lag",
@@ -93,6 +95,41 @@ def test_main_job_diagnose_names_the_hidden_friction_of_the_example(tmp_path):
     assert "| theta1 | deg |" in report and "the fit's noise weight sigma" in report
     # a second run into the same folder is allowed (ours), into the example's folder is not
     assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(EXAMPLE / "logs"), "--quiet"]) == 2
+
+
+def test_a_candidate_that_needs_a_finer_step_gets_one():
+    """Dry friction, `-F_c tanh(v / 0.01 rad/s)`, is a stiff damper at rest. At the step of
+    the frictionless baseline's fit (8.9 ms on the example) the friction model's outputs are
+    far off; `_finer_step` says so and picks a finer step within `STEP_RECHECK` noise levels.
+    Oracle: diffrax's adaptive Tsit5 at rtol 1e-12, not the constant-step reference
+    `_finer_step` compares with. A smooth model (no friction) passes at the same step."""
+    import jax.numpy as jnp
+
+    from identify.fit import _predict_jit, make_problem
+
+    for coulomb in (1e-3, None):
+        logs = pendulum_logs(pendulum(coulomb=coulomb), 0)
+        problem = make_problem(pendulum(coulomb=coulomb), [], logs, {"theta1": PENDULUM_NOISE}, rtol=1e-12, atol=1e-14)
+        theta = jnp.zeros(0)
+        y0 = jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float)
+        y0s = D._initial_states(problem, y0)
+        mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
+        adaptive = np.asarray(_predict_jit(problem, theta, y0s, None, None)[0])
+
+        def off(step):
+            pred = np.asarray(_predict_jit(problem, theta, y0s, None, jnp.asarray(step))[0])
+            return float(np.max(np.where(mask, np.abs(pred - adaptive) / PENDULUM_NOISE, 0.0)))
+
+        at, finer = D._finer_step(problem, theta, y0, jnp.asarray(8.9e-3), jnp.asarray([PENDULUM_NOISE]))
+        # (abs: the two references' own errors, ~1e-8 noise levels, show on the smooth model)
+        assert at == pytest.approx(off(8.9e-3), rel=1e-3, abs=1e-7)
+        if coulomb is None:
+            assert at < D.STEP_RECHECK and finer is None
+        else:
+            assert at > 2 * D.STEP_RECHECK and finer is not None and float(finer) < 8.9e-3
+            assert off(float(finer)) <= D.STEP_RECHECK
+            # the coarsest that passes: twice it does not
+            assert off(2 * float(finer)) > D.STEP_RECHECK
 
 
 @pytest.mark.slow
