@@ -270,9 +270,11 @@ MAX_REFINEMENTS = 8
 STEP_RECHECK = 0.05
 #: `_finer_step`: the steps tried, as divisors of the round's step, coarsest first ...
 STEP_DIVISORS = (2, 4, 8)
-#: ... against the outputs at the step over this (Tsit5 is fifth order: 32x finer is ~3e7
-#: times more accurate, a reference without an adaptive solve of its own to compile)
-REFERENCE_DIVISOR = 32
+#: ... against the outputs at the step over this (Tsit5 is fifth order: 16x finer is ~1e6
+#: times more accurate, a reference without an adaptive solve of its own to compile; on
+#: the friction model, whose error falls irregularly with the step, the reference at
+#: 0.55 ms was 9e-5 noise levels off one at 0.14 ms)
+REFERENCE_DIVISOR = 16
 
 #: `_refine` and `reconverge` continue one or a few fits of a round. Padded to the round's
 #: batch size they reuse its compiled program, but every padded copy costs as much as a
@@ -802,37 +804,45 @@ def _best_starts(vs, costs, steps, owners) -> tuple:
 
 def _finer_step(problem: Problem, theta, y0_free, step, sigma) -> tuple:
     """At physical parameters `theta` (and free initial-state entries `y0_free`): how far,
-    in noise levels `sigma`, the outputs at the constant `step` are from those at
-    `step / REFERENCE_DIVISOR` (the largest deviation over the used samples; inf when the
-    simulation fails), and the step to go on at: None when that is within `STEP_RECHECK`,
-    else the coarsest of `step / STEP_DIVISORS` within it (the reference's step if none
-    is). Each step is aligned with the torque samples (`identify.fit.aligned_step`)."""
+    in noise levels `sigma`, the outputs at the constant `step` are off (the largest
+    deviation over the used samples; inf when the simulation fails), and the step to go
+    on at: None when that is within `STEP_RECHECK`, else the coarsest of `step /
+    STEP_DIVISORS` within it (the reference's step if none is). Each step is aligned with
+    the torque samples (`identify.fit.aligned_step`).
+
+    First the Richardson estimate from the outputs at `step` and `step / 2` (fifth order:
+    `|y(h) - y(h/2)| 32/31`); within a quarter of the bar, that is the answer (three
+    simulations' worth). Otherwise each step is compared with the outputs at
+    `step / REFERENCE_DIVISOR`."""
     y0s = _initial_states(problem, y0_free)
     mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
+    sigma = np.asarray(sigma)
 
     def outputs(h):
         pred, ok = _predict(problem, theta, y0s, None, jnp.asarray(float(h), dtype=jnp.float64))
         return np.asarray(pred) if bool(jnp.all(ok)) else None
 
+    def apart(a, b):
+        if a is None or b is None:
+            return float("inf")
+        return float(np.max(np.where(mask, np.abs(a - b) / sigma, 0.0)))
+
+    at_step = outputs(step)
+    estimate = apart(at_step, outputs(aligned_step(problem, float(step) / 2))) * 32 / 31
+    if estimate <= STEP_RECHECK / 4:
+        return estimate, None
     finest = aligned_step(problem, float(step) / REFERENCE_DIVISOR)
     reference = outputs(finest)
     if reference is None:
         return float("nan"), None
-
-    def off(h):
-        pred = outputs(h)
-        if pred is None:
-            return float("inf")
-        return float(np.max(np.where(mask, np.abs(pred - reference) / np.asarray(sigma), 0.0)))
-
-    at_step = off(step)
-    if not at_step > STEP_RECHECK:
-        return at_step, None
+    off = apart(at_step, reference)
+    if not off > STEP_RECHECK:
+        return off, None
     for d in STEP_DIVISORS:
         h = aligned_step(problem, float(step) / d)
-        if off(h) <= STEP_RECHECK:
-            return at_step, h
-    return at_step, finest
+        if apart(outputs(h), reference) <= STEP_RECHECK:
+            return off, h
+    return off, finest
 
 
 def _used(problem: Problem) -> np.ndarray:
