@@ -215,10 +215,35 @@ class Problem(eqx.Module):
     # the channels whose noise level make_problem was given (`fit` keeps them by default)
     declared: tuple[str, ...] = eqx.field(static=True, default=())
     log_set_names: tuple[str, ...] = eqx.field(static=True, default=())
+    # the free parameters' guesses, SI (an array: a static field would compile a program
+    # per guess), so that `fit(problem)` needs no parameter list
+    guess: jax.Array | None = None
 
     @property
     def log_names(self) -> tuple[str, ...]:
         return self.labels.names
+
+    @property
+    def parameters(self) -> list[Parameter]:
+        """The free parameters as given to `make_problem`: names, guesses and bounds (SI;
+        None for none)."""
+        if self.guess is None:
+            raise ValueError("this Problem was not made by make_problem: it holds no guesses; pass the parameters")
+        if not self.names:
+            return []
+
+        def bound(natural, log):
+            natural = float(natural)
+            return None if not math.isfinite(natural) else (math.exp(natural) if log else natural)
+
+        # (a stacked problem, `fit_independent`'s, holds one row per log: the same)
+        guesses = np.asarray(self.guess).reshape(-1, len(self.names))[0]
+        lower = np.asarray(self.lower).reshape(-1, len(self.names))[0]
+        upper = np.asarray(self.upper).reshape(-1, len(self.names))[0]
+        return [
+            Parameter(n, float(g), bound(lo, log), bound(hi, log))
+            for n, g, lo, hi, log in zip(self.names, guesses, lower, upper, self.log_scale)
+        ]
 
 
 def _log_set(chain, measurement, logs, free: set, known: set) -> tuple[tuple[str, ...], np.ndarray]:
@@ -532,6 +557,7 @@ def make_problem(
         max_steps=max_steps,
         declared=tuple(c for c in channels if noise.get(c) is not None),
         log_set_names=log_set_names,
+        guess=jnp.asarray([float(p.guess) for p in parameters], dtype=float),
     )
 
 
@@ -1121,7 +1147,7 @@ class _Grid(NamedTuple):
 
 def fit(
     problem: Problem,
-    parameters: Sequence[Parameter],
+    parameters: Sequence[Parameter] | None = None,
     *,
     horizons: Sequence[float] | None = None,
     n_stages: int = 4,
@@ -1144,7 +1170,8 @@ def fit(
     """Fit the free parameters (and per-log nuisances) of `problem`.
 
     **Arguments:**
-    - `problem`, `parameters`: from `make_problem` (the same parameters, for the guesses).
+    - `problem`, `parameters`: from `make_problem`; `parameters` (the same ones, in the
+      same order) may be left out: the problem keeps their guesses (`Problem.parameters`).
     - `horizons`: horizon (s, from each log's onset: where its input or motion starts,
       `log_onset`; the log's start for a log that moves from its first sample) of each
       stage; default `n_stages` horizons doubling up to the full length (`n_stages=1`:
@@ -1220,6 +1247,7 @@ def fit(
     """
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps, early_max_steps=early_max_steps)
+    parameters = problem.parameters if parameters is None else parameters
     _check_same_parameters(problem, parameters, "fit")
     extra = _extra_starts(problem, parameters, extra_starts)
     fd.ensure_mapping_headroom()  # a fit compiles ~10-50 programs (flexdyn.program_cache)
@@ -1857,7 +1885,7 @@ def _split(problem: Problem) -> tuple[Problem, list[Problem]]:
 
 def fit_independent(
     problem: Problem,
-    parameters: Sequence[Parameter],
+    parameters: Sequence[Parameter] | None = None,
     *,
     horizons: Sequence[float] | None = None,
     n_stages: int = 4,
@@ -1896,6 +1924,7 @@ def fit_independent(
     Returns one `FitResult` per log."""
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps)
+    parameters = problem.parameters if parameters is None else parameters
     _check_same_parameters(problem, parameters, "fit_independent")
     fd.ensure_mapping_headroom()  # flexdyn.program_cache
     start = time.perf_counter()

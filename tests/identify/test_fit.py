@@ -98,7 +98,8 @@ class Arm:
         ]
         start = time.perf_counter()
         problem = identify.make_problem(self.chain, params, [self.log(seed)], noise=self.noise)
-        result = identify.fit(problem, params, estimate_noise=False, **options)
+        # (the problem keeps the guesses: `fit` needs no parameter list)
+        result = identify.fit(problem, estimate_noise=False, **options)
         return result, time.perf_counter() - start
 
 
@@ -781,6 +782,13 @@ def test_parameter_lists_noise_channels_and_fit_arguments_checked():
     with pytest.raises(ValueError, match=r"make_problem: noise: output channel 'theta'.*the logs record \['theta1'\]"):
         identify.make_problem(chain, [P("joint1.damping", 1e-3)], [log], {"theta1": 1e-3, "theta": 1.0})
     problem = identify.make_problem(chain, [P("joint1.damping", 1e-3)], [log], {"theta1": 1e-3})
+    # the problem keeps its parameters (guesses and bounds, SI) for `fit(problem)`
+    given = [P("joint1.damping", 1e-3, 1e-6, 0.1), P("hub1.inertia", 2e-5), P("gravity[0]", 0.1, -1.0)]
+    kept = identify.make_problem(chain, given, [log], {"theta1": 1e-3}).parameters
+    assert [(p.name, p.guess) for p in kept] == [(p.name, p.guess) for p in given]
+    for p, q in zip(kept, given):  # (a positive one's bounds pass through its log: exact to rounding)
+        for a, b in ((p.lower, q.lower), (p.upper, q.upper)):
+            assert (a is None and b is None) or a == pytest.approx(b, rel=1e-14), (p, q)
     for call in (identify.fit, identify.fit_independent):
         with pytest.raises(
             ValueError, match=r"parameters \['hub1.inertia'\] are not the problem's \['joint1.damping'\]"
