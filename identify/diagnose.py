@@ -1196,9 +1196,12 @@ def diagnose_logs(
             finer = step_check(vs, costs, best, owners, idx, logf)
             if finer is not None:  # the fits go on from where they are, at the finer step
                 step = finer
+                t_call = time.perf_counter()
                 vs, costs, steps = _fit_batch(
                     joint, _pad(vs, size), _pad(idx, size), _pad(logf, size), sigma_j, step, max_steps
                 )
+                costs = np.asarray(costs, dtype=float)
+                call_s = time.perf_counter() - t_call  # (what a continuation at this step costs)
                 vs, costs, steps, best = _best_starts(vs, costs, steps, owners)
             size = (size, call_s)
             vs, costs = _refine(
