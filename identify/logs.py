@@ -330,7 +330,7 @@ _GEARED = re.compile(r"^(theta|alpha|torque)\d+$")
 
 def check_calibration(channel: str, spec, where: str) -> Calibration:
     """A `Calibration` from an experiment-file table `{scale, offset, unit,
-    neutral_axis_distance}`."""
+    neutral_axis_distance, gear_ratio}`."""
     if not isinstance(spec, Mapping):
         raise LogError(f"{where}: expected a table {{ scale = ..., offset = ... }}, got {spec!r}")
     keys = {"scale", "offset", "unit", "neutral_axis_distance", "gear_ratio"}
