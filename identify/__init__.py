@@ -5,9 +5,11 @@
   standard errors, confidence intervals and identifiability warnings;
   `clustered_uncertainty(result)`: intervals that hold when the residual is model error
   (cluster-robust, each log a cluster).
-- `make_problem` / `fit`: the same on in-memory logs (`LogData`); `fit_independent`: each
-  log its own values, all in one batch; `between_logs(results)`: do they agree (weighted
-  mean and a chi-square test per parameter)?
+- `make_problem` / `fit`: the same on in-memory logs (`LogData`); a parameter may be
+  fitted per log beside shared ones (`Parameter(..., per_log=True)`: an unknown payload
+  per log); `fit_independent`: each log its own values of every parameter, all in one
+  batch; `between_logs(results)`: do they agree (weighted mean and a chi-square test per
+  parameter)?
 - `residual_report`: residual whiteness and input cross-correlation (MATLAB `resid`).
 - `noise_floor`: each channel's noise level estimated from the data alone; every fit
   compares its residuals with it (`FitResult.fit_quality`, `poor_fit`: a wrong basin or a

@@ -304,6 +304,8 @@ def validate(exp, result, progress=None):
         name: {
             "initial_states": {k: v[0] for k, v in held.initial_states.get(name, {}).items()},
             "offsets": {k: v[0] for k, v in held.offsets.get(name, {}).items()},
+            # (each held-out log's own value of a per-log parameter, `Parameter.per_log`)
+            "parameters": {p: by_log[name] for p, by_log in held.per_log.items()},
         }
         for name in held.problem.log_names
     }
@@ -395,6 +397,7 @@ def _residual_lines(report: dict, outputs: dict, roles: dict) -> list[str]:
 
 
 def _nuisance_lines(result, validation_nuisances: dict) -> list[str]:
+    from .fit import parameter_unit
     from .report import display_unit, state_display_unit
 
     lines = []
@@ -415,6 +418,8 @@ def _nuisance_lines(result, validation_nuisances: dict) -> list[str]:
             for c, v in val["offsets"].items():
                 scale, unit = display_unit(c)
                 parts.append(f"offset {c} = {scale * v:.4g} {unit}")
+            for p, v in val.get("parameters", {}).items():
+                parts.append(f"{p} = {v:.4g} {parameter_unit(result.problem, p)}")
             name = name + " [val]"
         if parts:
             lines.append(f"  {name}: " + "; ".join(parts))
@@ -564,7 +569,7 @@ def _fit_command(args) -> int:
     import numpy as np
 
     from . import channels as ch, evidence, report as plots
-    from .fit import fitted_outputs
+    from .fit import fitted_outputs, parameter_unit
     from .noise_floor import declared_noise_warnings
     from .run import fit_experiment, residual_report
     from .uncertainty import clustered_uncertainty
@@ -575,7 +580,7 @@ def _fit_command(args) -> int:
     say(f"identify fit: experiment {exp.name!r} ({exp.path})")
     say(
         f"  rig: {exp.chain.n_links} link(s), coordinates {', '.join(exp.chain.coordinate_names())}; "
-        f"free: {', '.join(p.name for p in exp.free)}"
+        f"free: {', '.join(p.name + (' (per log)' if p.per_log else '') for p in exp.free)}"
     )
     for line in _set_up_checks(exp):
         say(f"  {line}")
@@ -617,7 +622,12 @@ def _fit_command(args) -> int:
     fitted_chain = result.chain
     freqs, where = natural_frequencies(fitted_chain)
     robust, robust_note = None, None
-    if n_fit >= CLUSTER_MIN_LOGS and n_fit <= len(result.names):
+    if n_fit >= CLUSTER_MIN_LOGS and result.problem.per_log:
+        robust_note = (
+            "cluster-robust intervals not computed: a per-log parameter is informed by one log (cluster) only, "
+            "so they do not apply"
+        )
+    elif n_fit >= CLUSTER_MIN_LOGS and n_fit <= len(result.names):
         robust_note = (
             f"cluster-robust intervals not computed: {n_fit} fit logs for {len(result.names)} free parameters "
             "(they need more logs than parameters)"
@@ -627,7 +637,8 @@ def _fit_command(args) -> int:
         robust = clustered_uncertainty(result)
     val_outputs, val_report, val_nuisances = {}, {}, {}
     if exp.validation_logs:
-        say("checking the fit on the validation log(s) (their initial state and offsets re-estimated) ...")
+        own = "".join(f", {p.name}" for p in exp.free if p.per_log)
+        say(f"checking the fit on the validation log(s) (their initial state, offsets{own} re-estimated) ...")
         val_outputs, val_report, val_nuisances = validate(exp, result, progress)
     t_post = time.perf_counter() - t0
 
@@ -663,11 +674,14 @@ def _fit_command(args) -> int:
     nuisance = _nuisance_lines(result, val_nuisances)
     if nuisance:
         print()
-        print("Per-log nuisances:")
+        own = " (validation logs: also their own per-log parameters)" if result.problem.per_log else ""
+        print(f"Per-log nuisances{own}:")
         print("\n".join(nuisance))
     print()
     nf = ", ".join(f"{f:.4g}" for f in freqs if f > 0) or "none (rigid-body modes only)"
-    print(f"Natural frequencies of the fitted model ({where}): {nf} Hz")
+    kept = ", ".join(n for n, _ in result.problem.per_log)
+    kept = f"; {kept} at the rig's value, not a log's" if kept else ""
+    print(f"Natural frequencies of the fitted model ({where}{kept}): {nf} Hz")
     unstable = [f for f in freqs if f < 0]
     if unstable:  # (`fd.Modes`: a negative frequency is an unstable mode)
         print(
@@ -701,6 +715,10 @@ def _fit_command(args) -> int:
                 e: {"value": v, "unit": ch.state_unit(e)} for e, v in val_nuisances[name]["initial_states"].items()
             },
             "offsets": {c: {"value": v, "unit": ch.channel_unit(c)} for c, v in val_nuisances[name]["offsets"].items()},
+            "parameters": {
+                p: {"value": v, "unit": parameter_unit(result.problem, p)}
+                for p, v in val_nuisances[name]["parameters"].items()
+            },
         }
         for name in val_outputs
     }

@@ -907,6 +907,12 @@ def diagnose_logs(
         raise ValueError("diagnose: no held-out data (give validation logs, or at least one log to split)")
     noise = dict(noise or {})
     parameters = list(parameters)
+    per_log = [p.name for p in parameters if getattr(p, "per_log", False)]
+    if per_log:  # (the candidates' joint fit and the held-out scoring share one parameter vector)
+        raise ValueError(
+            f"diagnose: {', '.join(map(repr, per_log))} is fitted per log (per_log), which diagnose does not "
+            "support yet; diagnose logs that share its value (or give each log's value with `set`)"
+        )
     say("baseline fit ...")
     measurement = meas.Measurement() if measurement is None else measurement
     base_problem = make_problem(

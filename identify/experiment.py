@@ -50,7 +50,7 @@ _TOP_KEYS = ("experiment", "rig", "parameters", "starts", "noise", "logs", "sens
 _EXPERIMENT_KEYS = ("name", "description", "strict", "min_samples")
 _RIG_KEYS = ("base", "options", "set", "gravity", "links", "joints", "hubs", "payload")
 _LOG_KEYS = ("file", "name", "role", "columns", "calibration", "initial", "fit_initial", "offsets", "strict", "set")
-_PARAMETER_KEYS = ("guess", "lower", "upper")
+_PARAMETER_KEYS = ("guess", "lower", "upper", "per_log")
 _SENSOR_KEYS = ("gain", "offset", "delay", "highpass")
 _ACTUATOR_KEYS = ("lag",)
 
@@ -59,7 +59,8 @@ _ACTUATOR_KEYS = ("lag",)
 class FreeParameter:
     """A parameter to fit: its name (`flexdyn.parameter_names`), initial guess and bounds
     (SI; None for unbounded), SI unit, and whether it is fitted in log space (parameters
-    that cannot be negative)."""
+    that cannot be negative); `per_log`: each fit log gets its own value
+    (`identify.Parameter.per_log`), the other free parameters are shared."""
 
     name: str
     guess: float
@@ -67,6 +68,7 @@ class FreeParameter:
     upper: float | None
     unit: str
     log_scale: bool
+    per_log: bool = False
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -208,7 +210,8 @@ class Experiment:
         lines.append(f"  {gravity_text(self.chain.gravity)}")
         for p in self.free:
             scale = "log" if p.log_scale else "linear"
-            lines.append(f"  free {p.name} = {p.guess:g} in [{p.lower}, {p.upper}] {p.unit} ({scale})")
+            own = ", one value per log" if p.per_log else ""
+            lines.append(f"  free {p.name} = {p.guess:g} in [{p.lower}, {p.upper}] {p.unit} ({scale}{own})")
         for k, start in enumerate(self.starts, start=1):
             lines.append(f"  start {k}: " + ", ".join(f"{n} = {v:g}" for n, v in start.items()))
         for c, s in self.noise.items():
@@ -448,7 +451,8 @@ def load_experiment(path) -> Experiment:
                 raise r.error(
                     ("logs", k, "set", pname),
                     f"{pname} is also a free parameter in [parameters]; a known value per log and a fitted one "
-                    "exclude each other (to fit it in each log on its own: identify fit --independent)",
+                    "exclude each other (to fit a value per log: per_log = true under [parameters]; every "
+                    "parameter in each log on its own: identify fit --independent)",
                 )
     starts = _starts(r, free, doc.get("starts", []))
     return Experiment(
@@ -681,7 +685,10 @@ def _free_parameters(
                 f"{source} = {guess:g} is outside [{_bound(lower)}, {_bound(upper)}] {unit}; "
                 "expected lower <= guess <= upper",
             )
-        free.append(FreeParameter(name, guess, lower, upper, unit, log_scale))
+        per_log = spec.get("per_log", False)
+        if not isinstance(per_log, bool):
+            raise r.error(key + ("per_log",), f"expected true or false, got {_show(per_log)}")
+        free.append(FreeParameter(name, guess, lower, upper, unit, log_scale, per_log))
     return free, measurement, chain
 
 

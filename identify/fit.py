@@ -16,6 +16,15 @@ nuisances' tangents only (`identify.residuals`: the cost is linear in the number
 of logs, not quadratic); from `BLOCK_SOLVE_MIN_LOGS` logs on, the damped step is
 solved block by block (`identify.block_lm`), also linear in the number of logs.
 
+**Per-log parameters.** A physical parameter that differs between logs and is not known
+(each log's payload in a sweep nobody weighed) is a `Parameter(..., per_log=True)`: the
+problem gets one free parameter per log, `name[log]`, and log `l` simulates with its own
+(`Problem.per_log`; `FitResult.per_log`, `FitResult.log_chain(log)`), while the others
+are shared. Unlike the nuisances, these are columns of the shared block: each log's
+solve carries all of them (their columns on the other logs' rows are zero), which costs
+`p L` tangents per solve for `p` per-log parameters over `L` logs; fine for the tens of
+logs of a sweep, not for hundreds (`fit_independent` fits every parameter per log).
+
 **Coordinates.** Positive parameters are fitted as `log(theta)`, signed ones as
 `theta`; finite bounds `[lower, upper]` are imposed by the smooth map `x = lo +
 (hi - lo) * sigmoid(z)` of the unconstrained variable `z`. Standard errors are
@@ -109,12 +118,20 @@ Z95 = 1.959963984540054
 @dataclasses.dataclass(frozen=True)
 class Parameter:
     """A free parameter of a fit: its name (see `flexdyn.parameter_names`), initial
-    guess and bounds (SI; `None` for unbounded)."""
+    guess and bounds (SI; `None` for unbounded).
+
+    `per_log`: each log gets its own value (a payload that differs from log to log and
+    is not known), while the other free parameters are shared by all logs. The problem
+    then has one free parameter per log, named `name[log]` (`payload.mass[m20g]`), all
+    with this guess and these bounds. Each log's simulation carries every free
+    parameter's tangent, so a fit with `p` per-log parameters over `L` logs costs about
+    as much as one with `p L` shared ones."""
 
     name: str
     guess: float
     lower: float | None = None
     upper: float | None = None
+    per_log: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -215,6 +232,9 @@ class Problem(eqx.Module):
     # the channels whose noise level make_problem was given (`fit` keeps them by default)
     declared: tuple[str, ...] = eqx.field(static=True, default=())
     log_set_names: tuple[str, ...] = eqx.field(static=True, default=())
+    # the per-log free parameters (`Parameter.per_log`): (name, the index in `names` of each
+    # log's own one, in log order), ...
+    per_log: tuple[tuple[str, tuple[int, ...]], ...] = eqx.field(static=True, default=())
     # the free parameters' guesses, SI (an array: a static field would compile a program
     # per guess), so that `fit(problem)` needs no parameter list
     guess: jax.Array | None = None
@@ -240,10 +260,27 @@ class Problem(eqx.Module):
         guesses = np.asarray(self.guess).reshape(-1, len(self.names))[0]
         lower = np.asarray(self.lower).reshape(-1, len(self.names))[0]
         upper = np.asarray(self.upper).reshape(-1, len(self.names))[0]
+        first = {index[0]: name for name, index in self.per_log}  # (a per-log one: once, as given)
+        own = {i for _, index in self.per_log for i in index}
         return [
-            Parameter(n, float(g), bound(lo, log), bound(hi, log))
-            for n, g, lo, hi, log in zip(self.names, guesses, lower, upper, self.log_scale)
+            Parameter(first.get(i, n), float(g), bound(lo, log), bound(hi, log), per_log=i in first)
+            for i, (n, g, lo, hi, log) in enumerate(zip(self.names, guesses, lower, upper, self.log_scale))
+            if i not in own or i in first
         ]
+
+    def base_name(self, name: str) -> str:
+        """The rig's parameter a free parameter is: `payload.mass` for the per-log
+        `payload.mass[m20g]`, the name itself otherwise."""
+        for base, index in self.per_log:
+            if name in (self.names[i] for i in index):
+                return base
+        return name
+
+    @property
+    def shared_names(self) -> tuple[str, ...]:
+        """The free parameters shared by all logs (all but the per-log ones)."""
+        own = {i for _, index in self.per_log for i in index}
+        return tuple(n for i, n in enumerate(self.names) if i not in own)
 
 
 def _log_set(chain, measurement, logs, free: set, known: set) -> tuple[tuple[str, ...], np.ndarray]:
@@ -260,7 +297,8 @@ def _log_set(chain, measurement, logs, free: set, known: set) -> tuple[tuple[str
             if n in free:
                 raise ValueError(
                     f"log {log.name!r}: set {n!r} is also a free parameter; a known value per log and a fitted "
-                    "one exclude each other (fit it per log with fit_independent, or drop it from the parameters)"
+                    "one exclude each other (fit a value per log with Parameter(..., per_log=True), or every "
+                    "parameter per log with fit_independent, or drop it from the parameters)"
                 )
     base = [
         float(meas.get_parameter(measurement, n) if meas.is_measurement_parameter(n) else fd.get_parameter(chain, n))
@@ -375,10 +413,14 @@ def _check_same_parameters(problem: Problem, parameters, caller: str) -> None:
     """The free parameters passed to a fit must be the problem's, in its order: the
     guesses are read by position (found in review: `fit(problem, [hub1.inertia])` on a
     problem made for `link1.EI` used the inertia's guess as EI's, silently)."""
-    given = tuple(p.name for p in parameters)
-    if given != tuple(problem.names):
+    given = tuple((p.name, bool(getattr(p, "per_log", False))) for p in parameters)
+    expected = tuple((p.name, p.per_log) for p in problem.parameters) if problem.guess is not None else None
+    if expected is None:
+        expected = tuple((n, False) for n in problem.names)
+    if given != expected:
+        show = lambda pairs: [n + (" (per log)" if per else "") for n, per in pairs]  # noqa: E731
         raise ValueError(
-            f"{caller}: parameters {list(given)} are not the problem's {list(problem.names)} (as given to "
+            f"{caller}: parameters {show(given)} are not the problem's {show(expected)} (as given to "
             "make_problem, in that order)"
         )
 
@@ -412,7 +454,7 @@ def make_problem(
     measurement = Measurement() if measurement is None else measurement
     chain_names = set(fd.parameter_names(chain))
     known = chain_names | set(meas.parameter_names(measurement))
-    names, log_scale, lower, upper = [], [], [], []
+    names, log_scale, lower, upper, per_log = [], [], [], [], []
     listed = [p.name for p in parameters]
     twice = sorted({n for n in listed if listed.count(n) > 1})
     if twice:  # review: both were fitted, and `FitResult.value` kept one of them
@@ -444,10 +486,15 @@ def make_problem(
                     f"must be > 0, got guess {p.guess!r}, lower {p.lower!r}"
                 )
             lo, hi = (np.log(lo) if np.isfinite(lo) else -np.inf), np.log(hi)
-        names.append(p.name)
-        log_scale.append(not signed)
-        lower.append(lo)
-        upper.append(hi)
+        if p.per_log:  # one free parameter per log, `name[log]`, next to each other
+            per_log.append((p.name, tuple(range(len(names), len(names) + len(logs)))))
+            own = [f"{p.name}[{log.name}]" for log in logs]
+        else:
+            own = [p.name]
+        names.extend(own)
+        log_scale.extend([not signed] * len(own))
+        lower.extend([lo] * len(own))
+        upper.extend([hi] * len(own))
     seen = set()
     for log in logs:
         if log.name in seen:
@@ -458,7 +505,7 @@ def make_problem(
     channels = sorted({c for log in logs for c in log.outputs})
     for c in channels:
         ch.check_channel(chain, c)
-    log_set_names, log_set = _log_set(chain, measurement, logs, set(names), known)
+    log_set_names, log_set = _log_set(chain, measurement, logs, set(listed), known)
     states = state_names(chain)
     n2 = len(states)
     L = len(logs)
@@ -557,8 +604,14 @@ def make_problem(
         max_steps=max_steps,
         declared=tuple(c for c in channels if noise.get(c) is not None),
         log_set_names=log_set_names,
-        guess=jnp.asarray([float(p.guess) for p in parameters], dtype=float),
+        per_log=tuple(per_log),
+        guess=jnp.asarray(_guesses_made(parameters, len(logs)), dtype=float),
     )
+
+
+def _guesses_made(parameters, n_logs: int) -> list[float]:
+    """`make_problem`'s guesses in its names' order (a per-log one's once per log)."""
+    return [float(p.guess) for p in parameters for _ in range(n_logs if p.per_log else 1)]
 
 
 #: `log_onset`: a log moves once a channel leaves its resting value by more than this many
@@ -671,7 +724,9 @@ _predict_jit = eqx.filter_jit(predict)
 
 
 def parameter_unit(problem: Problem, name: str) -> str:
-    """SI unit of a free parameter of `problem` (chain or measurement parameter)."""
+    """SI unit of a free parameter of `problem` (chain or measurement parameter; a per-log
+    one's, `name[log]`, is its parameter's)."""
+    name = problem.base_name(name)
     if meas.is_measurement_parameter(name):
         return meas.unit(name, ch.channel_unit)
     return fd.parameter_unit(problem.chain, name)
@@ -874,14 +929,49 @@ class FitResult:
         return dict(zip(self.names, self.values.tolist()))
 
     @property
+    def shared_value(self) -> dict:
+        """Name -> fitted value (SI) of the parameters shared by all logs (all but the
+        per-log ones, `Parameter.per_log`)."""
+        return {n: v for n, v in self.value.items() if n in self.problem.shared_names}
+
+    @property
+    def per_log(self) -> dict:
+        """Per-log parameters (`Parameter.per_log`): name -> {log: fitted value (SI)}."""
+        return {
+            name: {log: float(self.values[i]) for log, i in zip(self.problem.log_names, index)}
+            for name, index in self.problem.per_log
+        }
+
+    @property
     def chain(self) -> fd.Chain:
-        """The problem's chain with the fitted values of its parameters."""
-        return fd.with_parameters(self.problem.chain, meas.split_values(self.value)[0])
+        """The problem's chain with the fitted values of its shared parameters (a per-log
+        parameter keeps the rig's value: `log_chain(log)` has a log's own)."""
+        return fd.with_parameters(self.problem.chain, meas.split_values(self.shared_value)[0])
 
     @property
     def measurement(self) -> Measurement:
-        """The problem's measurement model with the fitted values of its parameters."""
-        return meas.with_parameters(self.problem.measurement, meas.split_values(self.value)[1])
+        """The problem's measurement model with the fitted values of its shared
+        parameters (per-log ones: `log_measurement(log)`)."""
+        return meas.with_parameters(self.problem.measurement, meas.split_values(self.shared_value)[1])
+
+    def _log_values(self, log: str) -> dict:
+        names = self.problem.log_names
+        if log not in names:
+            raise ValueError(f"FitResult: no log named {log!r}; the fit's logs are {list(names)}")
+        l = names.index(log)
+        values = dict(self.shared_value)
+        values.update({n: float(v) for n, v in zip(self.problem.log_set_names, np.asarray(self.problem.log_set)[l])})
+        values.update({name: by_log[log] for name, by_log in self.per_log.items()})
+        return values
+
+    def log_chain(self, log: str) -> fd.Chain:
+        """The chain that simulated log `log`: the fitted shared values, the log's known
+        values (`LogData.set`) and its own fitted per-log values."""
+        return fd.with_parameters(self.problem.chain, meas.split_values(self._log_values(log))[0])
+
+    def log_measurement(self, log: str) -> Measurement:
+        """The measurement model of log `log` (as `log_chain`)."""
+        return meas.with_parameters(self.problem.measurement, meas.split_values(self._log_values(log))[1])
 
     @property
     def poor_fit(self) -> list[str]:
@@ -1053,6 +1143,12 @@ class FitResult:
                 for log, row in zip(self.problem.log_names, np.asarray(self.problem.log_set).tolist())
             }
             if self.problem is not None and self.problem.log_set_names
+            else {},
+            # per-log parameters (`Parameter.per_log`): name -> {log: entry `name[log]` above}
+            "fitted_per_log": {
+                name: {log: f"{name}[{log}]" for log in self.problem.log_names} for name, _ in self.problem.per_log
+            }
+            if self.problem is not None
             else {},
             "correlation": self.correlation.tolist(),
             "correlation_names": list(self.names),  # the rows' and columns' order (review: only implied)
@@ -1253,7 +1349,7 @@ def fit(
     fd.ensure_mapping_headroom()  # a fit compiles ~10-50 programs (flexdyn.program_cache)
     start = time.perf_counter()
     say = progress or (lambda msg: None)
-    x0 = _x_from_theta(problem, [p.guess for p in parameters])
+    x0 = _x_from_theta(problem, _guesses(problem, parameters))
     if frequency_init:
         x0 = _frequency_initialise(problem, x0, say, grid_safety)
     z = {
@@ -1821,7 +1917,7 @@ def _finish(
     return FitResult(
         names=list(problem.names),
         values=values,
-        guesses=np.array([pp.guess for pp in parameters], float),
+        guesses=np.array(_guesses(problem, parameters), float),
         std_errors=se,
         ci_low=lo,
         ci_high=hi,
@@ -1924,6 +2020,12 @@ def fit_independent(
     Returns one `FitResult` per log."""
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps)
+    if problem.per_log:
+        raise ValueError(
+            f"fit_independent: {', '.join(repr(n) for n, _ in problem.per_log)} is fitted per log "
+            "(Parameter.per_log); fit_independent fits every parameter per log already: make the problem with "
+            "per_log=False"
+        )
     parameters = problem.parameters if parameters is None else parameters
     _check_same_parameters(problem, parameters, "fit_independent")
     fd.ensure_mapping_headroom()  # flexdyn.program_cache
@@ -1931,7 +2033,7 @@ def fit_independent(
     say = progress or (lambda msg: None)
     stacked, singles = _split(problem)
     L = len(singles)
-    x0 = _x_from_theta(problem, [p.guess for p in parameters])
+    x0 = _x_from_theta(problem, _guesses(problem, parameters))
     z1 = {
         "phys": jnp.asarray(_z_from_x(problem, x0)),
         "y0": None,
@@ -2242,18 +2344,25 @@ def _frequency_initialise_independent(problem: Problem, singles, stacked, z, x0,
     return {**z, "phys": batch_phys(thetas)}
 
 
+def _guesses(problem: Problem, parameters) -> list[float]:
+    """The guesses of `parameters` (checked to be the problem's) in `problem.names` order:
+    a per-log parameter's guess once per log."""
+    return _guesses_made(parameters, problem.t.shape[0])
+
+
 def _extra_starts(problem: Problem, parameters, extra_starts) -> list:
     """`fit`'s `extra_starts` in natural coordinates (the guesses where a start names no
     value), each checked: known parameter names, finite values inside the bounds."""
     out = []
-    guess = {p.name: p.guess for p in parameters}
+    guess = dict(zip(problem.names, _guesses(problem, parameters)))
     for k, start in enumerate(extra_starts):
-        unknown = sorted(set(start) - set(problem.names))
+        unknown = sorted(set(start) - set(problem.names) - {name for name, _ in problem.per_log})
         if unknown:
             raise ValueError(
                 f"fit: extra_starts[{k}] names {unknown}, which are not free parameters (free: {list(problem.names)})"
             )
-        theta = [float(start.get(n, guess[n])) for n in problem.names]
+        # (a per-log parameter's plain name starts every log's own value there)
+        theta = [float(start.get(n, start.get(problem.base_name(n), guess[n]))) for n in problem.names]
         for n, v, lo, hi, lg in zip(problem.names, theta, problem.lower, problem.upper, problem.log_scale):
             x = math.log(v) if lg and v > 0 else v
             if not (np.isfinite(v) and (v > 0 or not lg) and lo <= x <= hi):

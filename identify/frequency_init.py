@@ -485,14 +485,15 @@ def _nyquist(problem, j: int) -> float:
 def _flexural_frequencies(problems, thetas, link: int) -> list[float | None]:
     """`flexural_frequency` of each problem's rig at its parameters (one modal analysis per
     distinct parameter vector and known values: at the start, every independent fit has the
-    same guess, but each log may set its own payload, `LogData.set`)."""
+    same guess, but each log may set its own payload, `LogData.set`, or fit its own,
+    `Parameter.per_log`: the first log's rig is taken)."""
     seen = {}
     out = []
     for problem, theta in zip(problems, thetas):
         first = np.asarray(problem.log_set[0]) if problem.log_set_names else None  # (the first log's known values)
         key = theta.tobytes() + (b"" if first is None else first.tobytes())
         if key not in seen:
-            seen[key] = flexural_frequency(_chain(problem, jnp.asarray(theta), first), link)
+            seen[key] = flexural_frequency(_chain(problem, jnp.asarray(theta), first, 0), link)
         out.append(seen[key])
     return out
 

@@ -39,24 +39,35 @@ from flexdyn.simulate import adaptive_controller as _adaptive_controller
 from . import channels as ch, measurement as meas
 
 
-def _chain(problem, theta, log_values=None):
+def _values(problem, theta, log_values=None, log_index=None) -> dict:
+    """Parameter name -> value of one log's simulation: the shared free parameters
+    `theta` (in `problem.names` order), the log's known values `log_values` (a row of
+    `Problem.log_set`) and its own values of the per-log free parameters
+    (`Problem.per_log`: their entries of `theta` at `log_index`, which may be traced)."""
+    own = {i for _, index in problem.per_log for i in index}
+    values = {n: theta[i] for i, n in enumerate(problem.names) if i not in own}
+    if log_values is not None:
+        values.update({n: log_values[k] for k, n in enumerate(problem.log_set_names)})
+    if problem.per_log:
+        if log_index is None:
+            raise ValueError("identify.residuals: a problem with per-log parameters needs the log's index")
+        theta = jnp.asarray(theta)
+        for name, index in problem.per_log:
+            values[name] = theta[np.asarray(index)][log_index]
+    return values
+
+
+def _chain(problem, theta, log_values=None, log_index=None):
     """The problem's chain at parameters `theta`, with a log's known values `log_values`
-    (a row of `Problem.log_set`) if given."""
-    values = {n: theta[i] for i, n in enumerate(problem.names) if not meas.is_measurement_parameter(n)}
-    if log_values is not None:
-        values.update(
-            {n: log_values[k] for k, n in enumerate(problem.log_set_names) if not meas.is_measurement_parameter(n)}
-        )
-    return fd.with_parameters(problem.chain, values)
+    (a row of `Problem.log_set`) and per-log values (`_values`) if given."""
+    values = _values(problem, theta, log_values, log_index)
+    return fd.with_parameters(problem.chain, {n: v for n, v in values.items() if not meas.is_measurement_parameter(n)})
 
 
-def _measurement(problem, theta, log_values=None):
-    values = {n: theta[i] for i, n in enumerate(problem.names) if meas.is_measurement_parameter(n)}
-    if log_values is not None:
-        values.update(
-            {n: log_values[k] for k, n in enumerate(problem.log_set_names) if meas.is_measurement_parameter(n)}
-        )
-    return meas.with_parameters(problem.measurement, values)
+def _measurement(problem, theta, log_values=None, log_index=None):
+    values = _values(problem, theta, log_values, log_index)
+    sensors = {n: v for n, v in values.items() if meas.is_measurement_parameter(n)}
+    return meas.with_parameters(problem.measurement, sensors)
 
 
 def _initial_states(problem, y0_free):
@@ -104,7 +115,7 @@ def _admissible(problem, theta, y0):
     return jnp.where(good, theta, 1.0), jnp.where(y0_good, y0, 0.0), ok
 
 
-def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: bool, log_values=None):
+def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: bool, log_values=None, log_index=None):
     """Outputs `(T, C)` of one log (times `t`, commanded torque samples `torque_v`,
     initial state `y0`, onset time `onset`: `Problem.onset`) and whether its solve
     succeeded.
@@ -120,10 +131,10 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     19-94 s warm per fit, 5-17 s with the rest skipped, the same optima to 1e-12). The
     last stage simulates the whole log. Parameters or an initial state the model would
     refuse (`_admissible`) count as a failed solve. `log_values`: the log's row of
-    `Problem.log_set`."""
+    `Problem.log_set`; `log_index`: its index (for per-log parameters, `Problem.per_log`)."""
     theta, y0, admissible = _admissible(problem, theta, y0)
-    asm = fd.assemble(_chain(problem, theta, log_values))
-    sensors = _measurement(problem, theta, log_values)
+    asm = fd.assemble(_chain(problem, theta, log_values, log_index))
+    sensors = _measurement(problem, theta, log_values, log_index)
     if horizon is None:
         t_begin, t_end = t[0], t[-1]
     else:
@@ -180,10 +191,11 @@ def predict(problem, theta, y0s, horizon=None, step=None, *, stats: bool = False
     also return the number of accepted steps per log (`stats="limit"`: whether the
     solve reached `problem.max_steps`, instead)."""
 
-    def one(t, tv, y0, on, values):
-        return _simulate_log(problem, theta, t, tv, y0, on, horizon, step, stats, values)
+    def one(t, tv, y0, on, values, l):
+        return _simulate_log(problem, theta, t, tv, y0, on, horizon, step, stats, values, l)
 
-    return jax.vmap(one)(problem.t, problem.torque_v, y0s, problem.onset, problem.log_set)
+    L = problem.t.shape[0]
+    return jax.vmap(one)(problem.t, problem.torque_v, y0s, problem.onset, problem.log_set, jnp.arange(L))
 
 
 def _used(problem, horizon):
@@ -321,11 +333,11 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
     offsets = _offsets(problem, offset_free)
     mask = _used(problem, horizon)
 
-    def one(t, tv, y0_known, onset, values, measured, off, used, idx, u_l, slot_used):
+    def one(t, tv, y0_known, onset, values, measured, off, used, idx, u_l, slot_used, l):
         def f(flat_, u_):
             y0 = y0_known.at[idx].add(jnp.where(slot_used, u_ - y0_known[idx], 0.0))
             theta = theta_of(unravel(flat_))
-            out, ok = _simulate_log(problem, theta, t, tv, y0, onset, horizon, step, False, values)
+            out, ok = _simulate_log(problem, theta, t, tv, y0, onset, horizon, step, False, values, l)
             r = jnp.where(ok, (out + off - measured) / sigma, FAILED_RESIDUAL)
             r = jnp.where(used, r, 0.0).reshape(-1)
             return r, (r, ok)
@@ -345,6 +357,7 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
         y0_index,
         u,
         y0_used,
+        jnp.arange(L),
     )
     # dr[l, k, c] / do_lc = 1 / sigma_c where the residual is used (and the solve succeeded)
     d_off = jnp.where(mask & ok[:, None, None], 1.0 / sigma, 0.0)  # (L, T, C)

@@ -23,16 +23,18 @@ def log_data(spec: LogSpec, n_joints: int) -> LogData:
     )
 
 
-def parameters(exp: Experiment) -> list[Parameter]:
-    return [Parameter(p.name, p.guess, p.lower, p.upper) for p in exp.free]
+def parameters(exp: Experiment, per_log: bool = True) -> list[Parameter]:
+    """The experiment's free parameters (`per_log=False`: none of them per log)."""
+    return [Parameter(p.name, p.guess, p.lower, p.upper, per_log=p.per_log and per_log) for p in exp.free]
 
 
-def problem_from_experiment(exp: Experiment, logs=None, **solver) -> Problem:
-    """A `Problem` over the experiment's fit logs (or `logs`, a list of `LogSpec`)."""
+def problem_from_experiment(exp: Experiment, logs=None, *, per_log: bool = True, **solver) -> Problem:
+    """A `Problem` over the experiment's fit logs (or `logs`, a list of `LogSpec`);
+    `per_log=False`: its per-log parameters shared like the others."""
     specs = exp.fit_logs if logs is None else logs
     data = [log_data(s, exp.chain.n_links) for s in specs]
     noise = {c: v for c, v in exp.noise.items() if v is not None}
-    return make_problem(exp.chain, parameters(exp), data, noise, measurement=exp.measurement, **solver)
+    return make_problem(exp.chain, parameters(exp, per_log), data, noise, measurement=exp.measurement, **solver)
 
 
 def fit_experiment(exp: Experiment, *, progress=None, **options) -> FitResult:
@@ -48,25 +50,35 @@ def fit_experiment_independent(exp: Experiment, *, progress=None, **options) -> 
     """Fit the experiment's free parameters to each fit log on its own
     (`identify.fit_independent`, all logs in one batch): one `FitResult` per log. Channels
     without a declared noise level get each log's own estimate. `options` go to
-    `fit_independent`."""
-    problem = problem_from_experiment(exp)
+    `fit_independent`. A `per_log` parameter is fitted like the others (each log its own
+    values of all of them)."""
+    problem = problem_from_experiment(exp, per_log=False)
     estimate = [c for c in problem.channels if exp.noise.get(c) is None]
-    return fit_independent(problem, parameters(exp), estimate_noise=estimate or False, progress=progress, **options)
+    return fit_independent(problem, estimate_noise=estimate or False, progress=progress, **options)
 
 
 def evaluate_held_out(result: FitResult, exp: Experiment, logs=None, *, progress=None) -> FitResult:
     """The fitted model on held-out logs (default: the experiment's validation logs):
-    physical parameters fixed at the fitted values, only each log's own nuisances (its
-    `fit_initial` entries and offsets) estimated. Returns a `FitResult` over those logs
-    (no free physical parameters); its `fitted_outputs` and `residual_report` give the
-    held-out error."""
+    shared physical parameters fixed at the fitted values, only each log's own unknowns
+    estimated: its `fit_initial` entries and offsets, and its own value of each per-log
+    parameter (`Parameter.per_log`, from the median of the fit logs' values, within the
+    same bounds). Returns a `FitResult` over those logs (free parameters: the per-log
+    ones only); its `fitted_outputs` and `residual_report` give the held-out error."""
     specs = exp.validation_logs if logs is None else logs
     if not specs:
         raise ValueError("evaluate_held_out: the experiment has no validation logs")
     chain = result.chain
     data = [log_data(s, chain.n_links) for s in specs]
-    problem = make_problem(chain, [], data, dict(result.sigma), measurement=result.measurement)
-    return fit(problem, [], n_stages=1, estimate_noise=False, progress=progress)
+    own = [
+        Parameter(p.name, float(np.median(list(result.per_log[p.name].values()))), p.lower, p.upper, per_log=True)
+        for p in result.problem.parameters
+        if p.per_log
+    ]
+    problem = make_problem(chain, own, data, dict(result.sigma), measurement=result.measurement)
+    # (nuisances only: one stage; a per-log parameter: the fit's growing horizon and starts,
+    # as for the fit logs, from the fit logs' median)
+    options = {} if own else {"n_stages": 1}
+    return fit(problem, own, estimate_noise=False, progress=progress, **options)
 
 
 def residual_report(result: FitResult, max_lag: int = 25) -> dict:

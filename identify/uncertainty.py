@@ -130,6 +130,12 @@ def clustered_uncertainty(result: FitResult, level: float = 0.95) -> ClusteredUn
             "clustered_uncertainty: needs at least 2 logs (each log is a cluster); this fit has "
             f"{n_logs}. Cut a long log into segments, or use the FitResult's white-noise intervals"
         )
+    if problem.per_log:
+        raise ValueError(
+            f"clustered_uncertainty: {', '.join(repr(n) for n, _ in problem.per_log)} is fitted per log "
+            "(Parameter.per_log): each log's value is informed by that log (cluster) alone, whose score is zero at "
+            "the optimum, so its cluster-robust variance would be zero. Use the FitResult's white-noise intervals"
+        )
     n_params = len(result.names)
     if n_logs <= n_params:
         # the per-log scores sum to zero at the optimum: their outer products span at most

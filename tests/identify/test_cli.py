@@ -553,3 +553,31 @@ def test_an_interrupted_diagnosis_leaves_its_progress_on_disk(tmp_path, monkeypa
     # the folder is ours: a rerun into it is allowed (no --force)
     monkeypatch.setattr(D, "diagnose", stopped)
     assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(out)]) == 130
+
+
+@pytest.mark.slow  # ~70 s; the same fit and held-out check through the library stay in CI (test_run)
+def test_a_per_log_parameter_through_identify_fit(tmp_path, capsys):
+    """`identify fit` on an experiment with `per_log = true` (tests/per_log_case.py): the
+    per-log values in the table and `result.json`, and the validation log's own value,
+    fitted with EI held, near the mass it was made with."""
+    from per_log_case import MASSES, write_per_log_experiment
+
+    path = write_per_log_experiment(tmp_path / "sweep")
+    out = tmp_path / "out"
+    assert main(["fit", str(path), "--out", str(out), "--stages", "2"]) == 0
+    text = capsys.readouterr().out
+    assert "free: link1.EI, payload.mass (per log)" in text
+    assert re.search(r"^payload\.mass\[m20\] +0\.0200", text, re.M), text
+    assert "m35 [val]: payload.mass = 0.035" in text, text
+    assert "payload.mass at the rig's value, not a log's" in text
+    assert "cluster-robust" not in text  # 3 fit logs: below CLUSTER_MIN_LOGS
+    doc = json.loads((out / "result.json").read_text())
+    params = {p["name"]: p for p in doc["parameters"]}
+    for name in ("m10", "m20", "m50"):
+        entry = params[f"payload.mass[{name}]"]
+        assert entry["unit"] == "kg" and entry["ci95"][0] <= MASSES[name] <= entry["ci95"][1], entry
+    assert doc["fitted_per_log"] == {"payload.mass": {n: f"payload.mass[{n}]" for n in ("m10", "m20", "m50")}}
+    held = doc["validation"]["m35"]["parameters"]["payload.mass"]
+    # (its standard error is ~3e-5 kg: its interval is checked in test_run; here, that the
+    # value written is the held-out fit's, not the guess of 0.03 or a fit log's)
+    assert held["unit"] == "kg" and abs(held["value"] - MASSES["m35"]) < 5e-4, held

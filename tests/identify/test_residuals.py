@@ -171,3 +171,53 @@ def test_an_unbounded_log_scale_parameter_far_out_is_a_bad_point_not_an_error(x_
     r, ok = residuals(p, theta, jnp.zeros(0), jnp.zeros(0), p.sigma, None, 2e-3)
     assert np.all(np.isfinite(np.asarray(r)))
     np.testing.assert_allclose(fit_module.exp_natural(jnp.asarray(3.0)), np.exp(3.0), rtol=1e-15)
+
+
+def test_a_per_log_parameter_reaches_its_own_log_only():
+    """A per-log parameter (`Parameter.per_log`): log l simulates with its own value. The
+    residuals equal those of the same logs with each log's value given as a known one
+    (`LogData.set`, another path into the model), and the block-arrow Jacobian equals
+    `jax.jacfwd` of the residuals, whose per-log columns vanish on the other logs' rows."""
+    import dataclasses
+
+    import flexdyn as fd
+    import identify
+
+    truth = fd.rigs.rigid_pendulum(joint_damping=3e-3)
+    logs = []
+    for l in range(3):
+        t = np.arange(60 + 20 * l) * 5e-3
+        logs.append(
+            identify.simulate_log(
+                truth, t, initial={"theta1": 0.4 + 0.1 * l}, torque=0.01 * np.sin(3 * t)[:, None],
+                channels=("theta1",), noise={"theta1": 1e-3}, rng=np.random.default_rng(l),
+                fit_initial=("theta1",) if l != 1 else (), name=f"drop{l}",
+            )
+        )  # fmt: skip
+    params = [
+        identify.Parameter("joint1.damping", 2e-3, 1e-6, 1.0),
+        identify.Parameter("payload.mass", 0.03, 1e-3, 1.0, per_log=True),
+    ]
+    p = identify.make_problem(truth, params, logs, {"theta1": 1e-3})
+    assert p.names == ("joint1.damping", "payload.mass[drop0]", "payload.mass[drop1]", "payload.mass[drop2]")
+    assert p.per_log == (("payload.mass", (1, 2, 3)),)
+    masses = [0.02, 0.05, 0.11]
+    theta = jnp.asarray([2.5e-3, *masses])
+    x = jnp.asarray(fit_module._x_from_theta(p, np.asarray(theta)))
+    y0 = jnp.asarray([0.41, 0.52])
+    off = jnp.zeros(0)
+
+    known = [dataclasses.replace(log, set={"payload.mass": m}) for log, m in zip(logs, masses)]
+    q = identify.make_problem(truth, params[:1], known, {"theta1": 1e-3})
+    r_known = residuals(q, theta[:1], y0, off, q.sigma, None, 2e-3)[0]
+    r_own, J_ref = _jacfwd(p, x, y0, off, None)
+    # (the per-log masses pass through log and exp: round-off, 1e-11 noise levels)
+    np.testing.assert_allclose(r_own, r_known, rtol=1e-12, atol=1e-11)
+
+    jac = log_jacobian(p, _theta_of(p), x, y0, off, p.sigma, None, 2e-3)
+    J = np.asarray(jac.dense(len(p.y0_free), 0))
+    np.testing.assert_allclose(J, J_ref, rtol=1e-12, atol=1e-12 * np.abs(J_ref).max())
+    rows = np.arange(J.shape[0]) // (p.t.shape[1] * len(p.channels))
+    for l in range(3):
+        assert not np.any(J[rows != l, 1 + l])
+        assert np.any(J[rows == l, 1 + l])

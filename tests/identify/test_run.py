@@ -17,11 +17,12 @@ import textwrap
 import numpy as np
 import pytest
 from diagnose_cases import LOG_NAMES, PENDULUM_NOISE, pendulum, pendulum_logs
+from per_log_case import EI, MASSES, write_per_log_experiment
 
 from identify import measurement as meas
 from identify.experiment import load_experiment
 from identify.fit import fitted_outputs
-from identify.run import evaluate_held_out, fit_experiment
+from identify.run import evaluate_held_out, fit_experiment, problem_from_experiment
 
 DELAY = 0.03  # s
 
@@ -93,3 +94,53 @@ def test_a_known_sensor_delay_in_the_experiment_file_is_applied(tmp_path):
     lo, hi = fit_a.ci_low[fit_a.names.index("hub1.inertia")], fit_a.ci_high[fit_a.names.index("hub1.inertia")]
     truth = float(pendulum().hubs[0].inertia)
     assert lo <= truth <= hi, fit_a.summary()
+
+
+def test_a_per_log_payload_in_the_experiment_file_is_fitted_and_checked_on_the_held_out_log(tmp_path):
+    """`per_log = true` under `[parameters]`: a flexible link's logs at three tip masses
+    nobody weighed, EI shared. The oracle is the values the logs were simulated with (each
+    log from its own chain): every fitted mass and EI lie in their 95 % intervals, and the
+    held-out log (a fourth mass) gets its own mass, within its interval, at the noise
+    level."""
+    import identify
+
+    path = write_per_log_experiment(tmp_path)
+    exp = load_experiment(path)
+    assert "payload.mass = 0.03 in [0.0001, 1.0] kg (log, one value per log)" in exp.summary()
+    # (`identify fit --independent` fits every parameter per log: the flag changes nothing there)
+    assert problem_from_experiment(exp, per_log=False).names == ("link1.EI", "payload.mass")
+    result = fit_experiment(exp, n_stages=2, n_starts=1)
+    print(result.summary())
+    for name, truth in {"link1.EI": EI, **{f"payload.mass[{n}]": MASSES[n] for n in ("m10", "m20", "m50")}}.items():
+        i = result.names.index(name)
+        assert result.ci_low[i] <= truth <= result.ci_high[i], (name, result.summary())
+    assert set(result.shared_value) == {"link1.EI"}
+    assert result.per_log["payload.mass"] == {n: result.value[f"payload.mass[{n}]"] for n in ("m10", "m20", "m50")}
+    assert result.log_chain("m50").payload.mass == result.value["payload.mass[m50]"]
+    assert result.log_chain("m50").links[0].EI == result.chain.links[0].EI == result.value["link1.EI"]
+    assert result.chain.payload.mass == 0.0  # the rig's
+    fitted = {n: f"payload.mass[{n}]" for n in ("m10", "m20", "m50")}
+    assert result.to_dict()["fitted_per_log"] == {"payload.mass": fitted}
+    with pytest.raises(ValueError, match=r"no log named 'm35'"):
+        result.log_chain("m35")
+    with pytest.raises(ValueError, match=r"'payload.mass' is fitted per log .*white-noise intervals"):
+        identify.clustered_uncertainty(result)
+    held = evaluate_held_out(result, exp)
+    print(held.summary())
+    assert held.names == ["payload.mass[m35]"]
+    assert held.ci_low[0] <= MASSES["m35"] <= held.ci_high[0], held.summary()
+    for channel, sigma in ((c, held.sigma[c]) for c in ("theta1", "curvature1")):
+        r = fitted_outputs(held)["m35"]["residual"][channel]
+        assert np.sqrt(np.mean(r**2)) < 1.2 * sigma, channel
+
+
+def test_per_log_in_the_experiment_file_must_be_true_or_false(tmp_path):
+    logs = pendulum_logs(pendulum(), 23)
+    path = write_experiment(tmp_path, logs, "", "")
+    text = path.read_text().replace(
+        '"hub1.inertia" = { guess = 4e-5, lower = 1e-7, upper = 1e-2 }',
+        '"hub1.inertia" = { guess = 4e-5, lower = 1e-7, upper = 1e-2, per_log = "yes" }',
+    )
+    path.write_text(text)
+    with pytest.raises(Exception, match=r"parameters.*hub1.inertia.*per_log.*expected true or false"):
+        load_experiment(path)
