@@ -30,8 +30,12 @@ Rows, per `L`:
   (`_jacobian_natural`'s dense `J`, its SVD: `identify.covariance.dense`), with the dense
   `J`'s size and the largest relative difference of the standard errors.
 
+`--per-log payload.mass`: that parameter is fitted per log (`identify.Parameter.per_log`,
+`L` columns instead of one). Ours carries each log's own column's tangent through its
+solve (`P - 1 + 1 + k_y0` per log), the peer every log's (`P - 1 + L + L k` per log).
+
 Usage: `python benchmarks/bench_fit_many_logs.py [--logs 1,2,4,8,16,32] [--lm-logs 2,16] [--cov-logs 16,64]
-[--repeats 3] [--json out.json]`
+[--per-log NAME] [--repeats 3] [--json out.json]`
 """
 
 from __future__ import annotations
@@ -71,7 +75,7 @@ COLUMNS = [
 STEP = 1e-3
 
 
-def problem(L: int):
+def problem(L: int, per_log: str = ""):
     chain, t, tau, noise = scenario(modes=1, duration=1.2, dt=4e-3)
     logs = [
         identify.simulate_log(
@@ -88,9 +92,12 @@ def problem(L: int):
         )
         for l in range(L)
     ]
-    params = [identify.Parameter(n, v * (1.1 if i % 2 else 1 / 1.1)) for i, (n, v) in enumerate(TRUTH.items())]
+    params = [
+        identify.Parameter(n, v * (1.1 if i % 2 else 1 / 1.1), per_log=n == per_log)
+        for i, (n, v) in enumerate(TRUTH.items())
+    ]
     p = identify.make_problem(chain, params, logs, noise)
-    x = jnp.asarray(F._x_from_theta(p, [q.guess for q in params]))
+    x = jnp.asarray(F._x_from_theta(p, F._guesses(p, params)))
     z = {
         "phys": jnp.asarray(F._z_from_x(p, np.asarray(x))),
         "y0": jnp.asarray([p.y0_known[a, b] for a, b in p.y0_free]),
@@ -159,8 +166,8 @@ def lm(rule, block: bool):
     return solve
 
 
-def covariance_rows(L: int, repeats: int):
-    p, x, z = problem(L)
+def covariance_rows(L: int, repeats: int, per_log: str = ""):
+    p, x, z = problem(L, per_log)
     ncol = len(p.names) + len(p.y0_free) + len(p.offset_free)
 
     def dense():
@@ -198,6 +205,7 @@ def main(argv=None):
     parser.add_argument("--logs", default="1,2,4,8,16,32", help="comma-separated numbers of logs")
     parser.add_argument("--lm-logs", default="2,16", help="numbers of logs for the Levenberg-Marquardt rows")
     parser.add_argument("--cov-logs", default="16,64", help="numbers of logs for the covariance rows")
+    parser.add_argument("--per-log", default="", help="a parameter fitted per log (e.g. payload.mass)")
     parser.add_argument("--repeats", type=int, default=3, help="warm runs per case (median)")
     parser.add_argument("--json", default=None, help="also write the results as JSON to this path")
     args = parser.parse_args(argv)
@@ -209,7 +217,7 @@ def main(argv=None):
         ("dense", lm(_dense_lm, False)),
     )
     for L in [int(s) for s in args.logs.split(",")]:
-        p, x, z = problem(L)
+        p, x, z = problem(L, args.per_log)
         ncol = len(p.names) + len(p.y0_free) + len(p.offset_free)
         block = lambda: jax.block_until_ready(residual(p, x, z))  # noqa: E731
         timed(block)
@@ -267,9 +275,10 @@ def main(argv=None):
                 flush=True,
             )
     for L in [int(s) for s in args.cov_logs.split(",") if s]:
-        rows += covariance_rows(L, args.repeats)
+        rows += covariance_rows(L, args.repeats, args.per_log)
     print()
-    print("bench_fit_many_logs: 4 shared parameters, 3 nuisances per log (1.2 s logs at 4 ms, Tsit5 1 ms)")
+    shared = f"3 shared parameters and {args.per_log} per log" if args.per_log else "4 shared parameters"
+    print(f"bench_fit_many_logs: {shared}, 3 nuisances per log (1.2 s logs at 4 ms, Tsit5 1 ms)")
     publish(args.json, "fit_many_logs", env, rows, COLUMNS)
     return rows
 

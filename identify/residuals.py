@@ -333,8 +333,18 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
     offsets = _offsets(problem, offset_free)
     mask = _used(problem, horizon)
 
-    def one(t, tv, y0_known, onset, values, measured, off, used, idx, u_l, slot_used, l):
-        def f(flat_, u_):
+    # Per-log parameters (`Problem.per_log`): a log's residuals depend on its own entries of
+    # the shared vector only, so each solve carries the common entries' and its own
+    # entries' tangents (not every log's), and the other logs' columns are zero.
+    P = flat.shape[0]
+    own = np.array([index for _, index in problem.per_log], int).T.reshape(L, -1)  # (L, p)
+    if own.size and P != len(problem.names):
+        raise ValueError("log_jacobian: per-log parameters need the shared variables in `problem.names` order")
+    common = np.setdiff1d(np.arange(P), own.ravel())
+
+    def one(t, tv, y0_known, onset, values, measured, off, used, idx, u_l, slot_used, l, own_l):
+        def f(common_, own_, u_):
+            flat_ = flat.at[common].set(common_).at[own_l].set(own_) if own.size else common_
             y0 = y0_known.at[idx].add(jnp.where(slot_used, u_ - y0_known[idx], 0.0))
             theta = theta_of(unravel(flat_))
             out, ok = _simulate_log(problem, theta, t, tv, y0, onset, horizon, step, False, values, l)
@@ -342,7 +352,10 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
             r = jnp.where(used, r, 0.0).reshape(-1)
             return r, (r, ok)
 
-        (J_shared, J_y0), (r, ok) = jax.jacfwd(f, argnums=(0, 1), has_aux=True)(flat, u_l)
+        args = (flat[common], flat[own_l], u_l)
+        (J_common, J_own, J_y0), (r, ok) = jax.jacfwd(f, argnums=(0, 1, 2), has_aux=True)(*args)
+        J_shared = J_common if not own.size else jnp.zeros((r.shape[0], P), dtype).at[:, common].set(J_common)
+        J_shared = J_shared.at[:, own_l].set(J_own) if own.size else J_shared
         return r, J_shared, J_y0, ok
 
     r, J_shared, J_y0, ok = jax.vmap(one)(
@@ -358,6 +371,7 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
         u,
         y0_used,
         jnp.arange(L),
+        jnp.asarray(own),
     )
     # dr[l, k, c] / do_lc = 1 / sigma_c where the residual is used (and the solve succeeded)
     d_off = jnp.where(mask & ok[:, None, None], 1.0 / sigma, 0.0)  # (L, T, C)
