@@ -9,7 +9,7 @@
   fitted per log beside shared ones (`Parameter(..., per_log=True)`: an unknown payload
   per log); `fit_independent`: each log its own values of every parameter, all in one
   batch; `between_logs(results)`: do they agree (weighted mean and a chi-square test per
-  parameter)?
+  parameter)? `between_logs(result)` asks the same of one fit's per-log values.
 - `residual_report`: residual whiteness and input cross-correlation (MATLAB `resid`).
 - `noise_floor`: each channel's noise level estimated from the data alone; every fit
   compares its residuals with it (`FitResult.fit_quality`, `poor_fit`: a wrong basin or a

@@ -572,7 +572,7 @@ def _fit_command(args) -> int:
     from .fit import fitted_outputs, parameter_unit
     from .noise_floor import declared_noise_warnings
     from .run import fit_experiment, residual_report
-    from .uncertainty import clustered_uncertainty
+    from .uncertainty import between_logs, clustered_uncertainty
 
     roles = {spec.name: spec.role for spec in exp.logs}
     n_fit = len(exp.fit_logs)
@@ -664,6 +664,11 @@ def _fit_command(args) -> int:
     if robust_note is not None:
         print()
         print(robust_note)
+    agreement = None
+    if result.problem.per_log and result.converged and n_fit >= 2:
+        agreement = between_logs(result)  # do the per-log values differ beyond their intervals?
+        print()
+        print(agreement.summary())
     if robust is not None:
         print()
         print(robust.summary())
@@ -725,6 +730,7 @@ def _fit_command(args) -> int:
     doc["natural_frequencies_hz"] = freqs
     doc["model_checks"] = model_checks
     doc["clustered_uncertainty"] = None if robust is None else robust.to_dict()
+    doc["per_log_agreement"] = None if agreement is None else agreement.to_dict()
     doc["modal_configuration"] = where
     doc["options"] = {"stages": args.stages}
     doc["command"] = ["identify", "fit", *map(str, _argv_tail(args))]

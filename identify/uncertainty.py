@@ -217,6 +217,8 @@ class BetweenLogs:
     birge: np.ndarray
     spread: np.ndarray
     excluded: dict
+    # what was compared: independent fits, or the per-log values of one joint fit
+    source: str = "independent fits (inverse-variance weighted mean, chi-square)"
 
     @property
     def differs(self) -> np.ndarray:
@@ -224,7 +226,7 @@ class BetweenLogs:
 
     def summary(self) -> str:
         """A table: each parameter's weighted mean, spread, chi-square test and verdict."""
-        lines = [f"between the {len(self.logs)} logs' independent fits (inverse-variance weighted mean, chi-square):"]
+        lines = [f"between the {len(self.logs)} logs' {self.source}:"]
         width = max(len(n) for n in self.names)
         for i, name in enumerate(self.names):
             spread = f"{100 * self.spread[i]:.3g} %" if self.log_scale[i] else f"{self.spread[i]:.4g}"
@@ -265,8 +267,11 @@ class BetweenLogs:
 
 def between_logs(results) -> BetweenLogs:
     """`BetweenLogs` of independent fits (`identify.fit_independent`'s results, one per
-    log, or any `FitResult`s of the same parameters). Raises `ValueError` with fewer than
-    two usable logs."""
+    log, or any `FitResult`s of the same parameters), or of the per-log parameters of one
+    joint fit (a `FitResult` with `Parameter.per_log` ones: `_per_log_agreement`). Raises
+    `ValueError` with fewer than two usable logs."""
+    if isinstance(results, FitResult):
+        return _per_log_agreement(results)
     results = list(results)
     if not results:
         raise ValueError("between_logs: no results")
@@ -316,4 +321,62 @@ def between_logs(results) -> BetweenLogs:
         birge=np.sqrt(chi2 / dof),
         spread=np.std(x, axis=0, ddof=1),
         excluded=excluded,
+    )
+
+
+def _per_log_agreement(result: FitResult) -> BetweenLogs:
+    """Do a joint fit's per-log values of a parameter (`Parameter.per_log`) agree? In the
+    natural coordinate `x` (`log theta` for positive parameters), with `C` the covariance
+    of one parameter's `L` values (they are correlated through the shared parameters):
+    the generalised least-squares common value `mean = 1^T C^-1 x / 1^T C^-1 1`, its
+    standard error `(1^T C^-1 1)^-1/2`, and `chi2 = (x - mean)^T C^-1 (x - mean)` with `L - 1`
+    degrees of freedom under "the same value in every log" (Aitken 1935). With a diagonal
+    `C` (no shared parameter correlated with them) this is `between_logs`' weighted formula
+    for independent fits."""
+    problem = result.problem
+    if not problem.per_log:
+        raise ValueError(
+            "between_logs: this fit has no per-log parameters (Parameter.per_log); pass the results of "
+            "independent fits (identify.fit_independent) to compare logs"
+        )
+    if not result.converged:
+        raise ValueError("between_logs: the fit did not converge; its covariance does not describe an optimum")
+    if len(problem.log_names) < 2:
+        raise ValueError(f"between_logs: the fit has {len(problem.log_names)} log; comparing needs 2")
+    names, columns = [], []
+    for name, index in problem.per_log:
+        idx = np.asarray(index)
+        values = np.asarray(result.values, float)[idx]
+        se = np.asarray(result.std_errors, float)[idx]
+        if not np.all(np.isfinite(se) & (se > 0)):
+            raise ValueError(f"between_logs: a standard error of {name} is not finite (a log does not determine it)")
+        log = bool(problem.log_scale[idx[0]])
+        x = np.log(values) if log else values
+        s = se / values if log else se
+        cov = s[:, None] * np.asarray(result.correlation, float)[np.ix_(idx, idx)] * s[None, :]
+        w = np.linalg.solve(cov, np.ones(len(idx)))  # C^-1 1
+        mean_x = float(w @ x / w.sum())
+        d = x - mean_x
+        chi2 = float(d @ np.linalg.solve(cov, d))
+        names.append(name)
+        columns.append((values, se, log, mean_x, 1.0 / math.sqrt(w.sum()), chi2, float(np.std(x, ddof=1))))
+    values, se, log, mean_x, mean_s, chi2, spread = (np.asarray(c) for c in zip(*columns))
+    values, se = values.T, se.T  # (logs, parameters)
+    dof = np.full(len(names), len(problem.log_names) - 1)
+    mean = np.where(log, np.exp(mean_x), mean_x)
+    return BetweenLogs(
+        names=names,
+        logs=list(problem.log_names),
+        values=values,
+        std_errors=se,
+        log_scale=tuple(bool(v) for v in log),
+        mean=mean,
+        mean_se=np.where(log, mean * mean_s, mean_s),
+        chi2=chi2,
+        dof=dof,
+        p=scipy.stats.chi2.sf(chi2, dof),
+        birge=np.sqrt(chi2 / dof),
+        spread=spread,
+        excluded={},
+        source="per-log values in one joint fit (generalised least-squares mean, chi-square with their covariance)",
     )

@@ -571,12 +571,14 @@ def test_a_per_log_parameter_through_identify_fit(tmp_path, capsys):
     assert "m35 [val]: payload.mass = 0.035" in text, text
     assert "payload.mass at the rig's value, not a log's" in text
     assert "cluster-robust" not in text  # 3 fit logs: below CLUSTER_MIN_LOGS
+    assert "per-log values in one joint fit" in text and "DIFFERS between logs" in text, text
     doc = json.loads((out / "result.json").read_text())
     params = {p["name"]: p for p in doc["parameters"]}
     for name in ("m10", "m20", "m50"):
         entry = params[f"payload.mass[{name}]"]
         assert entry["unit"] == "kg" and entry["ci95"][0] <= MASSES[name] <= entry["ci95"][1], entry
     assert doc["fitted_per_log"] == {"payload.mass": {n: f"payload.mass[{n}]" for n in ("m10", "m20", "m50")}}
+    assert doc["per_log_agreement"]["names"] == ["payload.mass"] and doc["per_log_agreement"]["differs"] == [True]
     held = doc["validation"]["m35"]["parameters"]["payload.mass"]
     # (its standard error is ~3e-5 kg: its interval is checked in test_run; here, that the
     # value written is the held-out fit's, not the guess of 0.03 or a fit log's)

@@ -125,8 +125,12 @@ def test_a_per_log_payload_in_the_experiment_file_is_fitted_and_checked_on_the_h
         result.log_chain("m35")
     with pytest.raises(ValueError, match=r"'payload.mass' is fitted per log .*white-noise intervals"):
         identify.clustered_uncertainty(result)
+    agree = identify.between_logs(result)  # 10, 20, 50 g: they differ (the null: test_uncertainty)
+    assert agree.names == ["payload.mass"] and agree.differs[0] and agree.p[0] < 1e-10, agree.summary()
     held = evaluate_held_out(result, exp)
     print(held.summary())
+    with pytest.raises(ValueError, match=r"the fit has 1 log; comparing needs 2"):
+        identify.between_logs(held)
     assert held.names == ["payload.mass[m35]"]
     assert held.ci_low[0] <= MASSES["m35"] <= held.ci_high[0], held.summary()
     for channel, sigma in ((c, held.sigma[c]) for c in ("theta1", "curvature1")):
