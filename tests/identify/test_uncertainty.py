@@ -262,18 +262,10 @@ def test_per_log_values_of_equal_payloads_are_found_consistent():
     0.004), and the common value's z-scores scatter with a standard deviation near 1.
     Measured (2026-12-05): 4 of 40 at p < 0.05, Kolmogorov-Smirnov p 0.71, z sd 1.08."""
     import scipy.stats
+    from per_log_case import NOISE as noise, link
 
     t = np.arange(0.0, 1.0, 2e-3)
     tau = (np.where((t >= 0.1) & (t < 0.3), 0.2, 0.0) - np.where((t >= 0.3) & (t < 0.5), 0.2, 0.0))[:, None]
-    noise = {"theta1": math.radians(0.05), "curvature1": 2e-3}
-
-    def link(mass):
-        return fd.Chain(
-            [fd.FlexibleLink(0.6, 0.3, 2.3, n_modes=2, damping_ratio=0.01)],
-            [fd.RigidJoint(damping=5e-3)],
-            [fd.Hub(inertia=4e-3)],
-            payload=fd.Payload(mass=mass),
-        )
 
     params = [
         identify.Parameter("link1.EI", 1.8, 0.1, 20.0),
