@@ -666,9 +666,12 @@ def _fit_command(args) -> int:
         print(robust_note)
     agreement = None
     if result.problem.per_log and result.converged and n_fit >= 2:
-        agreement = between_logs(result)  # do the per-log values differ beyond their intervals?
         print()
-        print(agreement.summary())
+        try:  # do the per-log values differ beyond their intervals?
+            agreement = between_logs(result)
+            print(agreement.summary())
+        except ValueError as e:  # (a per-log value some log does not determine)
+            print(f"per-log values not compared: {e}")
     if robust is not None:
         print()
         print(robust.summary())
