@@ -750,6 +750,8 @@ def _fit_command(args) -> int:
         roles=roles,
         title=exp.name,
     )
+    if result.problem.per_log:  # each log's own values, and their common value when compared
+        written += plots.plot_per_log(result, agreement, out)
     t_files = time.perf_counter() - t0
 
     print()

@@ -307,6 +307,29 @@ def plot_by_log(results, between, folder) -> list[Path]:
     return [path]
 
 
+def plot_per_log(result, between, folder) -> list[Path]:
+    """`plot_by_log` of one joint fit's per-log parameters (`Parameter.per_log`): each
+    one's value per log with its 95 % interval, and their common value (`between`:
+    `identify.between_logs(result)`, or None)."""
+    from types import SimpleNamespace
+
+    problem = result.problem
+    views = []
+    for l, log in enumerate(problem.log_names):
+        idx = [index[l] for _, index in problem.per_log]
+        views.append(
+            SimpleNamespace(
+                names=[name for name, _ in problem.per_log],
+                values=np.asarray(result.values)[idx],
+                ci_low=np.asarray(result.ci_low)[idx],
+                ci_high=np.asarray(result.ci_high)[idx],
+                converged=result.converged,
+                problem=SimpleNamespace(log_names=(log,)),
+            )
+        )
+    return plot_by_log(views, between, folder)
+
+
 def write_plots(
     result,
     outputs: dict,

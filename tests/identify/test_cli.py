@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from identify.cli import MARKER, main
-from identify.report import PLOT_FILES
+from identify.report import BY_LOG_PLOT, PLOT_FILES
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "identify" / "examples" / "pendulum_drops"
 TRUTH = {"joint1.damping": 1.9e-3, "hub1.inertia": 2e-5}
@@ -579,6 +579,7 @@ def test_a_per_log_parameter_through_identify_fit(tmp_path, capsys):
         assert entry["unit"] == "kg" and entry["ci95"][0] <= MASSES[name] <= entry["ci95"][1], entry
     assert doc["fitted_per_log"] == {"payload.mass": {n: f"payload.mass[{n}]" for n in ("m10", "m20", "m50")}}
     assert doc["per_log_agreement"]["names"] == ["payload.mass"] and doc["per_log_agreement"]["differs"] == [True]
+    assert (out / BY_LOG_PLOT).stat().st_size > 1000
     held = doc["validation"]["m35"]["parameters"]["payload.mass"]
     # (its standard error is ~3e-5 kg: its interval is checked in test_run; here, that the
     # value written is the held-out fit's, not the guess of 0.03 or a fit log's)
