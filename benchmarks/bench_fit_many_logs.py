@@ -175,7 +175,7 @@ def covariance_rows(L: int, repeats: int, per_log: str = ""):
         return F._dense_covariance(p, r, J), J.nbytes
 
     out = {}
-    for name, fn in (("ours", lambda: (F._covariance_at(p, x, z, p.sigma, STEP), None)), ("dense", dense)):
+    for name, fn in (("ours", lambda: (F._covariance_at(p, x, z, p.sigma, STEP)[0], None)), ("dense", dense)):
         (cov, nbytes), cold = timed(fn)
         out[name] = (cov, nbytes, cold, median_time(fn, repeats))
     a, b = out["ours"][0].std_errors, out["dense"][0].std_errors
