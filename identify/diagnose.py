@@ -99,6 +99,7 @@ from .fit import (
     _predict_jit,
     _residuals_from,
     _x_from_z,
+    _z_from_x,
     aligned_step,
     exp_natural,
     fit,
@@ -362,6 +363,10 @@ class _HeldOut:
     offset: jax.Array
     used: np.ndarray
     cost: float  # their weighted cost at that model
+    xb: jax.Array  # the held-out problem's baseline entries there (natural coordinates)
+    # for each of them, its entry among the fit's baseline entries; -1: a held-out log's own
+    # value of a per-log parameter (`Parameter.per_log`), refitted there like a nuisance
+    source: tuple[int, ...]
 
 
 def detection_limits(
@@ -418,18 +423,30 @@ def detection_limits(
             xe[s] = float(j.neutral[ext_names.index(n)])
         idx, logf, xe = jnp.asarray(idx), jnp.asarray(logf), jnp.asarray(xe)
         J = np.asarray(_jacobian(j, xb, xe, v["y0"], v["offset"], idx, logf, sigma, step)[1])[used]
-        Jh = np.asarray(_jacobian(held.joint, xb, xe, held.y0, held.offset, idx, logf, sigma, step)[1])[held.used]
+        Jh = np.asarray(_jacobian(held.joint, held.xb, xe, held.y0, held.offset, idx, logf, sigma, step)[1])
+        Jh = Jh[held.used]
+        nh = held.joint.nb
+        # held-out columns: the shared ones, paired with the fit's; a held-out log's own
+        # values (`_HeldOut.source` -1) are refitted there, with its nuisances
+        shared_h = [i for i, src in enumerate(held.source) if src >= 0]
+        nuisance_h = [i for i, src in enumerate(held.source) if src < 0] + list(range(nh + SLOTS, Jh.shape[1]))
         k = len(c.params)
         drop = current["cost"] * -math.expm1(-(bic_threshold + k * math.log(N)) / N)
         excess = (min_gain**2 - 1.0) * held.cost
         per = {}
         for s, n in enumerate(c.params, start=n_layout):
             col = nb + s
-            model = [i for i in range(nb + SLOTS) if i != col]  # parameters shared by all logs
+            model = [i for i in range(nb + SLOTS) if i != col]  # the model's parameters
             fit_seen, coef = seen(J[:, col], J[:, model + list(range(nb + SLOTS, J.shape[1]))])
             # held out: the effect less what the model's parameters absorbed of it on the
-            # fit logs, less what the held-out logs' own nuisances absorb
-            ho_seen, _ = seen(Jh[:, col] - Jh[:, model] @ coef[: len(model)], Jh[:, nb + SLOTS :])
+            # fit logs (those the held-out logs share), less what the held-out logs' own
+            # unknowns absorb
+            of_model = dict(zip(model, coef[: len(model)]))
+            cols_h = shared_h + [nh + t for t in range(SLOTS) if t != s]
+            coef_h = np.asarray(
+                [of_model[held.source[i]] for i in shared_h] + [of_model[nb + t] for t in range(SLOTS) if t != s]
+            )
+            ho_seen, _ = seen(Jh[:, nh + s] - Jh[:, cols_h] @ coef_h, Jh[:, nuisance_h])
             a_bic = math.sqrt(drop) / fit_seen if fit_seen > 0 else math.inf
             a_gain = math.sqrt(excess) / ho_seen if ho_seen > 0 else math.inf
             per[n] = (a_bic, "BIC") if a_bic >= a_gain else (a_gain, "held-out gain")
@@ -461,34 +478,87 @@ def _screen(j: _Joint, xb, xes, y0, off, idx, logf, sigma, step):
     return jax.vmap(lambda xe, i, lf: _jacobian(j, xb, xe, y0, off, i, lf, sigma, step))(xes, idx, logf)
 
 
+class _Own(eqx.Module):
+    """The held-out logs' own values of the per-log parameters (`Parameter.per_log`),
+    re-estimated with their nuisances as `identify.evaluate_held_out` does: their entries
+    `pos` of the held-out problem's parameter vector, the bounds of their natural
+    coordinates (`lower`, `upper`; `identify.fit`'s transform) and which are log-scale."""
+
+    pos: jax.Array  # (n_own,) int
+    lower: jax.Array
+    upper: jax.Array
+    log_scale: tuple[bool, ...] = eqx.field(static=True)
+
+    @staticmethod
+    def of(problem: Problem) -> _Own:
+        pos = sorted(i for _, index in problem.per_log for i in index)
+        return _Own(
+            jnp.asarray(pos, dtype=int),
+            jnp.asarray(np.asarray(problem.lower)[pos], dtype=float),
+            jnp.asarray(np.asarray(problem.upper)[pos], dtype=float),
+            tuple(problem.log_scale[i] for i in pos),
+        )
+
+    def theta(self, theta, z):
+        """`theta` with the own entries at the transformed coordinates `z`."""
+        if not self.log_scale:
+            return theta
+        x = _x_from_z(self, z)
+        values = jnp.stack([exp_natural(x[i]) if lg else x[i] for i, lg in enumerate(self.log_scale)])
+        return theta.at[self.pos].set(values)
+
+    def z_of(self, values) -> jax.Array:
+        """The transformed coordinates of own values (SI)."""
+        values = np.asarray(values, float)
+        x = np.where(np.asarray(self.log_scale, bool), np.log(np.maximum(values, 1e-300)), values)
+        return jnp.asarray(_z_from_x(self, x), dtype=float)
+
+
 def _held_unpack(args):
-    problem, theta, sigma, step = args
-    return problem, lambda v: theta, sigma, None, step
+    problem, theta, own, sigma, step = args
+    return problem, lambda v: own.theta(theta, v["own"]), sigma, None, step
 
 
 def _held_residual(v, args):
-    problem, theta, sigma, step = args
-    return _residuals_from(problem, theta, v["y0"], v["offset"], sigma, None, step)[0]
+    problem, theta, own, sigma, step = args
+    return _residuals_from(problem, own.theta(theta, v["own"]), v["y0"], v["offset"], sigma, None, step)[0]
 
 
 _held_residual_lm = log_blocked(_held_unpack)
 
 
 @eqx.filter_jit
-def _held_out_batch(problem: Problem, thetas, v0, sigma, step, max_steps: int):
-    """Weighted held-out residuals for a batch of parameter vectors, each held-out log's
-    own nuisances (initial state entries, offsets) re-estimated."""
+def _held_out_batch(problem: Problem, thetas, v0, own: _Own, sigma, step, max_steps: int):
+    """Weighted held-out residuals for a batch of parameter vectors (the held-out
+    problem's), each held-out log's own unknowns re-estimated: its nuisances (`v0["y0"]`
+    initial state entries, `v0["offset"]` offsets) and its own values of the per-log
+    parameters (`v0["own"]`, at `own`'s entries). Returns the residuals, the re-estimated
+    unknowns and the parameter vectors with the own values in."""
     solver = optx.LevenbergMarquardt(rtol=1e-4, atol=1e-10, norm=optx.rms_norm)
 
     def one(theta):
-        args = (problem, theta, sigma, step)
-        if v0["y0"].size + v0["offset"].size:
+        args = (problem, theta, own, sigma, step)
+        if v0["y0"].size + v0["offset"].size + v0["own"].size:
             v = optx.least_squares(_held_residual_lm, solver, v0, args=args, max_steps=max_steps, throw=False).value
         else:
             v = v0
-        return _held_residual(v, args), v
+        return _held_residual(v, args), v, own.theta(theta, v["own"])
 
     return jax.vmap(one)(thetas)
+
+
+def _held_out_start(problem: Problem, own: _Own, base) -> dict:
+    """The held-out unknowns' start: the logs' own initial-state values, zero offsets and,
+    for each own value of a per-log parameter, the median of the fit logs' values
+    (`base`: the baseline `FitResult`)."""
+    names = [name for name, index in problem.per_log for _ in index]
+    order = np.argsort([i for _, index in problem.per_log for i in index]).astype(int)
+    medians = [float(np.median(list(base.per_log[n].values()))) for n in names]
+    return {
+        "y0": jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float),
+        "offset": jnp.zeros(len(problem.offset_free)),
+        "own": own.z_of(np.asarray(medians, float)[order]) if names else jnp.zeros(0),
+    }
 
 
 # ---------------------------------------------------------------------------
@@ -609,6 +679,13 @@ class Diagnosis:
     detection_limits: dict = dataclasses.field(default_factory=dict)
     # the held-out gain a cause had to reach (`diagnose_logs`' `min_gain`)
     min_gain: float = 1.1
+    # the per-log parameters (`Parameter.per_log`) of the extended model: name -> {log:
+    # value (SI)}, the fit logs' fitted with it (also in `extended_parameters` as
+    # `name[log]`, with intervals), the held-out logs' refitted there like their initial
+    # states (what the held-out scores were computed at)
+    per_log: dict = dataclasses.field(default_factory=dict)
+    # which logs of `per_log` are held out
+    held_out_logs: tuple = ()
 
     def marginal_text(self, c) -> str:
         """What a cause's marginal held-out gain (`Cause.marginal`) means."""
@@ -730,6 +807,14 @@ class Diagnosis:
                 f"{ratio:.3g} times the noise floor: an effect is left unexplained (or the noise is not white, "
                 "or the logged input is noisy: noise on a torque column drives the model, not the rig)"
             )
+        for name, by_log in self.per_log.items():
+            unit = _unit(self.baseline.problem, name)
+            unit = f" {unit}" if unit and unit != "1" else ""
+            fitted = ", ".join(f"{log} {v:.5g}" for log, v in by_log.items() if log not in self.held_out_logs)
+            held = ", ".join(f"{log} {v:.5g}" for log, v in by_log.items() if log in self.held_out_logs)
+            lines.append(
+                f"per log: {name}{unit}: {fitted} (fitted)" + (f"; {held} (held out, refitted there)" if held else "")
+            )
         lines.append(
             f"total dBIC {self.delta_bic_total:.1f}; fraction of the held-out residual explained "
             f"{self.fraction_explained:.3f} (of its excess over the noise: {self.excess_explained_text})"
@@ -778,6 +863,8 @@ class Diagnosis:
             "notes": self.notes,
             "not_tried": self.not_tried,
             "detection_limits": self.detection_limits,
+            "per_log": self.per_log,
+            "held_out_logs": list(self.held_out_logs),
             "modal_frequencies_hz": self.modal_frequencies_hz,
             "wall_time_s": self.wall_time,
         }
@@ -907,12 +994,6 @@ def diagnose_logs(
         raise ValueError("diagnose: no held-out data (give validation logs, or at least one log to split)")
     noise = dict(noise or {})
     parameters = list(parameters)
-    per_log = [p.name for p in parameters if getattr(p, "per_log", False)]
-    if per_log:  # (the candidates' joint fit and the held-out scoring share one parameter vector)
-        raise ValueError(
-            f"diagnose: {', '.join(map(repr, per_log))} is fitted per log (per_log), which diagnose does not "
-            "support yet; diagnose logs that share its value (or give each log's value with `set`)"
-        )
     say("baseline fit ...")
     measurement = meas.Measurement() if measurement is None else measurement
     base_problem = make_problem(
@@ -1032,16 +1113,24 @@ def diagnose_logs(
             if meas.is_measurement_parameter(n)
             else float(fd.get_parameter(sup_chain, n))
         )
-    joint = _Joint(sup_problem, jnp.asarray(neutral, dtype=float), len(parameters))
+    # the baseline's entries: its shared parameters and each fit log's own value of a
+    # per-log one (`Parameter.per_log`), in `base_problem.names` order, then the extensions
+    nb = len(base_problem.names)
+    joint = _Joint(sup_problem, jnp.asarray(neutral, dtype=float), nb)
     ho_problem = make_problem(
         sup_chain, parameters + ext_params, held_out_logs, dict(zip(channels, sigma)), measurement=sup_meas
     )
     if ho_problem.channels != channels:
         raise ValueError(f"diagnose: held-out logs record channels {ho_problem.channels}, the fit logs {channels}")
-    ho_v0 = {
-        "y0": jnp.asarray([ho_problem.y0_known[l, s] for l, s in ho_problem.y0_free], dtype=float),
-        "offset": jnp.zeros(len(ho_problem.offset_free)),
-    }
+    # The held-out problem's parameter vector: the shared entries from the fit's (`ho_src`)
+    # and each held-out log's own values of the per-log parameters, re-estimated there
+    # (`_Own`) from the fit logs' median, like its initial state and offsets.
+    ho_own = _Own.of(ho_problem)
+    own_set = set(np.asarray(ho_own.pos).tolist())
+    ho_src = np.asarray(
+        [0 if i in own_set else sup_problem.names.index(n) for i, n in enumerate(ho_problem.names)], dtype=int
+    )
+    ho_v0 = _held_out_start(ho_problem, ho_own, base)
     used = _used(sup_problem)
     N = int(used.sum())
     ho_used = _used(ho_problem)
@@ -1074,10 +1163,14 @@ def diagnose_logs(
     ho_batch = (n_fit or len(cands)) + 1
 
     def held_out(thetas, *, nuisances=False):
+        """Weighted held-out residuals (used entries) at a batch of the fit's parameter
+        vectors; `nuisances=True`: also the held-out unknowns re-estimated there, and the
+        held-out problem's parameter vectors (`"theta"`)."""
         n = thetas.shape[0]
-        r, w = _held_out_batch(ho_problem, _pad(thetas, ho_batch), ho_v0, sigma_j, step, max_steps)
+        thetas_ho = jnp.asarray(thetas)[:, ho_src]
+        r, w, th = _held_out_batch(ho_problem, _pad(thetas_ho, ho_batch), ho_v0, ho_own, sigma_j, step, max_steps)
         r = np.asarray(r)[:n][:, ho_used]
-        return (r, {k: v[:n] for k, v in w.items()}) if nuisances else r
+        return (r, {**{k: v[:n] for k, v in w.items()}, "theta": th[:n]}) if nuisances else r
 
     # baseline in the joint model (all extensions neutral): its cost equals the baseline fit's
     idx0, logf0, _ = layout([])
@@ -1240,7 +1333,7 @@ def diagnose_logs(
                 k = len(c.params)
                 cost_c = float(costs[b])
                 dbic = N * math.log(max(cost_c, 1e-300) / current["cost"]) + k * math.log(N)
-                p_total = len(parameters) + current["k"] + k + len(sup_problem.y0_free) + len(sup_problem.offset_free)
+                p_total = nb + current["k"] + k + len(sup_problem.y0_free) + len(sup_problem.offset_free)
                 dof = max(N - p_total, 1)
                 F = ((current["cost"] - cost_c) / k) / (cost_c / dof) if cost_c > 0 else np.inf
                 p_value = float(stats.f.sf(F, k, dof)) if np.isfinite(F) else 0.0
@@ -1252,7 +1345,7 @@ def diagnose_logs(
                     say(f"  round {rnd + 1}: {stuck}")
                     notes.append({"round": rnd + 1, "text": stuck})
                 theta_b = np.asarray(thetas[bs.index(b)])
-                values = {n: float(theta_b[len(parameters) + ext_names.index(n)]) for n in c.params}
+                values = {n: float(theta_b[nb + ext_names.index(n)]) for n in c.params}
                 scores.append(
                     Score(
                         c.name,
@@ -1533,7 +1626,6 @@ def diagnose_logs(
     # the extended model: parameters, intervals, gain
     causes = []
     ext_values = {}
-    nb = len(parameters)
     # every parameter of the extended model (baseline and extensions) with its 95 % interval
     ext_intervals = {
         n: {
@@ -1554,7 +1646,7 @@ def diagnose_logs(
         # (an undetermined parameter gets an infinite error, as in the fit: `identify.covariance`)
         se_nat = covariance.dense((), (), r, J).std_errors
         natural = [
-            (p.name, float(xb[i]), float(se_nat[i]), base_problem.log_scale[i]) for i, p in enumerate(parameters)
+            (n, float(xb[i]), float(se_nat[i]), base_problem.log_scale[i]) for i, n in enumerate(base_problem.names)
         ]
         natural += [(n, float(v["xe"][s]), float(se_nat[nb + s]), lg) for s, (n, _, lg) in enumerate(current["layout"])]
         for n, x, se, lg in natural:
@@ -1607,12 +1699,24 @@ def diagnose_logs(
     extended_params = dict(base.value)
     if current["layout"]:
         theta_ext = np.asarray(theta_of(current["v"], current["idx"], current["logf"]))
-        extended_params = {n: float(theta_ext[i]) for i, n in enumerate([p.name for p in parameters])}
+        extended_params = {n: float(theta_ext[i]) for i, n in enumerate(base_problem.names)}
         extended_params.update({n: d["value"] for n, d in ext_values.items()})
-    chain_vals, meas_vals = meas.split_values(extended_params)
+    # (a per-log parameter keeps the rig's value in the extended chain, as `FitResult.chain`:
+    # each log's own is among `extended_parameters`, `name[log]`)
+    own_names = set(base_problem.names) - set(base_problem.shared_names)
+    chain_vals, meas_vals = meas.split_values({n: v for n, v in extended_params.items() if n not in own_names})
     ext_chain = fd.with_parameters(sup_chain, chain_vals)
     ext_meas = meas.with_parameters(sup_meas, meas_vals)
     traces = _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, held_out)
+    per_log = {}
+    if base_problem.per_log:
+        final_theta = theta_of(current["v"], current.get("idx", idx0), current.get("logf", logf0))
+        _, w = held_out(final_theta[None], nuisances=True)
+        theta_ho = np.asarray(w["theta"][0])
+        for name, index in base_problem.per_log:
+            per_log[name] = {log: extended_params[f"{name}[{log}]"] for log in base_problem.log_names}
+            (index_ho,) = [ix for n, ix in ho_problem.per_log if n == name]
+            per_log[name].update({log: float(theta_ho[i]) for log, i in zip(ho_problem.log_names, index_ho)})
     # evidence: what the baseline gets wrong, on the fit and the held-out logs
     outs = {
         name: {
@@ -1637,12 +1741,16 @@ def diagnose_logs(
         say("detection limits of the candidates not named ...")
         final = {**current, "idx": current.get("idx", idx0), "logf": current.get("logf", logf0)}
         _, w = held_out(theta_of(final["v"], final["idx"], final["logf"])[None], nuisances=True)
+        nb_ho = len(ho_problem.names) - len(ext_names)
+        theta_ho = np.asarray(w["theta"][0])[:nb_ho]
         held = _HeldOut(
-            _Joint(ho_problem, joint.neutral, joint.nb),
+            _Joint(ho_problem, joint.neutral, nb_ho),
             w["y0"][0],
             w["offset"][0],
             ho_used,
             float(current["ho"] @ current["ho"]),
+            jnp.asarray(np.where(np.asarray(ho_problem.log_scale[:nb_ho]), np.log(np.abs(theta_ho)), theta_ho)),
+            tuple(-1 if i in own_set else int(ho_src[i]) for i in range(nb_ho)),
         )
         limits = detection_limits(
             joint,
@@ -1691,6 +1799,8 @@ def diagnose_logs(
         notes=notes,
         not_tried=not_tried,
         detection_limits=limits,
+        per_log=per_log,
+        held_out_logs=tuple(ho_problem.log_names),
     )
     if stack_on is not None:
         # A structural change was accepted: the search goes on from its model, a new
@@ -2139,6 +2249,7 @@ def _stacked(outer: Diagnosis, inner: Diagnosis) -> Diagnosis:
         extended_measurement=inner.extended_measurement,
         extended_parameters=inner.extended_parameters,
         extended_intervals=inner.extended_intervals,
+        per_log=inner.per_log,
         outputs=outputs,
         costs=costs,
         detection_limits=inner.detection_limits,
@@ -2175,6 +2286,7 @@ def _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, hel
             else:
                 _, w = held_out(theta[None], nuisances=True)
                 y0s, off = _initial_states(problem, w["y0"][0]), _offsets(problem, w["offset"][0])
+                theta = w["theta"][0]  # (the held-out problem's: its logs' own per-log values in)
             pred, _ = _predict(problem, theta, y0s, None, step)
             pred = np.asarray(pred + off[:, None, :])
             valid, present = np.asarray(problem.valid), np.asarray(problem.present)
@@ -2311,7 +2423,7 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
         struct_chain = fd.with_parameters(struct_chain, chain_vals)
         m = meas.with_parameters(sup_meas, meas_vals)
     params = [
-        dataclasses.replace(p, guess=float(np.clip(base.value[p.name], p.lower or -np.inf, p.upper or np.inf)))
+        dataclasses.replace(p, guess=float(np.clip(_value_of(base, p.name), p.lower or -np.inf, p.upper or np.inf)))
         for p in parameters
     ]
     params += [Parameter(n, g) for n, g in new.items()]
@@ -2341,21 +2453,26 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
             max_steps=60,
             grid_error=None,  # as the baseline's (`diagnose_logs`)
         )
-        fitted = fd.with_parameters(struct_chain, {n: v for n, v in res.value.items()})
+        fitted = fd.with_parameters(struct_chain, res.shared_value)
+        # the held-out logs' own values of the per-log parameters are their only free ones
+        own = [
+            dataclasses.replace(p, guess=_value_of(res, p.name), per_log=True)
+            for p in params
+            if getattr(p, "per_log", False)
+        ]
         ho_problem = make_problem(
             fitted,
-            [],
+            own,
             _with_extra_state(held_out_logs, struct_chain),
             noise,
             measurement=m,
             rtol=rtol,
             atol=1e-2 * rtol,
         )
-        v0 = {
-            "y0": jnp.asarray([ho_problem.y0_known[l, s] for l, s in ho_problem.y0_free], dtype=float),
-            "offset": jnp.zeros(len(ho_problem.offset_free)),
-        }
-        r_ho, _ = _held_out_batch(ho_problem, jnp.zeros((1, 0)), v0, jnp.asarray(sigma), res.step, 25)
+        ho_own = _Own.of(ho_problem)
+        v0 = _held_out_start(ho_problem, ho_own, res)
+        thetas = jnp.zeros((1, len(ho_problem.names)))  # (every entry is an own value)
+        r_ho, _, _ = _held_out_batch(ho_problem, thetas, v0, ho_own, jnp.asarray(sigma), res.step, 25)
     except (RuntimeError, ValueError) as e:
         reason = error_reason(e)
         say(f"  structural candidate {c.label} failed: {reason}")
@@ -2364,7 +2481,7 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
     k = len(new)
     k_eff = max(k, 1)
     dbic = N * math.log(max(res.cost, 1e-300) / current["cost"]) + k * math.log(N)
-    dof = max(N - len(params) - len(problem.y0_free) - len(problem.offset_free), 1)
+    dof = max(N - len(problem.names) - len(problem.y0_free) - len(problem.offset_free), 1)
     F = ((current["cost"] - res.cost) / k_eff) / (res.cost / dof)
     p_value = float(stats.f.sf(F, k_eff, dof))
     used = _used(ho_problem)
@@ -2393,7 +2510,7 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
         intervals=intervals,
         held_out_gain_se=gain_standard_error(np.asarray(current["ho"]), r_ho[used]),
     )
-    fitted_params = [dataclasses.replace(p, guess=float(res.value[p.name])) for p in params]
+    fitted_params = [dataclasses.replace(p, guess=_value_of(res, p.name)) for p in params]
     model = {
         "chain": fitted,
         "measurement": m,
@@ -2404,6 +2521,14 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
         "held_out_residual": r_ho[used],
     }
     return score, model
+
+
+def _value_of(result: FitResult, name: str) -> float:
+    """A free parameter's fitted value; for a per-log one (`Parameter.per_log`), the median
+    of the logs' values (a start for a refit)."""
+    if name in result.per_log:
+        return float(np.median(list(result.per_log[name].values())))
+    return float(result.value[name])
 
 
 def _with_extra_state(logs, chain):
@@ -2441,11 +2566,13 @@ def diagnose(experiment, *, progress=None, **options) -> Diagnosis:
     n = experiment.chain.n_links
     fit_logs = [log_data(s, n) for s in experiment.fit_logs]
     val_logs = [log_data(s, n) for s in experiment.validation_logs]
+    time_split = not val_logs and len(fit_logs) == 1
     fit_logs, held, desc = split_logs(fit_logs, val_logs)
     noise = {c: v for c, v in experiment.noise.items() if v is not None}
     return diagnose_logs(
         experiment.chain,
-        parameters(experiment),
+        # (a time split holds out a segment of the one log: a per-log parameter is its value)
+        parameters(experiment, per_log=not time_split),
         fit_logs,
         held,
         noise,

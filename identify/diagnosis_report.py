@@ -234,6 +234,21 @@ def markdown(diag, title: str = "") -> str:
         for line in diag.at_bound_lines():
             lines.append(f"**On a bound**: `{line.split(' = ', 1)[0]}` = {line.split(' = ', 1)[1]}")
             lines.append("")
+    if diag.per_log:
+        lines.append("## Per-log parameters")
+        lines.append("")
+        lines.append(
+            "Each log's own value (`Parameter.per_log`) in the extended model: fitted on the fit logs, "
+            "refitted on each held-out log with its initial state (the held-out scores were computed there)."
+        )
+        lines.append("")
+        lines.append("| parameter | log | role | value |")
+        lines.append("| --- | --- | --- | ---: |")
+        for name, by_log in diag.per_log.items():
+            for log, value in by_log.items():
+                role = "held out" if log in diag.held_out_logs else "fit"
+                lines.append(f"| `{name}` | {log} | {role} | {value:.5g} |")
+        lines.append("")
     if diag.model_checks:
         lines.append("## Model checks (baseline)")
         lines.append("")

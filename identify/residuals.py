@@ -335,11 +335,16 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
 
     # Per-log parameters (`Problem.per_log`): a log's residuals depend on its own entries of
     # the shared vector only, so each solve carries the common entries' and its own
-    # entries' tangents (not every log's), and the other logs' columns are zero.
+    # entries' tangents (not every log's), and the other logs' columns are zero. That holds
+    # where the shared variables are one vector entry for entry with `problem.names` (`fit`'s
+    # natural or transformed coordinates; `theta_of` maps entry i to parameter i); any other
+    # pytree (diagnose's joint model: the baseline's entries and the candidates' slots)
+    # carries all `P` tangents.
     P = flat.shape[0]
     own = np.array([index for _, index in problem.per_log], int).T.reshape(L, -1)  # (L, p)
-    if own.size and P != len(problem.names):
-        raise ValueError("log_jacobian: per-log parameters need the shared variables in `problem.names` order")
+    leaves = jax.tree_util.tree_leaves(shared)
+    if not (len(leaves) == 1 and jnp.shape(leaves[0]) == (len(problem.names),)):
+        own = np.zeros((L, 0), int)
     common = np.setdiff1d(np.arange(P), own.ravel())
 
     def one(t, tv, y0_known, onset, values, measured, off, used, idx, u_l, slot_used, l, own_l):
