@@ -21,7 +21,8 @@ the model, and measure the gain on held-out data.
    residuals, noise levels fixed at the baseline's): the Bayesian information criterion
    change `dBIC = N ln(RSS_c / RSS_0) + k ln N`, and the F-test p-value of the
    nested-model comparison; on the held-out data (parameters fixed, only each held-out
-   log's own initial state/offsets re-estimated): the RMS gain `RMS_0 / RMS_c`.
+   log's own initial state/offsets re-estimated, and its own values of per-log
+   parameters, `Parameter.per_log`): the RMS gain `RMS_0 / RMS_c`.
    A candidate is **accepted** when `dBIC < -bic_threshold` (default 10: "very strong"
    evidence on Kass and Raftery's scale) **and** its held-out gain is at least
    `min_gain` (default 1.1); the accepted candidate with the lowest dBIC wins. If none
@@ -388,7 +389,8 @@ def detection_limits(
     N) / N))) / |P j|`, C the model's cost, k the candidate's parameters. A model without
     the effect fitted to such logs moves its own parameters to absorb part of it (`-a c`,
     `c` the coefficients of that projection), and on the held-out logs, where only their
-    own initial states and offsets are refitted, it misses `a h`, `h = P_h (j_h - J_h c)`;
+    own initial states and offsets (and own values of per-log parameters) are refitted, it
+    misses `a h`, `h = P_h (j_h - J_h c)` (`J_h`, `c`: the parameters they share);
     the held-out gain `sqrt((C_h + a^2 |h|^2) / C_h) >= min_gain` asks `|a| >=
     sqrt((min_gain^2 - 1) C_h) / |h|`, C_h the model's held-out cost. The limit is the
     larger. Noise moves the realised drop and gain about these values: an effect at its
