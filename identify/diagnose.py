@@ -2454,6 +2454,8 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
             restart_poor_fit=False,
             max_steps=60,
             grid_error=None,  # as the baseline's (`diagnose_logs`)
+            # (a per-log parameter's guess is one value for all logs: start them at their own too)
+            extra_starts=_own_starts(base),
         )
         fitted = fd.with_parameters(struct_chain, res.shared_value)
         # the held-out logs' own values of the per-log parameters are their only free ones
@@ -2531,6 +2533,18 @@ def _value_of(result: FitResult, name: str) -> float:
     if name in result.per_log:
         return float(np.median(list(result.per_log[name].values())))
     return float(result.value[name])
+
+
+def _own_starts(result: FitResult) -> tuple:
+    """`fit`'s `extra_starts` that start each log's own value of a per-log parameter at its
+    value in `result` (none without per-log parameters): a `Parameter`'s guess is one value
+    for all logs, their median in a refit (`_value_of`), which may be far from a log's own.
+    A structural candidate's multi-start gets this warm start beside its design (one start
+    more). (The search from a structural winner refits its baseline from one start, the
+    median, warm in the other parameters: on the arm with payloads 30 and 50 g it reached
+    the noise floor from there.)"""
+    own = {f"{name}[{log}]": v for name, by_log in result.per_log.items() for log, v in by_log.items()}
+    return (own,) if own else ()
 
 
 def _with_extra_state(logs, chain):
