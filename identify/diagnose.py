@@ -811,7 +811,7 @@ class Diagnosis:
             )
         for name, by_log in self.per_log.items():
             unit = _unit(self.baseline.problem, name)
-            unit = f" {unit}" if unit and unit != "1" else ""
+            unit = f" ({unit})" if unit and unit != "1" else ""
             fitted = ", ".join(f"{log} {v:.5g}" for log, v in by_log.items() if log not in self.held_out_logs)
             held = ", ".join(f"{log} {v:.5g}" for log, v in by_log.items() if log in self.held_out_logs)
             lines.append(

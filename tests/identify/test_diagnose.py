@@ -274,7 +274,7 @@ def test_each_log_is_diagnosed_at_its_own_fitted_payload():
     assert abs(diag.per_log["payload.mass"][held[0].name] / masses[2] - 1.0) < 1e-3, diag.per_log
     ratio = diag.held_out["extended"]["theta1"] / diag.held_out["noise_floor"]["theta1"]
     assert 0.8 < ratio < 1.2, (ratio, diag.summary())
-    assert "per log: payload.mass kg:" in diag.summary() and "(held out, refitted there)" in diag.summary()
+    assert "per log: payload.mass (kg): " in diag.summary() and "(held out, refitted there)" in diag.summary()
     assert "## Per-log parameters" in diagnosis_report.markdown(diag)
     assert json.loads(json.dumps(diag.to_dict()["per_log"])) == diag.per_log
     # (the rig's payload stays in the extended chain, as in `FitResult.chain`)
