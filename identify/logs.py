@@ -749,9 +749,35 @@ def _load_mat_variables(path: Path) -> dict:
                 "save('file.mat', ..., '-v7'), or install h5py"
             ) from None
         with h5py.File(path, "r") as f:  # MATLAB stores arrays transposed; vectors don't mind
-            return {k: np.asarray(f[k]).T for k in f.keys() if isinstance(f[k], h5py.Dataset)}
+            out = {}
+
+            def visit(name, obj):  # a struct is a group, its fields datasets (or groups) in it
+                if isinstance(obj, h5py.Dataset) and not name.startswith("#"):
+                    out[name.replace("/", ".")] = np.asarray(obj).T
+
+            f.visititems(visit)
+            return out
     except Exception as e:  # scipy raises several types for a file that is not a .mat
         raise LogError(f"{path}: not a readable MATLAB .mat file ({type(e).__name__}: {e})") from None
+
+
+def _with_fields(variables: dict) -> dict:
+    """`variables` and, for each scalar (1 x 1) struct, its fields as `struct.field`
+    (nested structs: `a.b.c`), read as variables are. A struct array (several elements)
+    keeps only its own entry: which element a field is from would be a guess."""
+    out = dict(variables)
+    for name, value in variables.items():
+        kind, fields = _mat_kind(value)
+        if kind == "a struct" and value.size == 1:
+            element = value.reshape(-1)[0]
+            out.update(_with_fields({f"{name}.{field}": element[field] for field in fields}))
+    return out
+
+
+def _leaves(variables: dict) -> list[str]:
+    """The names of `_with_fields(variables)` that are not structs themselves (scalar
+    structs are read through their fields); sorted."""
+    return sorted(k for k, v in variables.items() if not (_mat_kind(v)[0] == "a struct" and getattr(v, "size", 0) == 1))
 
 
 def _mat_kind(value) -> tuple[str, list[str]]:
@@ -776,21 +802,24 @@ def _mat_kind(value) -> tuple[str, list[str]]:
 
 def _read_mat(path: Path, wanted, cals, strict, context):
     data = _load_mat_variables(path)
-    variables = {k: v for k, v in data.items() if not k.startswith("__")}
+    variables = _with_fields({k: v for k, v in data.items() if not k.startswith("__")})
+    leaves = _leaves(variables)
     used = {}
     for w in wanted:
         if w.source not in variables:
-            structs = {k: _mat_kind(v)[1] for k, v in variables.items() if _mat_kind(v)[0] == "a struct"}
-            holder = next((k for k, fields in structs.items() if w.source in fields), None)
-            hint = (
-                f"; it is a field of the struct {holder!r}, and structs are not read: save its fields as "
-                f"variables in MATLAB, save('{path.name}', '-struct', '{holder}')"
-                if holder is not None
-                else ""
-            )
+            holder = next((k for k in leaves if k.rsplit(".", 1)[-1] == w.source and "." in k), None)
+            head = next((k for k in variables if w.source.startswith(k + ".")), None)
+            if holder is not None:  # (the struct's name left out)
+                hint = f"; it is the field {holder!r} of a struct: map it as '{holder} [unit]'"
+            elif head is not None and _mat_kind(variables[head])[0] == "a struct":
+                hint = (
+                    f"; {head!r} is a struct array of {variables[head].size} elements, whose fields are not read "
+                    "(which element?): save the element you mean as a struct of its own, or its fields as variables"
+                )
+            else:
+                hint = ""
             raise LogError(
-                f"{path}: no variable {w.source!r} (mapped by {context}.{w.channel}); the file has "
-                f"{sorted(variables)}{hint}",
+                f"{path}: no variable {w.source!r} (mapped by {context}.{w.channel}); the file has {leaves}{hint}",
                 channel=w.channel,
             )
         where = f"{path}: variable {w.source!r}"
@@ -799,6 +828,8 @@ def _read_mat(path: Path, wanted, cals, strict, context):
         kind, fields = _mat_kind(value)
         if kind != "numeric":
             extra = f" with fields {fields}" if fields else ""
+            if fields and value.size == 1:
+                extra += f": map one of them, e.g. '{w.source}.{fields[0]} [unit]'"
             raise LogError(f"{where}: expected a real numeric vector, got {kind}{extra}")
         if sum(d > 1 for d in value.shape) > 1:
             raise LogError(f"{where}: shape {value.shape}; expected a vector (one channel per variable)")
@@ -807,7 +838,7 @@ def _read_mat(path: Path, wanted, cals, strict, context):
                 f"{where} (time): holds {value.size} value(s); expected a vector of sample times, one per sample"
             )
         used[w] = (value.astype(np.float64).ravel(), unit, cal)
-    ignored = sorted(set(variables) - {w.source for w in wanted})
+    ignored = sorted(set(leaves) - {w.source for w in wanted})
     if strict and ignored:
         raise LogError(f"{path}: variable(s) {ignored} are not mapped to any channel (strict = true)")
     time_w = next(w for w in wanted if w.channel == "time")
