@@ -1427,8 +1427,9 @@ def test_coverage_of_per_log_payloads():
 
 def test_a_per_log_parameter_is_checked():
     """A per-log parameter cannot also be known in a log, is refused by `fit_independent`
-    (every parameter is per log there) and `diagnose_logs`, and must be passed to `fit`
-    as it was made; an extra start may name it plainly (every log's value) or per log."""
+    (every parameter is per log there), and must be passed to `fit` as it was made; an
+    extra start may name it plainly (every log's value) or per log. (`diagnose_logs` takes
+    it: tests/identify/test_diagnose.py.)"""
     t = np.arange(0.0, 0.2, 1e-2)
     log = identify.simulate_log(_sweep_chain(), t, torque=np.full((len(t), 1), 0.1), channels=("theta1",), name="a")
     logs = [log, dataclasses.replace(log, name="b")]
@@ -1441,8 +1442,6 @@ def test_a_per_log_parameter_is_checked():
     mismatch = r"parameters \['payload.mass'\] are not the problem's \['payload.mass \(per log\)'\]"
     with pytest.raises(ValueError, match=mismatch):
         identify.fit(problem, [dataclasses.replace(own, per_log=False)])
-    with pytest.raises(ValueError, match=r"diagnose: 'payload.mass' is fitted per log"):
-        identify.diagnose_logs(_sweep_chain(), [own], logs, logs)
     starts = fit_module._extra_starts(problem, [own], [{"payload.mass": 0.04}, {"payload.mass[b]": 0.03}])
     np.testing.assert_allclose(np.exp(starts[0]), [0.04, 0.04])
     np.testing.assert_allclose(np.exp(starts[1]), [0.02, 0.03])
