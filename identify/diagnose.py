@@ -1710,11 +1710,15 @@ def diagnose_logs(
     ext_chain = fd.with_parameters(sup_chain, chain_vals)
     ext_meas = meas.with_parameters(sup_meas, meas_vals)
     traces = _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, held_out)
+    # the held-out logs' unknowns at the final model (each log's own per-log values, the
+    # detection limits' linearisation point): one held-out fit for both
+    final = {**current, "idx": current.get("idx", idx0), "logf": current.get("logf", logf0)}
+    w_final = None
+    if base_problem.per_log or stack_on is None:
+        _, w_final = held_out(theta_of(final["v"], final["idx"], final["logf"])[None], nuisances=True)
     per_log = {}
     if base_problem.per_log:
-        final_theta = theta_of(current["v"], current.get("idx", idx0), current.get("logf", logf0))
-        _, w = held_out(final_theta[None], nuisances=True)
-        theta_ho = np.asarray(w["theta"][0])
+        theta_ho = np.asarray(w_final["theta"][0])
         for name, index in base_problem.per_log:
             per_log[name] = {log: extended_params[f"{name}[{log}]"] for log in base_problem.log_names}
             (index_ho,) = [ix for n, ix in ho_problem.per_log if n == name]
@@ -1741,8 +1745,7 @@ def diagnose_logs(
     if stack_on is None:  # (else the search from the structural model reports them)
         done = {a.label for a, _ in accepted}
         say("detection limits of the candidates not named ...")
-        final = {**current, "idx": current.get("idx", idx0), "logf": current.get("logf", logf0)}
-        _, w = held_out(theta_of(final["v"], final["idx"], final["logf"])[None], nuisances=True)
+        w = w_final
         nb_ho = len(ho_problem.names) - len(ext_names)
         theta_ho = np.asarray(w["theta"][0])[:nb_ho]
         held = _HeldOut(
