@@ -56,9 +56,11 @@ from bench_fit_convergence import TRUTH, scenario  # noqa: E402
 
 import flexdyn as fd  # noqa: E402, F401  (enables float64)
 import identify  # noqa: E402
-from identify.residuals import log_jacobian, residuals  # noqa: E402
-
-F = sys.modules["identify.fit"]  # `identify.fit` is the function
+import identify._fit.jacobian as jacobian_module
+import identify._fit.levenberg_marquardt as levenberg_marquardt_module
+import identify._model.parameters as parameters_module
+import identify._model.problem as problem_module
+from identify._model.residuals import log_jacobian, residuals  # noqa: E402
 
 COLUMNS = [
     ("run", "run", ""),
@@ -97,9 +99,9 @@ def problem(L: int, per_log: str = ""):
         for i, (n, v) in enumerate(TRUTH.items())
     ]
     p = identify.make_problem(chain, params, logs, noise)
-    x = jnp.asarray(F._x_from_theta(p, F._guesses(p, params)))
+    x = jnp.asarray(parameters_module._x_from_theta(p, problem_module._guesses(p, params)))
     z = {
-        "phys": jnp.asarray(F._z_from_x(p, np.asarray(x))),
+        "phys": jnp.asarray(parameters_module._z_from_x(p, np.asarray(x))),
         "y0": jnp.asarray([p.y0_known[a, b] for a, b in p.y0_free]),
         "offset": jnp.zeros(len(p.offset_free)),
     }
@@ -130,14 +132,16 @@ def dense_rule(fn):
 
 @eqx.filter_jit
 def jac_ours(p, x, z):
-    jac = log_jacobian(p, lambda x_: F._theta_from_x(p, x_), x, z["y0"], z["offset"], p.sigma, None, STEP)
+    jac = log_jacobian(
+        p, lambda x_: parameters_module._theta_from_x(p, x_), x, z["y0"], z["offset"], p.sigma, None, STEP
+    )
     return jac.r.reshape(-1), jac.dense(len(p.y0_free), len(p.offset_free))
 
 
 @eqx.filter_jit
 def jac_dense(p, x, z):
     def fn(v):
-        return residuals(p, F._theta_from_x(p, v["x"]), v["y0"], v["offset"], p.sigma, None, STEP)[0]
+        return residuals(p, parameters_module._theta_from_x(p, v["x"]), v["y0"], v["offset"], p.sigma, None, STEP)[0]
 
     v = {"x": x, "y0": z["y0"], "offset": z["offset"]}
     J = jax.jacfwd(fn)(v)
@@ -146,22 +150,22 @@ def jac_dense(p, x, z):
 
 @eqx.filter_jit
 def residual(p, x, z):
-    return residuals(p, F._theta_from_x(p, x), z["y0"], z["offset"], p.sigma, None, STEP)[0]
+    return residuals(p, parameters_module._theta_from_x(p, x), z["y0"], z["offset"], p.sigma, None, STEP)[0]
 
 
-_dense_lm = dense_rule(F._residual_fn)
+_dense_lm = dense_rule(levenberg_marquardt_module._residual_fn)
 
 
 def lm(rule, block: bool):
     @eqx.filter_jit
     def solve(p, z0):
         if block:  # what `identify.fit` uses: the block solve from BLOCK_SOLVE_MIN_LOGS logs on
-            solver = F._levenberg_marquardt(p, 1e-3, 1e-10)
+            solver = levenberg_marquardt_module._levenberg_marquardt(p, 1e-3, 1e-10)
         else:
             solver = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-10, norm=optx.rms_norm)
         args = (p, p.sigma, None, STEP)
         sol = optx.least_squares(rule, solver, z0, args=args, max_steps=100, throw=False)
-        return sol.value, sol.stats["num_steps"], jnp.sum(F._residual_fn(sol.value, args) ** 2)
+        return sol.value, sol.stats["num_steps"], jnp.sum(levenberg_marquardt_module._residual_fn(sol.value, args) ** 2)
 
     return solve
 
@@ -171,11 +175,14 @@ def covariance_rows(L: int, repeats: int, per_log: str = ""):
     ncol = len(p.names) + len(p.y0_free) + len(p.offset_free)
 
     def dense():
-        r, J, _ = F._jacobian_natural(p, x, z["y0"], z["offset"], p.sigma, STEP)
-        return F._dense_covariance(p, r, J), J.nbytes
+        r, J, _ = jacobian_module._jacobian_natural(p, x, z["y0"], z["offset"], p.sigma, STEP)
+        return jacobian_module._dense_covariance(p, r, J), J.nbytes
 
     out = {}
-    for name, fn in (("ours", lambda: (F._covariance_at(p, x, z, p.sigma, STEP)[0], None)), ("dense", dense)):
+    for name, fn in (
+        ("ours", lambda: (jacobian_module._covariance_at(p, x, z, p.sigma, STEP)[0], None)),
+        ("dense", dense),
+    ):
         (cov, nbytes), cold = timed(fn)
         out[name] = (cov, nbytes, cold, median_time(fn, repeats))
     a, b = out["ours"][0].std_errors, out["dense"][0].std_errors
@@ -212,8 +219,8 @@ def main(argv=None):
     env = environment()
     rows = []
     lm_runs = (
-        ("ours", lm(F._residual_fn_lm, True)),
-        ("ours, dense QR", lm(F._residual_fn_lm, False)),
+        ("ours", lm(levenberg_marquardt_module._residual_fn_lm, True)),
+        ("ours, dense QR", lm(levenberg_marquardt_module._residual_fn_lm, False)),
         ("dense", lm(_dense_lm, False)),
     )
     for L in [int(s) for s in args.logs.split(",")]:

@@ -416,3 +416,34 @@ def rk4_growth(chain: Chain | AssembledChain, y0, torque0, dt):
     z = jnp.asarray(dt).astype(complex) * jnp.concatenate([(-c + root) / 2, (-c - root) / 2])
     R = 1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24
     return jnp.max(jnp.abs(R) / jnp.maximum(1.0, jnp.abs(jnp.exp(z))))
+
+
+def modal_configuration(chain):
+    """The configuration to analyse the fitted chain about: hanging along gravity (first
+    joint angle `atan2(g_y, g_x)`, i.e. -pi/2 for gravity pointing down, the others 0,
+    rotor angles with their links, undeformed) under gravity, else all zero."""
+    import numpy as np
+
+    lay = chain.layout
+    Q0 = np.zeros(lay.n_dof)
+    g = np.asarray(chain.gravity, float) if getattr(chain, "gravity", None) is not None else np.zeros(2)
+    if np.linalg.norm(g) > 0:
+        angle = float(np.arctan2(g[1], g[0]))
+        Q0[lay.theta[0]] = angle
+        if lay.rotor[0] is not None:
+            Q0[lay.rotor[0]] = angle
+        where = f"hanging equilibrium, theta1 = {np.degrees(angle):.4g} deg"
+    else:
+        where = "zero configuration"
+    return Q0, where
+
+
+def natural_frequencies(chain):
+    """Undamped natural frequencies (Hz) of `chain` about `modal_configuration(chain)`."""
+    import numpy as np
+
+    import flexdyn as fd
+
+    Q0, where = modal_configuration(chain)
+    modes = fd.modal_analysis(chain, Q0)
+    return [float(f) for f in np.asarray(modes.natural_frequency)], where

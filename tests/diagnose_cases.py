@@ -24,10 +24,11 @@ import math
 import numpy as np
 
 import flexdyn as fd
-from identify import measurement as meas
-from identify.diagnose import diagnose_logs, split_logs
-from identify.fit import Parameter
-from identify.synthetic import simulate_log
+from identify._data import measurement as meas
+from identify._diagnose.search import diagnose_logs
+from identify._diagnose.split import split_logs
+from identify._model.parameters import Parameter
+from identify._model.synthetic import simulate_log
 
 # --- the pendulum -----------------------------------------------------------------
 

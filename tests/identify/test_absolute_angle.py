@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import flexdyn as fd
-from identify import channels as ch, units as u
-from identify.logs import load_log
+from identify._data import channels as ch, units as u
+from identify._data.logs import load_log
 
 
 def _wrapped(a):

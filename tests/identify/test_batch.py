@@ -13,6 +13,9 @@ from fresh_jacobian import assert_standard_errors_match, fresh_covariance  # tes
 
 import flexdyn as fd
 import identify
+import identify._fit.fit_independent as fit_independent_module
+import identify._fit.starts as starts_module
+import identify._fit.steps as steps_module
 
 
 def test_independent_vmapped_fits_recover_each_logs_own_damping():
@@ -97,9 +100,6 @@ def test_each_logs_noise_is_re_estimated_from_its_own_residuals():
 def test_a_failed_simulation_names_its_log(monkeypatch):
     """Review: the error said "a simulation at the current parameters failed" without
     naming the log. Here the stage's simulation is made to fail for every log."""
-    import sys
-
-    F = sys.modules["identify.fit"]
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(0.0, 0.5, 1e-2)
     logs = [
@@ -108,13 +108,14 @@ def test_a_failed_simulation_names_its_log(monkeypatch):
     ]
     params = [identify.Parameter("joint1.damping", 1e-3, 1e-6, 1e-1)]
     problem = identify.make_problem(chain, params, logs, noise={"theta1": 1e-3})
-    grid_step = F._grid_step
+    grid_step = steps_module._grid_step
 
     def failing(problem, z, horizon, safety):
         step, ok, out = grid_step(problem, z, horizon, safety)
         return step, ok & False, out
 
-    monkeypatch.setattr(F, "_grid_step", failing)
+    for module in (steps_module, starts_module, fit_independent_module):  # each binds the name
+        monkeypatch.setattr(module, "_grid_step", failing)
     with pytest.raises(RuntimeError, match=r"the simulation of log\(s\) \['drop0', 'drop1'\] .*failed \(stage 1"):
         identify.fit_independent(problem, params, n_stages=1, frequency_init=False)
 

@@ -8,16 +8,16 @@ whole solve.
 from __future__ import annotations
 
 import dataclasses
-import sys
 
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
 
-from identify.block_lm import BlockLevenbergMarquardt, Layout, damped_block_solve
-
-fit_module = sys.modules["identify.fit"]  # `identify.fit` is the function
+import identify._fit.jacobian as jacobian_module
+import identify._fit.levenberg_marquardt as levenberg_marquardt_module
+import identify._model.parameters as parameters_module
+from identify._fit.block_lm import BlockLevenbergMarquardt, Layout, damped_block_solve
 
 
 def _dense(r, S, U, used):
@@ -60,9 +60,9 @@ def test_block_levenberg_marquardt_takes_optimistix_steps(multilog_problem):
     steps: near the optimum a trial's actual cost reduction is round-off, ~1e-12 of the
     cost, and the trust region's accept/reject decision there goes either way.)"""
     p, x, y0, off = multilog_problem
-    z0 = {"phys": jnp.asarray(fit_module._z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
+    z0 = {"phys": jnp.asarray(parameters_module._z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
     args = (p, p.sigma, None, 2e-3)
-    fn = fit_module._residual_fn_lm
+    fn = levenberg_marquardt_module._residual_fn_lm
     block_lm = BlockLevenbergMarquardt(1e-4, 1e-10, Layout.of(p), norm=optx.rms_norm)
     dense_lm = optx.LevenbergMarquardt(1e-4, 1e-10, norm=optx.rms_norm)
     for steps in (1, 2, 3, 4):
@@ -78,13 +78,13 @@ def test_block_levenberg_marquardt_takes_optimistix_steps(multilog_problem):
 
 def test_fit_uses_the_block_solve_from_many_logs(multilog_problem):
     p = multilog_problem[0]
-    assert isinstance(fit_module._levenberg_marquardt(p, 1e-3, 1e-10), optx.LevenbergMarquardt)
-    L = fit_module.BLOCK_SOLVE_MIN_LOGS
+    assert isinstance(levenberg_marquardt_module._levenberg_marquardt(p, 1e-3, 1e-10), optx.LevenbergMarquardt)
+    L = levenberg_marquardt_module.BLOCK_SOLVE_MIN_LOGS
     wide = dataclasses.replace(p, t=jnp.tile(p.t[:1], (L, 1)), y0_free=tuple((l, 0) for l in range(L)), offset_free=())
-    assert isinstance(fit_module._levenberg_marquardt(wide, 1e-3, 1e-10), BlockLevenbergMarquardt)
+    assert isinstance(levenberg_marquardt_module._levenberg_marquardt(wide, 1e-3, 1e-10), BlockLevenbergMarquardt)
     # no nuisances: nothing to eliminate, the dense solve
     bare = dataclasses.replace(wide, y0_free=())
-    assert isinstance(fit_module._levenberg_marquardt(bare, 1e-3, 1e-10), optx.LevenbergMarquardt)
+    assert isinstance(levenberg_marquardt_module._levenberg_marquardt(bare, 1e-3, 1e-10), optx.LevenbergMarquardt)
 
 
 @pytest.mark.slow  # 43 s in CI; the block step stays in CI (the damped-step cases and the choice test above)
@@ -95,7 +95,7 @@ def test_a_fit_of_many_logs_recovers_the_truth():
     import flexdyn as fd
     import identify
 
-    L = fit_module.BLOCK_SOLVE_MIN_LOGS
+    L = levenberg_marquardt_module.BLOCK_SOLVE_MIN_LOGS
     truth = fd.rigs.rigid_pendulum(joint_damping=2.5e-3, payload_mass=0.025)
     t = np.arange(301) / 100.0
     rng = np.random.default_rng(7)
@@ -122,7 +122,7 @@ def test_a_fit_of_many_logs_recovers_the_truth():
     ]
     chain = fd.rigs.rigid_pendulum()
     problem = identify.make_problem(chain, params, logs, {"theta1": 2e-3})
-    assert isinstance(fit_module._levenberg_marquardt(problem, 1e-3, 1e-10), BlockLevenbergMarquardt)
+    assert isinstance(levenberg_marquardt_module._levenberg_marquardt(problem, 1e-3, 1e-10), BlockLevenbergMarquardt)
     res = identify.fit(problem, params)
     assert res.converged, res.summary()
     for name, value in (("joint1.damping", 2.5e-3), ("payload.mass", 0.025)):
@@ -135,10 +135,10 @@ def test_a_fit_of_many_logs_recovers_the_truth():
         assert abs(offset - offsets[l]) < 4 * se, (l, offset, offsets[l], se)
     # its standard errors came block by block (identify.covariance.blocked); the dense
     # Jacobian's SVD at the same optimum gives the same ones
-    x = fit_module._x_from_z(problem, res.z["phys"])
+    x = parameters_module._x_from_z(problem, res.z["phys"])
     sigma = jnp.asarray([res.sigma[c] for c in problem.channels])
-    r, J, ok = fit_module._jacobian_natural(problem, x, res.z["y0"], res.z["offset"], sigma, res.step)
-    dense = fit_module._dense_covariance(problem, r, J)
+    r, J, ok = jacobian_module._jacobian_natural(problem, x, res.z["y0"], res.z["offset"], sigma, res.step)
+    dense = jacobian_module._dense_covariance(problem, r, J)
     assert bool(ok)
     np.testing.assert_allclose(res.std_errors, res.values * dense.std_errors[:2], rtol=1e-8)
     for l in range(L):

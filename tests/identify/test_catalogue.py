@@ -8,7 +8,7 @@ import pytest
 from diagnose_cases import arm  # tests/ is on sys.path
 
 import flexdyn as fd
-from identify import catalogue as cat
+from identify._diagnose import catalogue as cat
 
 
 def _entry(name, where, params, starts, structural=False):
@@ -196,7 +196,7 @@ def test_joint_elasticity_holds_the_rigid_joint_as_its_stiff_limit():
 
 
 def test_a_nested_structural_fit_that_ends_above_its_limit_is_noted():
-    from identify.diagnose import _stuck_above_nested
+    from identify._diagnose.notes import _stuck_above_nested
 
     joint = _entry("joint_elasticity", "joint1", ("joint1.stiffness", "joint1.rotor_inertia"), ((),), structural=True)
     mode = _entry("missing_mode", "link1", (), ((),), structural=True)

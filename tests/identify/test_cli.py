@@ -11,8 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from identify.cli import MARKER, main
-from identify.report import BY_LOG_PLOT, PLOT_FILES
+import identify._workflow as _workflow_module
+from identify._report.fit_plots import BY_LOG_PLOT, PLOT_FILES
+from identify.cli import main
+from identify.cli.output import MARKER
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "identify" / "examples" / "pendulum_drops"
 TRUTH = {"joint1.damping": 1.9e-3, "hub1.inertia": 2e-5}
@@ -105,9 +107,7 @@ def test_a_fit_that_did_not_converge_exits_3(fitted, monkeypatch, capsys):
     with its result marked as ended on a bound, as `identify.fit` marks it."""
     import dataclasses
 
-    import identify.run
-
-    real = identify.run.fit_experiment
+    real = _workflow_module.fit_experiment
 
     def on_a_bound(experiment, **options):
         result = real(experiment, **options)
@@ -115,7 +115,7 @@ def test_a_fit_that_did_not_converge_exits_3(fitted, monkeypatch, capsys):
         values[0] = 1.000001e-6  # joint1.damping on its lower bound, 1e-6
         return dataclasses.replace(result, converged=False, at_bounds=[result.names[0]], values=values)
 
-    monkeypatch.setattr(identify.run, "fit_experiment", on_a_bound)
+    monkeypatch.setattr(_workflow_module, "fit_experiment", on_a_bound)
     out = fitted["work"] / "not-converged"
     assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 3
     printed = capsys.readouterr()
@@ -149,9 +149,9 @@ def test_cluster_robust_intervals_printed_and_written(fitted, monkeypatch, capsy
     # From CLUSTER_MIN_LOGS fit logs on, the cluster-robust intervals are added (lowered to
     # 2 here; the estimator's tests are in test_uncertainty.py), if there are more fit logs
     # than free parameters (review: with 2 logs for 2 parameters the covariance is singular).
-    import identify.cli
+    import identify.cli.fit_command
 
-    monkeypatch.setattr(identify.cli, "CLUSTER_MIN_LOGS", 2)
+    monkeypatch.setattr(identify.cli.fit_command, "CLUSTER_MIN_LOGS", 2)
     out = fitted["work"] / "robust-2"
     assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 0
     printed = capsys.readouterr().out
@@ -290,7 +290,6 @@ def test_fit_flags_reach_the_fit(tmp_path, monkeypatch, capsys, flag, expected):
     `--no-restart-poor-fit` and `--max-restarts` set the fit's restarts; the defaults
     are the library's (`identify.fit`). The fit is replaced by a stand-in that records its
     options and fails, which the command reports as exit 1."""
-    import identify.run
 
     exp = _copy_example(tmp_path / "example")
     seen = {}
@@ -299,7 +298,7 @@ def test_fit_flags_reach_the_fit(tmp_path, monkeypatch, capsys, flag, expected):
         seen.update(options)
         raise RuntimeError("stand-in fit")
 
-    monkeypatch.setattr(identify.run, "fit_experiment", stand_in)
+    monkeypatch.setattr(_workflow_module, "fit_experiment", stand_in)
     assert main(["fit", str(exp), "--out", str(tmp_path / "out"), "--quiet", *flag]) == 1
     for key, value in expected.items():
         assert seen[key] == value, key
@@ -313,13 +312,11 @@ def test_warnings_are_printed_as_the_commands_print_them(tmp_path, monkeypatch, 
     library's source line; outside the command Python's own format is back."""
     import warnings
 
-    import identify.run
-
     def stand_in(experiment, **options):
         warnings.warn("log 'a' shows no motion above its noise", UserWarning, stacklevel=2)
         raise RuntimeError("stand-in fit")
 
-    monkeypatch.setattr(identify.run, "fit_experiment", stand_in)
+    monkeypatch.setattr(_workflow_module, "fit_experiment", stand_in)
     assert main(["fit", str(_copy_example(tmp_path / "example")), "--out", str(tmp_path / "out"), "--quiet"]) == 1
     err = capsys.readouterr().err
     assert "WARNING: log 'a' shows no motion above its noise" in err and "UserWarning" not in err, err
@@ -349,7 +346,7 @@ def test_negative_max_restarts_is_a_usage_error(capsys):
 
 
 def test_diagnose_help_lists_every_catalogue_entry():
-    from identify.catalogue import NAMES
+    from identify._diagnose.catalogue import NAMES
     from identify.cli import _parser
 
     sub = next(a for a in _parser()._actions if isinstance(getattr(a, "choices", None), dict))
@@ -366,8 +363,8 @@ def test_the_set_up_checks_name_gravity_and_an_implausible_time_unit():
     import numpy as np
 
     from identify import load_experiment
-    from identify.cli import _set_up_checks
-    from identify.logs import _sampling
+    from identify._data.logs import _sampling
+    from identify.cli.check_command import _set_up_checks
 
     exp = load_experiment(EXAMPLE / "experiment.toml")
     lines = _set_up_checks(exp)
@@ -383,7 +380,7 @@ def test_residual_table_notes_coloured_fit_residuals():
     """Found in review: a fit whose residuals failed the whiteness test (p = 4.5e-280, an
     initial angle held at a noisy first sample) printed intervals 10 standard errors off
     with no note; the note now follows the table for fit logs (not validation logs)."""
-    from identify.cli import _residual_lines
+    from identify.cli.fit_command import _residual_lines
 
     def item(white):
         return {"rms": 1e-3, "whiteness": {"white": white, "p_value": 0.5 if white else 1e-9}, "input_correlation": {}}
@@ -418,7 +415,7 @@ def test_diagnose_fit_all_fits_every_candidate(tmp_path, monkeypatch, capsys, fl
     default holds. A stand-in records the options and fails (exit 1)."""
     import importlib
 
-    module = importlib.import_module("identify.diagnose")  # (`identify.diagnose` is the function)
+    module = importlib.import_module("identify._workflow")
     exp = _copy_example(tmp_path / "example")
     seen = {}
 
@@ -441,8 +438,8 @@ def test_diagnose_exits_3_when_its_baseline_fit_did_not_converge(tmp_path, monke
     import importlib
     from types import SimpleNamespace
 
-    module = importlib.import_module("identify.diagnose")
-    report = importlib.import_module("identify.diagnosis_report")
+    module = importlib.import_module("identify._workflow")
+    report = importlib.import_module("identify._report.diagnosis_report")
     exp = _copy_example(tmp_path / "example")
     baseline = SimpleNamespace(stages=[{"result": "successful"}, {"result": result}])
 
@@ -488,7 +485,7 @@ def test_check_validates_an_experiment_without_fitting(tmp_path, capsys):
 def test_a_failed_fit_prints_the_check_not_the_stacks():
     """A run-time check inside the fit (`eqx.error_if`) is printed as its own message, not
     with the JAX and Equinox stacks around it (review: pages of stack for one line)."""
-    from identify.cli import _failure_text
+    from identify.cli.fit_command import _failure_text
 
     wrapped = RuntimeError("Above is the stack outside of JIT...\n_EquinoxRuntimeError: link1.EI must be > 0\n\n---")
     assert _failure_text(wrapped) == "link1.EI must be > 0"
@@ -497,7 +494,8 @@ def test_a_failed_fit_prints_the_check_not_the_stacks():
 
 def test_the_compile_estimate_allows_for_a_single_core(monkeypatch, tmp_path):
     """Review: on one core (`taskset -c 0`) the first call took 2x the guess made for two."""
-    from identify import cli, load_experiment
+    from identify import load_experiment
+    from identify.cli import fit_command as cli
 
     exp = load_experiment(_copy_example(tmp_path / "example"))
     monkeypatch.setattr(cli, "_cores", lambda: 2)
@@ -533,16 +531,13 @@ def test_an_interrupted_diagnosis_leaves_its_progress_on_disk(tmp_path, monkeypa
     """Review: a diagnosis stopped after 20 minutes (two-link arm) left nothing on disk.
     Every progress line goes to the output folder's progress.log as it is said; Ctrl-C
     exits 130 and says where it is."""
-    import sys
-
-    D = sys.modules["identify.diagnose"]
 
     def stopped(experiment, *, progress, **kw):
         progress("baseline: cost 123 over 45 residuals")
         progress("screening (one Gauss-Newton step per start), predicted costs: coulomb_friction:joint1 12")
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(D, "diagnose", stopped)
+    monkeypatch.setattr(_workflow_module, "diagnose", stopped)
     out = tmp_path / "diag"
     assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(out)]) == 130
     text = (out / "progress.log").read_text()
@@ -551,7 +546,7 @@ def test_an_interrupted_diagnosis_leaves_its_progress_on_disk(tmp_path, monkeypa
     assert f"what it had found so far is in {out / 'progress.log'}" in capsys.readouterr().err
     assert (out / MARKER).is_file()
     # the folder is ours: a rerun into it is allowed (no --force)
-    monkeypatch.setattr(D, "diagnose", stopped)
+    monkeypatch.setattr(_workflow_module, "diagnose", stopped)
     assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(out)]) == 130
 
 

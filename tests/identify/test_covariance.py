@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from identify import covariance
+from identify._fit import covariance
 
 NAMES = ("link1.EI", "joint1.damping", "payload.mass")
 LOG_SCALE = (True, True, False)

@@ -35,12 +35,21 @@ from diagnose_cases import (  # tests/ is on sys.path
 )
 
 import flexdyn as fd
-from identify import diagnosis_report, evidence, measurement as meas
+import identify._diagnose.held_out as held_out_module
+import identify._diagnose.joint_model as joint_model_module
+import identify._diagnose.notes as notes_module
+import identify._diagnose.scores as scores_module
+import identify._diagnose.search as search_module
+import identify._diagnose.structural as structural_module
+import identify._model.residuals as residuals_module
+import identify._workflow as _workflow_module
+from identify._data import measurement as meas
+from identify._diagnose import evidence
+from identify._diagnose.search import diagnose_logs
+from identify._diagnose.split import split_logs
+from identify._model.parameters import Parameter
+from identify._report import diagnosis_report
 from identify.cli import main
-from identify.diagnose import diagnose_logs, split_logs
-from identify.fit import Parameter
-
-D = sys.modules["identify.diagnose"]  # the module (`identify.diagnose` is the function)
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "identify" / "examples" / "pendulum_friction"
@@ -108,14 +117,15 @@ def test_a_candidate_that_needs_a_finer_step_gets_one():
     `_finer_step` compares with. A smooth model (no friction) passes at the same step."""
     import jax.numpy as jnp
 
-    from identify.fit import _predict_jit, make_problem
+    from identify._model.problem import make_problem
+    from identify._model.residuals import _predict_jit
 
     for coulomb in (1e-3, None):
         logs = pendulum_logs(pendulum(coulomb=coulomb), 0)
         problem = make_problem(pendulum(coulomb=coulomb), [], logs, {"theta1": PENDULUM_NOISE}, rtol=1e-12, atol=1e-14)
         theta = jnp.zeros(0)
         y0 = jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float)
-        y0s = D._initial_states(problem, y0)
+        y0s = residuals_module._initial_states(problem, y0)
         mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
         adaptive = np.asarray(_predict_jit(problem, theta, y0s, None, None)[0])
 
@@ -123,16 +133,18 @@ def test_a_candidate_that_needs_a_finer_step_gets_one():
             pred = np.asarray(_predict_jit(problem, theta, y0s, None, jnp.asarray(step))[0])
             return float(np.max(np.where(mask, np.abs(pred - adaptive) / PENDULUM_NOISE, 0.0)))
 
-        at, finer = D._finer_step(problem, theta, y0, jnp.asarray(8.9e-3), jnp.asarray([PENDULUM_NOISE]))
+        at, finer = joint_model_module._finer_step(
+            problem, theta, y0, jnp.asarray(8.9e-3), jnp.asarray([PENDULUM_NOISE])
+        )
         # (abs: the two references' own errors, ~1e-8 noise levels, show on the smooth model)
         assert at == pytest.approx(off(8.9e-3), rel=1e-3, abs=1e-7)
         if coulomb is None:
-            assert at < D.STEP_RECHECK and finer is None
+            assert at < joint_model_module.STEP_RECHECK and finer is None
         else:
-            assert at > 2 * D.STEP_RECHECK and finer is not None and float(finer) < 8.9e-3
-            assert off(float(finer)) <= D.STEP_RECHECK
+            assert at > 2 * joint_model_module.STEP_RECHECK and finer is not None and float(finer) < 8.9e-3
+            assert off(float(finer)) <= joint_model_module.STEP_RECHECK
             # the coarsest that passes: twice it does not
-            assert off(2 * float(finer)) > D.STEP_RECHECK
+            assert off(2 * float(finer)) > joint_model_module.STEP_RECHECK
 
 
 @pytest.mark.slow
@@ -167,12 +179,13 @@ def test_coulomb_friction_hidden_with_a_random_magnitude():
 
 def test_quadratic_damping_hidden_and_told_apart_from_dry_friction(monkeypatch):
     # The accepted model is refitted alone (`reconverge`) in a batch of 1, not padded to the
-    # round's batch (`D.FEW_SIZE_AFTER_S`: as when a round's call is slow): the small program
+    # round's batch (`joint_model_module.FEW_SIZE_AFTER_S`: as when a round's call is slow): the small program
     # must find the same cause (the other tests here run the padded one).
     sizes = []
-    few = D._few_size
-    monkeypatch.setattr(D, "FEW_SIZE_AFTER_S", 0.0)
-    monkeypatch.setattr(D, "_few_size", lambda *a: sizes.append(few(*a)) or sizes[-1])
+    few = joint_model_module._few_size
+    monkeypatch.setattr(joint_model_module, "FEW_SIZE_AFTER_S", 0.0)
+    for module in (joint_model_module, search_module):  # each binds the name
+        monkeypatch.setattr(module, "_few_size", lambda *a: sizes.append(few(*a)) or sizes[-1])
     rng = np.random.default_rng(502)
     c = float(rng.uniform(0.1, 0.4))  # kg/m^2
     diag = run(logs_of(pendulum(drag=c), 12))
@@ -322,14 +335,16 @@ def test_a_time_split_diagnoses_a_per_log_parameter_as_the_logs_own(monkeypatch,
     import identify
 
     seen = []
-    monkeypatch.setattr(D, "diagnose_logs", lambda chain, params, fit, held, *a, **k: seen.append((params, fit, held)))
+    monkeypatch.setattr(
+        _workflow_module, "diagnose_logs", lambda chain, params, fit, held, *a, **k: seen.append((params, fit, held))
+    )
     exp = identify.load_experiment(write_per_log_experiment(tmp_path))
-    D.diagnose(exp)
+    _workflow_module.diagnose(exp)
     params, fit, held = seen[-1]
     assert [p.per_log for p in params] == [p.per_log for p in exp.free] and any(p.per_log for p in params)
     assert len(fit) == 3 and len(held) == 1
     one = dataclasses.replace(exp, logs=exp.logs[:1])
-    D.diagnose(one)
+    _workflow_module.diagnose(one)
     params, fit, held = seen[-1]
     assert not any(p.per_log for p in params)
     assert len(fit) == 1 and held[0].name.startswith(fit[0].name.split("[")[0])
@@ -460,9 +475,9 @@ def test_a_structural_candidate_is_refitted_when_its_cost_drop_would_pass_the_bi
     off a cost of 4.7e7 (dBIC +10 there), the tilted model's cost is 16067."""
     n, thr = 2404, 10.0
     drops = {"joint_elasticity:joint1": (1.1e5, 2), "missing_mode:link1": (50.0, 0)}
-    assert D._promising(drops, 4.7e7, n, thr) == set()
-    assert D._promising(drops, 16067.0, n, thr) == {"joint_elasticity:joint1"}
-    assert D._promising(drops, 16067.0 / 2, n, thr) == {"joint_elasticity:joint1", "missing_mode:link1"}
+    assert scores_module._promising(drops, 4.7e7, n, thr) == set()
+    assert scores_module._promising(drops, 16067.0, n, thr) == {"joint_elasticity:joint1"}
+    assert scores_module._promising(drops, 16067.0 / 2, n, thr) == {"joint_elasticity:joint1", "missing_mode:link1"}
     # the boundary is the BIC test's: just above / below the drop that gives dBIC = -threshold
     for k in (0, 2):
         cost = 5000.0
@@ -470,7 +485,7 @@ def test_a_structural_candidate_is_refitted_when_its_cost_drop_would_pass_the_bi
         for drop, expect in ((edge * (1 + 1e-6), True), (edge * (1 - 1e-6), False)):
             dbic = n * math.log((cost - drop) / cost) + k * math.log(n)
             assert (dbic < -thr) == expect
-            assert (D._promising({"x": (drop, k)}, cost, n, thr) == {"x"}) == expect
+            assert (scores_module._promising({"x": (drop, k)}, cost, n, thr) == {"x"}) == expect
 
 
 def _traces(r):
@@ -499,53 +514,59 @@ def test_held_out_headroom_of_white_noise_and_its_standard_error():
     ratios, floors = [], []
     for _ in range(400):
         r = 0.7 * rng.standard_normal(shape)
-        h = D.held_out_headroom(_traces(r), r.reshape(-1))
+        h = held_out_module.held_out_headroom(_traces(r), r.reshape(-1))
         ratio, se = h.ratio, h.floor_se
         ratios.append(ratio)
         floors.append(np.sqrt(np.mean(r**2)) / ratio / 0.7)
-    assert se == pytest.approx(D.FLOOR_SE / math.sqrt(n))
+    assert se == pytest.approx(held_out_module.FLOOR_SE / math.sqrt(n))
     assert abs(np.mean(ratios) - 1.0) < 0.005 and abs(np.mean(floors) - 1.0) < 0.005
     assert np.std(floors) == pytest.approx(se, rel=0.1)  # 400 replicas: 3.5 % scatter
     assert np.std(ratios) < np.std(floors)
     t = np.arange(400) / 200.0
     misfit = math.sqrt(2) * np.sin(2 * np.pi * 0.7 * t)[None, :, None]  # RMS 1 over whole periods ~
     r = rng.standard_normal(shape) + misfit
-    assert D.held_out_headroom(_traces(r), r.reshape(-1)).ratio == pytest.approx(math.sqrt(2), rel=0.05)
+    assert held_out_module.held_out_headroom(_traces(r), r.reshape(-1)).ratio == pytest.approx(math.sqrt(2), rel=0.05)
 
 
 def test_no_headroom_stops_refits_only_at_the_noise():
     rng = np.random.default_rng(4)
     white = rng.standard_normal((1, 2000, 1))
-    full, why = D._no_headroom(_traces(white), white.reshape(-1), 1.1)
+    full, why = held_out_module._no_headroom(_traces(white), white.reshape(-1), 1.1)
     assert full and "held-out gain of 1.1" in why
     t = np.arange(2000) / 200.0
     # a slow misfit of 0.5 the noise's RMS: a perfect model would gain 1.12x, so refits go on
     r = white + 0.5 * math.sqrt(2) * np.sin(2 * np.pi * 0.5 * t)[None, :, None]
-    assert not D._no_headroom(_traces(r), r.reshape(-1), 1.1)[0]
+    assert not held_out_module._no_headroom(_traces(r), r.reshape(-1), 1.1)[0]
     # A misfit near the Nyquist frequency (88 Hz sampled at 200 Hz: a link's third mode)
     # passes the 4th difference whole, so the floor takes it for noise (ratio about 1)...
     r = white + 0.8 * math.sqrt(2) * np.sin(2 * np.pi * 88.0 * t)[None, :, None]
-    h = D.held_out_headroom(_traces(r), r.reshape(-1))
+    h = held_out_module.held_out_headroom(_traces(r), r.reshape(-1))
     assert h.ratio < 1.05
     # ... but the residual is not white (lag 1: w cos(2 pi 0.44) = -0.39 x 0.93), so refits go on
     assert h.autocorrelation[0] == pytest.approx(0.39 * math.cos(2 * np.pi * 0.44), abs=0.05)
-    assert not D._no_headroom(_traces(r), r.reshape(-1), 1.1)[0]
+    assert not held_out_module._no_headroom(_traces(r), r.reshape(-1), 1.1)[0]
     # with few samples the margin (3 SE of the floor) keeps refits going near the limit
     few = rng.standard_normal((1, 40, 1))
-    h = D.held_out_headroom(_traces(few), few.reshape(-1))
-    assert D._no_headroom(_traces(few), few.reshape(-1), 1.1)[0] == h.at_the_noise(1.1, 3.0)
+    h = held_out_module.held_out_headroom(_traces(few), few.reshape(-1))
+    assert held_out_module._no_headroom(_traces(few), few.reshape(-1), 1.1)[0] == h.at_the_noise(1.1, 3.0)
     assert h.at_the_noise(1.1, 3.0) == (
         h.ratio < 1.1 * (1 - 3 * h.floor_se) and max(map(abs, h.autocorrelation)) < 4 / math.sqrt(40)
     )
     notes = []
-    assert D._with_headroom({"missing_mode:link1"}, _traces(white), white.reshape(-1), 1.1, 2, notes, print) == set()
+    assert (
+        scores_module._with_headroom({"missing_mode:link1"}, _traces(white), white.reshape(-1), 1.1, 2, notes, print)
+        == set()
+    )
     assert notes[0]["round"] == 2 and notes[0]["text"].startswith("missing_mode:link1 not refitted")
     # in the first round the model at the noise is the baseline: nothing structural is fitted
     labels = {"missing_mode:link1", "joint_elasticity:joint1"}
-    assert D._with_headroom(labels, _traces(white), white.reshape(-1), 1.1, 1, notes, print) == set()
+    assert scores_module._with_headroom(labels, _traces(white), white.reshape(-1), 1.1, 1, notes, print) == set()
     assert notes[1]["round"] == 1
     assert notes[1]["text"].startswith("joint_elasticity:joint1, missing_mode:link1 not fitted: the baseline")
-    assert D._with_headroom(labels, _traces(r), r.reshape(-1), 1.1, 1, notes, print) == labels and len(notes) == 2
+    assert (
+        scores_module._with_headroom(labels, _traces(r), r.reshape(-1), 1.1, 1, notes, print) == labels
+        and len(notes) == 2
+    )
 
 
 def test_structural_candidates_are_not_fitted_after_a_continuous_one_reaches_the_noise():
@@ -570,7 +591,9 @@ def test_structural_candidates_are_not_fitted_after_a_continuous_one_reaches_the
         fits = {"labels": [s.label for s in scores], "ho": [r.reshape(-1) for r in residuals]}
         notes = []
         said.clear()
-        return D._after_continuous_at_noise(labels, scores, fits, _traces(white), 1.1, 1, notes, said.append), notes
+        return notes_module._after_continuous_at_noise(
+            labels, scores, fits, _traces(white), 1.1, 1, notes, said.append
+        ), notes
 
     friction, drag = score("coulomb_friction:joint2", -9000.0, True), score("quadratic_damping:link1", -50.0, True)
     kept, notes = run([friction, drag], [white, misfit])
@@ -593,17 +616,19 @@ def test_a_baseline_with_undetermined_parameters_is_noted_first():
     """A baseline whose fit gives some parameters no interval (`identify.covariance`: the
     data see them only in combination) hands that degeneracy to every candidate: the
     diagnosis says so, as a note of the baseline (round 0), printed as such."""
-    notes = D._baseline_notes(["link1.com", "link1.inertia", "payload.mass"], np.array([np.inf, np.inf, 0.1]))
+    notes = notes_module._baseline_notes(
+        ["link1.com", "link1.inertia", "payload.mass"], np.array([np.inf, np.inf, 0.1])
+    )
     assert len(notes) == 1 and notes[0]["round"] == 0
     assert "link1.com, link1.inertia" in notes[0]["text"] and "payload.mass" not in notes[0]["text"]
-    assert D.note_text(notes[0]).startswith("baseline: the fit logs do not determine")
-    assert D.note_text({"round": 2, "text": "x"}) == "round 2: x"
-    assert D._baseline_notes(["a"], np.array([0.1])) == []
+    assert notes_module.note_text(notes[0]).startswith("baseline: the fit logs do not determine")
+    assert notes_module.note_text({"round": 2, "text": "x"}) == "round 2: x"
+    assert notes_module._baseline_notes(["a"], np.array([0.1])) == []
     # determined, but poorly (95 % half-width above half the value): the search's power is low
-    notes = D._baseline_notes(["a", "b"], np.array([0.3, 0.1]), np.array([1.0, 1.0]))
+    notes = notes_module._baseline_notes(["a", "b"], np.array([0.3, 0.1]), np.array([1.0, 1.0]))
     assert len(notes) == 1 and "a +-59 %" in notes[0]["text"] and "b +-" not in notes[0]["text"]
     assert "can go undetected" in notes[0]["text"]
-    assert D._baseline_notes(["a"], np.array([0.25]), np.array([1.0])) == []  # +-49 %
+    assert notes_module._baseline_notes(["a"], np.array([0.25]), np.array([1.0])) == []  # +-49 %
 
 
 @pytest.mark.parametrize("optimism", [1.0, 10.0])
@@ -629,15 +654,16 @@ def test_an_unconverged_fit_short_of_its_screening_prediction_is_continued(monke
         continued.append(sorted(set(b.tolist())))
         return v0, jnp.asarray(costs[b] * 0.9 ** (len(continued))), jnp.full(b.size, max_steps)
 
-    monkeypatch.setattr(D, "_fit_batch", fake_fit_batch)
+    for module in (joint_model_module, search_module):  # each binds the name
+        monkeypatch.setattr(module, "_fit_batch", fake_fit_batch)
     vs = {"zb": jnp.zeros((3, 2))}
     idx = jnp.arange(3)[:, None]
     best = {lab: b for b, lab in enumerate(labels)}
     args = (None, vs, costs.copy(), steps.copy(), best, owners, idx, idx, None, None, max_steps, (6, 1.0), cur, N)
-    D._refine(*args, lambda msg: None, predicted=predicted)
+    joint_model_module._refine(*args, lambda msg: None, predicted=predicted)
     assert continued[0] == [0, 1], continued
     continued.clear()
-    D._refine(*args, lambda msg: None)  # without predictions: as before, the fit above is left alone
+    joint_model_module._refine(*args, lambda msg: None)  # without predictions: as before, the fit above is left alone
     assert continued[0] == [0], continued
 
 
@@ -649,31 +675,38 @@ def test_a_best_fit_that_predicts_the_held_out_logs_worse_is_noted():
     same one where offsets are fitted per log, no advice about them."""
 
     def score(name, where, dbic, gain, members=(), screened=False):
-        return D.Score(name, where, {}, 1.0, dbic, 0.0, {}, gain, False, 1, screened=screened, members=members)
+        return scores_module.Score(
+            name, where, {}, 1.0, dbic, 0.0, {}, gain, False, 1, screened=screened, members=members
+        )
 
     pair = score("pair", "", -19996.4, 0.521, members=("sensor_gain_offset:theta1", "quadratic_damping:link1"))
     scores = [pair, score("quadratic_damping", "link1", -9206.0, 0.521), score("sensor_delay", "theta1", -83.9, 1.0)]
-    text = D._fits_but_does_not_predict(scores, 10.0, 1.1, offsets_fitted=set())
+    text = notes_module._fits_but_does_not_predict(scores, 10.0, 1.1, offsets_fitted=set())
     assert "dBIC -19996.4" in text and "(0.521x)" in text and 'offsets = ["theta1"]' in text
-    assert "offsets =" not in D._fits_but_does_not_predict(scores, 10.0, 1.1, offsets_fitted={"theta1"})
+    assert "offsets =" not in notes_module._fits_but_does_not_predict(scores, 10.0, 1.1, offsets_fitted={"theta1"})
     # predicting slightly worse (within what acceptance asks) or better: no note
     for gain in (0.95, 1.05):
-        assert D._fits_but_does_not_predict([score("coulomb_friction", "joint1", -500.0, gain)], 10.0, 1.1, set()) == ""
+        assert (
+            notes_module._fits_but_does_not_predict(
+                [score("coulomb_friction", "joint1", -500.0, gain)], 10.0, 1.1, set()
+            )
+            == ""
+        )
     # a screened-out entry's dBIC is a prediction, not a fit
     screened = [score("x", "y", -500.0, float("nan"), screened=True)]
-    assert D._fits_but_does_not_predict(screened, 10.0, 1.1, set()) == ""
+    assert notes_module._fits_but_does_not_predict(screened, 10.0, 1.1, set()) == ""
 
 
 def test_a_baseline_fit_that_did_not_converge_or_ended_on_a_bound_is_noted():
     """Found in review: `diagnose` scored every candidate against a baseline fit that had
     run out of steps and said nothing (part of each candidate's gain is then the baseline's
     own fit finishing). A bound is noted as a possible symptom of the missing effect."""
-    assert D._convergence_notes("successful", []) == []
-    (note,) = D._convergence_notes("max_steps_reached", [])
+    assert notes_module._convergence_notes("successful", []) == []
+    (note,) = notes_module._convergence_notes("max_steps_reached", [])
     assert note["round"] == 0 and "did not converge (its solver ended: max_steps_reached)" in note["text"]
-    (note,) = D._convergence_notes("successful", ["joint1.damping"])
-    assert D.note_text(note).startswith("baseline: the baseline's joint1.damping ended on a bound")
-    assert len(D._convergence_notes("failed", ["a", "b"])) == 2
+    (note,) = notes_module._convergence_notes("successful", ["joint1.damping"])
+    assert notes_module.note_text(note).startswith("baseline: the baseline's joint1.damping ended on a bound")
+    assert len(notes_module._convergence_notes("failed", ["a", "b"])) == 2
 
 
 def test_a_failed_candidate_fit_is_given_its_reason():
@@ -697,7 +730,7 @@ def test_only_the_first_accepted_candidate_of_a_round_reads_named():
     / "yes", and only the delay was named."""
     import types
 
-    from identify.diagnose import round_verdicts
+    from identify._diagnose.scores import round_verdicts
 
     rows = [types.SimpleNamespace(label=k, accepted=a) for k, a in (("delay", True), ("lag", True), ("drag", False))]
     assert round_verdicts(rows) == {
@@ -722,13 +755,18 @@ def test_an_elastic_joint_fit_that_runs_out_of_steps_far_above_nyquist_is_eviden
         values = values or {"joint1.stiffness": k, "joint1.rotor_inertia": rotor, "hub1.inertia": 1.5e-7}
         return SimulationFailed("x", horizon_s=5.8, values=values, logs={"log0": why})
 
-    text = D._rigid_limit(cand, failure(), 100.0)
+    text = structural_module._rigid_limit(cand, failure(), 100.0)
     assert f"{f_joint:.3g} Hz" in text and f"{f_joint / 100:.0f}x" in text and "evidence against" in text
-    assert D._rigid_limit(cand, failure(), f_joint / 9.0) is None  # within 10x Nyquist: not the rigid limit
-    assert D._rigid_limit(cand, failure("the state stopped being finite"), 100.0) is None
-    assert D._rigid_limit(types.SimpleNamespace(name="missing_mode", where="link1"), failure(), 100.0) is None
-    assert D._rigid_limit(cand, RuntimeError("other"), 100.0) is None
-    reason = D._FailedTowardRigid("its reason", text)
+    assert (
+        structural_module._rigid_limit(cand, failure(), f_joint / 9.0) is None
+    )  # within 10x Nyquist: not the rigid limit
+    assert structural_module._rigid_limit(cand, failure("the state stopped being finite"), 100.0) is None
+    assert (
+        structural_module._rigid_limit(types.SimpleNamespace(name="missing_mode", where="link1"), failure(), 100.0)
+        is None
+    )
+    assert structural_module._rigid_limit(cand, RuntimeError("other"), 100.0) is None
+    reason = structural_module._FailedTowardRigid("its reason", text)
     assert reason == "its reason" and reason.evidence == text
 
 
@@ -751,9 +789,9 @@ def test_the_held_out_gains_standard_error_matches_its_scatter():
                     e[k] += phi * e[k - 1]
                 e *= math.sqrt(1 - phi**2)
             gains.append(math.sqrt(np.mean((e + misfit) ** 2) / np.mean(e**2)))
-            ses.append(D.gain_standard_error(e + misfit, e))
+            ses.append(scores_module.gain_standard_error(e + misfit, e))
         assert np.mean(ses) == pytest.approx(np.std(gains), rel=0.1), (phi, np.mean(ses), np.std(gains))
-    cause = D.Cause("sensor_gain_offset", "tip1", "", {}, -20.0, 1.1002, held_out_gain_se=0.02)
+    cause = scores_module.Cause("sensor_gain_offset", "tip1", "", {}, -20.0, 1.1002, held_out_gain_se=0.02)
     assert cause.marginal(1.1) and not dataclasses.replace(cause, held_out_gain=1.2).marginal(1.1)
     assert not dataclasses.replace(cause, held_out_gain_se=float("nan")).marginal(1.1)
-    assert math.isnan(D.gain_standard_error(np.ones(20), np.ones(19)))  # not paired
+    assert math.isnan(scores_module.gain_standard_error(np.ones(20), np.ones(19)))  # not paired

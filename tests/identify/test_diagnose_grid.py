@@ -26,7 +26,7 @@ from diagnose_cases import (
     pendulum_logs,
 )
 
-from identify import measurement as meas
+from identify._data import measurement as meas
 
 pytestmark = pytest.mark.slow
 

@@ -11,7 +11,7 @@ import pytest
 
 import flexdyn as fd
 import identify
-from identify import diagnostics
+from identify._diagnose import residual_tests as diagnostics
 
 
 def test_white_noise_passes_whiteness_at_the_stated_rate(rng):

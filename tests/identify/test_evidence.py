@@ -11,7 +11,7 @@ import oracles
 import pytest
 
 import flexdyn as fd
-from identify import evidence as ev
+from identify._diagnose import evidence as ev
 
 L, RHO, EI = 0.5, 0.2, 1.0  # paper 002's link as in test_fit's spinning-link fit
 SCALE = math.sqrt(EI / (RHO * L**4))  # rad/s; the first clamped frequency is 3.5160 SCALE

@@ -10,8 +10,8 @@ import pytest
 import scipy.io
 
 import flexdyn as fd
-from identify.experiment import ExperimentError, load_experiment
-from identify.logs import LogError
+from identify._data.experiment import ExperimentError, load_experiment
+from identify._data.logs import LogError
 
 
 def msg(*parts: str) -> str:
@@ -391,11 +391,10 @@ def test_starts_are_read_in_si_and_reach_the_fit(tmp_path, monkeypatch):
     """`[[starts]]`: extra points for the multi-start stage (`identify.fit`'s
     `extra_starts`), each naming some free parameters; `fit_experiment` passes them on
     unless the caller gives its own."""
-    import importlib
 
-    import identify.run as run
+    import identify._workflow as run
 
-    diagnose_module = importlib.import_module("identify.diagnose")  # `identify.diagnose` is also the function
+    diagnose_module = run
 
     body = (
         RIG
@@ -697,7 +696,7 @@ lag = 0.004
 """,
     )
     exp = load_experiment(path)
-    from identify import measurement as meas
+    from identify._data import measurement as meas
 
     m = exp.measurement
     assert float(meas.get_parameter(m, "sensor.tip1.gain")) == 1.02
@@ -753,7 +752,7 @@ def test_the_summary_says_where_gravity_makes_the_first_link_hang(gravity, text)
     """Oracle: the direction of the gravity vector in the base frame (`atan2(g_y, g_x)`):
     where a link with its centre of mass beyond the joint hangs. A log swinging about
     another angle has its zero elsewhere (the commonest set-up error on the real pendulum)."""
-    from identify.experiment import gravity_text
+    from identify._data.experiment import gravity_text
 
     assert text in gravity_text(gravity)
 
@@ -783,7 +782,7 @@ def test_a_log_sets_its_own_known_parameter_values(tmp_path):
     """`[[logs]] set = {...}`: a payload sweep's known tip mass per log reaches the log's
     `LogSpec.set`, the summary and the fit's `LogData.set`; a name the rig lacks, a value
     the rig refuses and a parameter that is also free are errors naming the line."""
-    from identify.run import log_data
+    from identify._workflow import log_data
 
     path = experiment(tmp_path, RIG + LOG + 'set = { "payload.mass" = 0.02 }\n')
     exp = load_experiment(path)

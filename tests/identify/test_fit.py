@@ -32,12 +32,19 @@ import time
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from fresh_jacobian import assert_standard_errors_match, fit_module, fresh_covariance  # tests/ is on sys.path
+from fresh_jacobian import assert_standard_errors_match, fresh_covariance  # tests/ is on sys.path
 from scipy.integrate import quad
 from scipy.signal import find_peaks
 
 import flexdyn as fd
 import identify
+import identify._fit.fit as fit_module
+import identify._fit.jacobian as jacobian_module
+import identify._fit.quality as quality_module
+import identify._fit.starts as starts_module
+import identify._fit.steps as steps_module
+import identify._model.parameters as parameters_module
+import identify._model.residuals as residuals_module
 
 # ---------------------------------------------------------------------------
 # The 4-parameter scenario
@@ -156,9 +163,9 @@ def test_recovery_accuracy_and_ci(arm):
             fresh = fresh_covariance(result)
             assert_standard_errors_match(result, fresh)
             # and the fallback without that linearisation (block Jacobian computed afresh)
-            x = fit_module._x_from_z(result.problem, result.z["phys"])
+            x = parameters_module._x_from_z(result.problem, result.z["phys"])
             sigma = np.asarray([result.sigma[c] for c in result.problem.channels])
-            fallback, _ = fit_module._covariance_at(result.problem, x, result.z, sigma, result.step)
+            fallback, _ = jacobian_module._covariance_at(result.problem, x, result.z, sigma, result.step)
             np.testing.assert_allclose(fallback.std_errors, fresh.std_errors, rtol=1e-8)
         assert result.converged, result.summary()
         for n, e in rel_errors(result).items():
@@ -256,14 +263,16 @@ def test_a_log_that_rests_before_its_input_is_fitted_from_its_onset(arm):
     # An early stage simulates the log from its onset (the rest skipped): the arm rests at
     # its equilibrium until the input, so by time invariance the outputs up to the stage's
     # horizon are the whole log's solve's (both adaptive, rtol 1e-10)
-    y0s = fit_module._initial_states(problem, jnp.zeros(0))
+    y0s = residuals_module._initial_states(problem, jnp.zeros(0))
     truth = jnp.asarray(list(TRUTH.values()))
-    early, ok_early = fit_module.predict(problem, truth, y0s, jnp.asarray(0.3))
-    whole, ok_whole = fit_module.predict(problem, truth, y0s)
+    early, ok_early = residuals_module.predict(problem, truth, y0s, jnp.asarray(0.3))
+    whole, ok_whole = residuals_module.predict(problem, truth, y0s)
     within = np.asarray(problem.t[0]) <= REST_S - DT + 0.3
     assert bool(ok_early[0]) and bool(ok_whole[0]) and within.sum() >= round(REST_S / DT) + 70  # 0.28 s of motion
     np.testing.assert_allclose(np.asarray(early[0])[within], np.asarray(whole[0])[within], rtol=0, atol=1e-9)
-    x0 = fit_module._frequency_initialise(problem, fit_module._x_from_theta(problem, [p.guess for p in params]), print)
+    x0 = starts_module._frequency_initialise(
+        problem, parameters_module._x_from_theta(problem, [p.guess for p in params]), print
+    )
     assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.15)
     start = time.perf_counter()
     result = identify.fit(problem, params, estimate_noise=False)
@@ -706,7 +715,7 @@ def test_problems_differing_only_in_their_log_names_share_compiled_programs():
     import equinox as eqx
     import jax.numpy as jnp
 
-    from identify.synthetic import simulate_log
+    from identify._model.synthetic import simulate_log
 
     chain = fd.rigs.rigid_pendulum()
     t = np.arange(101) / 100.0
@@ -923,8 +932,8 @@ def test_dx_dz_is_the_derivative_of_the_bound_transform():
         lower=jnp.asarray([-1.0, 0.5, -np.inf, -np.inf]), upper=jnp.asarray([3.0, np.inf, 2.0, np.inf])
     )
     for z in (np.array([0.3, -1.2, 0.7, 5.0]), np.array([-30.0, 40.0, -40.0, -2.0])):
-        exact = np.diag(np.asarray(jax.jacfwd(lambda z_: fit_module._x_from_z(problem, z_))(jnp.asarray(z))))
-        np.testing.assert_allclose(fit_module._dx_dz(problem, z), exact, rtol=1e-12, atol=0.0)
+        exact = np.diag(np.asarray(jax.jacfwd(lambda z_: parameters_module._x_from_z(problem, z_))(jnp.asarray(z))))
+        np.testing.assert_allclose(parameters_module._dx_dz(problem, z), exact, rtol=1e-12, atol=0.0)
 
 
 def test_standard_errors_fall_back_to_a_fresh_jacobian_when_the_last_solve_saw_part_of_the_log(arm):
@@ -938,14 +947,14 @@ def test_standard_errors_fall_back_to_a_fresh_jacobian_when_the_last_solve_saw_p
     z = {"phys": np.zeros(len(params)), "y0": np.zeros(0), "offset": np.zeros(0)}
     lin = (np.ones((1, n)), np.ones((1, n, len(params))), np.zeros((1, n, 0)))
     full = float(problem.t[0, -1] - problem.t[0, 0])
-    assert fit_module._natural_blocks(problem, z, lin, full) is not None
-    assert fit_module._natural_blocks(problem, z, lin, 0.5 * full) is None
+    assert jacobian_module._natural_blocks(problem, z, lin, full) is not None
+    assert jacobian_module._natural_blocks(problem, z, lin, 0.5 * full) is None
     # a parameter pressed against a bound: d x / d z from the logistic has lost digits
     near_bound = {**z, "phys": np.array([0.0, 16.0, 0.0, 0.0])}
-    assert fit_module._natural_blocks(problem, near_bound, lin, full) is None
-    failed = (np.full((1, n), fit_module.FAILED_RESIDUAL), *lin[1:])
+    assert jacobian_module._natural_blocks(problem, near_bound, lin, full) is None
+    failed = (np.full((1, n), residuals_module.FAILED_RESIDUAL), *lin[1:])
     with pytest.raises(RuntimeError, match="the simulation at the fitted parameters failed"):
-        fit_module._natural_blocks(problem, z, failed, full)
+        jacobian_module._natural_blocks(problem, z, failed, full)
 
 
 @pytest.mark.parametrize("budget", [{"max_steps": 0}, {"early_max_steps": 0}, {"max_steps": 2.5}])
@@ -967,8 +976,8 @@ def test_a_stage_step_is_at_most_the_torque_sample_interval():
     log = identify.LogData(t=t, outputs={"theta1": 0.01 * t}, torque=torque, name="rest_then_step")
     params = [identify.Parameter("joint1.damping", 1e-3)]
     problem = identify.make_problem(chain, params, [log], {"theta1": 1e-3})
-    assert float(fit_module.aligned_step(problem, 0.33)) == pytest.approx(4e-3, rel=1e-12)
-    assert float(fit_module.aligned_step(problem, 1.5e-3)) == pytest.approx(4e-3 / 3, rel=1e-12)
+    assert float(steps_module.aligned_step(problem, 0.33)) == pytest.approx(4e-3, rel=1e-12)
+    assert float(steps_module.aligned_step(problem, 1.5e-3)) == pytest.approx(4e-3 / 3, rel=1e-12)
 
 
 def test_a_simulation_that_runs_out_of_steps_is_named_with_the_values_where_it_failed():
@@ -1020,8 +1029,8 @@ def test_a_fit_that_ends_in_a_wrong_basin_restarts_from_the_next_start(arm, monk
 
     def first_attempt_in_the_wrong_basin(problem, z, sigma, horizons, *rest):
         if not attempts:
-            x = fit_module._x_from_theta(problem, [WRONG_BASIN[n] for n in problem.names])
-            z, horizons = {**z, "phys": jnp.asarray(fit_module._z_from_x(problem, x))}, horizons[-1:]
+            x = parameters_module._x_from_theta(problem, [WRONG_BASIN[n] for n in problem.names])
+            z, horizons = {**z, "phys": jnp.asarray(parameters_module._z_from_x(problem, x))}, horizons[-1:]
         attempts.append(1)
         return grow(problem, z, sigma, horizons, *rest)
 
@@ -1052,7 +1061,7 @@ def test_restarts_skip_the_multi_start_stages_repeated_optima():
     next distinct optima (`_distinct`: cost 76.88), and the fit ends within the bars."""
     costs = np.array([76.7302, 76.7302001, 76.88, 2688.0, np.inf])
     zs = [{"phys": np.full(2, float(k))} for k in range(5)]
-    assert [float(z["phys"][0]) for z in fit_module._distinct(zs, costs)] == [0.0, 2.0, 3.0]
+    assert [float(z["phys"][0]) for z in starts_module._distinct(zs, costs)] == [0.0, 2.0, 3.0]
     chain = arm_chain()
     t = np.arange(0.0, T_END, DT)
     clean = identify.simulate_log(chain, t, torque=doublets(t), channels=CHANNELS)
@@ -1121,7 +1130,7 @@ def test_parameters_the_data_see_only_in_combination_have_no_interval():
     summary = result.summary()
     assert "not determined" in summary and "link1.com, link1.inertia, joint1.damping not determined" in summary
     assert result.identifiability, summary
-    from identify.report import jsonable  # what result.json holds: no interval, not a number
+    from identify._report.json import jsonable  # what result.json holds: no interval, not a number
 
     assert all(p["ci95"][1] is None for p in jsonable(result.to_dict())["parameters"])
 
@@ -1131,7 +1140,8 @@ def test_a_gross_misfit_points_at_the_set_up_first():
     read as radians, gravity the wrong way for the logs' angle zero: measured 2.5e4x and
     3.5e4x on the real pendulum) adds a hint to check gravity and units; a poor fit of a
     right set-up (the real pendulum's missing drag and dry friction, 46x) does not."""
-    from identify.fit import GROSS_MISFIT, FitResult
+    from identify._fit.quality import GROSS_MISFIT
+    from identify._fit.result import FitResult
 
     def summary(ratio):
         quality = {"theta1": {"residual_rms": ratio * 1e-3, "noise_floor": 1e-3, "ratio": ratio, "poor": True}}
@@ -1154,14 +1164,14 @@ def test_a_gross_misfit_points_at_the_set_up_first():
 def test_the_noise_printout_has_units_and_says_declared_or_estimated():
     """Review: `noise re-estimated: theta1=0.000524, tip1=4.97e-05` showed a declared
     0.03 deg in rad beside an estimated tip noise, unlabelled."""
-    from identify.fit import _noise_text
+    from identify._fit.quality import _noise_text
 
     text = _noise_text(("theta1", "tip1"), [math.radians(0.03), 4.97e-5], ("tip1",))
     assert text == "theta1 0.03 deg (declared), tip1 0.0497 mm (estimated)"
 
 
 def test_restarts_stop_at_the_same_misfit_on_a_bound_too():
-    from identify.fit import _same_misfit
+    from identify._fit.quality import _same_misfit
 
     assert _same_misfit(True, 1.05e9, [(True, 1.0e9)])  # review: restarts on bounds, same cost
     assert _same_misfit(False, 10.5, [(False, 10.0)])
@@ -1271,7 +1281,7 @@ def test_a_re_estimated_weight_inflated_by_a_missing_effect_is_named():
     own = fits["re-estimated"]
     assert own.sigma_estimated == ("curvature1",) and own.to_dict()["noise_sigma_estimated"] == ["curvature1"]
     floor = own.fit_quality["curvature1"]["noise_floor"]
-    assert own.sigma["curvature1"] > fit_module.WEIGHT_MISMATCH * floor, (own.sigma, floor)
+    assert own.sigma["curvature1"] > quality_module.WEIGHT_MISMATCH * floor, (own.sigma, floor)
     assert "its weight was re-estimated from the residuals" in own.summary(), own.summary()
     ei = {k: (r.values[0], r.ci_low[0], r.ci_high[0]) for k, r in fits.items()}
     assert not ei["re-estimated"][1] <= 2.3 <= ei["re-estimated"][2], ei
@@ -1442,7 +1452,7 @@ def test_a_per_log_parameter_is_checked():
     mismatch = r"parameters \['payload.mass'\] are not the problem's \['payload.mass \(per log\)'\]"
     with pytest.raises(ValueError, match=mismatch):
         identify.fit(problem, [dataclasses.replace(own, per_log=False)])
-    starts = fit_module._extra_starts(problem, [own], [{"payload.mass": 0.04}, {"payload.mass[b]": 0.03}])
+    starts = starts_module._extra_starts(problem, [own], [{"payload.mass": 0.04}, {"payload.mass[b]": 0.03}])
     np.testing.assert_allclose(np.exp(starts[0]), [0.04, 0.04])
     np.testing.assert_allclose(np.exp(starts[1]), [0.02, 0.03])
 
@@ -1470,7 +1480,7 @@ def test_a_residual_well_below_a_floor_raised_by_fast_motion_gets_a_note():
     leakage (`identify.noise_floor`): white noise `sigma` plus a 150 Hz ringing of amplitude
     `A` at 500 Hz reads `sqrt(sigma^2 + (A (2 sin(pi f dt))^4 / sqrt(140))^2)`; a model that
     explains the ringing leaves `sigma`, well under that floor."""
-    from identify import noise_floor as nf
+    from identify._data import noise_floor as nf
 
     rng = np.random.default_rng(3)
     t = np.arange(0.0, 4.0, 2e-3)
@@ -1481,11 +1491,11 @@ def test_a_residual_well_below_a_floor_raised_by_fast_motion_gets_a_note():
     leak = amplitude * (2 * np.sin(np.pi * f * 2e-3)) ** 4 / math.sqrt(140)
     assert floor[0, 0] == pytest.approx(math.sqrt(sigma**2 + leak**2), rel=0.05)
     quality = nf.goodness(("alpha2",), np.asarray([[np.mean(noise**2)]]), floor, count)
-    assert quality["alpha2"]["ratio"] < fit_module.FLOOR_ABOVE_RESIDUAL
-    (note,) = fit_module._floor_above_residual_notes(quality)
+    assert quality["alpha2"]["ratio"] < quality_module.FLOOR_ABOVE_RESIDUAL
+    (note,) = quality_module._floor_above_residual_notes(quality)
     assert note.startswith("note: the residual of alpha2 is 0.") and "near the Nyquist frequency" in note
     at_floor = nf.goodness(("alpha2",), np.asarray([[np.mean(noise**2)]]), np.asarray([[sigma]]), count)
-    assert fit_module._floor_above_residual_notes(at_floor) == []
+    assert quality_module._floor_above_residual_notes(at_floor) == []
 
 
 def test_a_free_optional_term_the_chain_lacks_says_how_to_add_it():
@@ -1538,9 +1548,9 @@ def test_the_reversed_sign_check_survives_a_noisy_torque_column(arm, flipped):
             log, outputs=outputs, torque=log.torque + np.random.default_rng(100 + seed).normal(0, 0.002, tau.shape)
         )
         problem = identify.make_problem(arm.chain, params, [noisy], noise=arm.noise)
-        x = fit_module._x_from_theta(problem, [wrong[n] for n in problem.names])
-        z = {"phys": jnp.asarray(fit_module._z_from_x(problem, x)), "y0": jnp.zeros(0), "offset": jnp.zeros(0)}
-        named.append(fit_module._reversed_channels(problem, z, problem.sigma, None, ["theta1", "tip1"]))
+        x = parameters_module._x_from_theta(problem, [wrong[n] for n in problem.names])
+        z = {"phys": jnp.asarray(parameters_module._z_from_x(problem, x)), "y0": jnp.zeros(0), "offset": jnp.zeros(0)}
+        named.append(quality_module._reversed_channels(problem, z, problem.sigma, None, ["theta1", "tip1"]))
     if flipped:
         assert all(list(n) == ["theta1"] for n in named), named
     else:

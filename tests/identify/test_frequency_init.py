@@ -16,12 +16,15 @@ import time
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from fresh_jacobian import fit_module  # tests/ is on sys.path
 from test_fit import BARS, CHANNELS, DT, TRUTH, Arm, doublets, rel_errors  # tests/identify/ is on sys.path
 
 import flexdyn as fd
 import identify
-from identify import frequency_init
+import identify._fit.fit_independent as fit_independent_module
+import identify._fit.starts as starts_module
+import identify._model.parameters as parameters_module
+import identify._model.residuals as residuals_module
+from identify._fit import frequency_init
 
 
 def test_amplitude_spectrum_of_a_sine_and_of_white_noise():
@@ -77,7 +80,7 @@ def _peak_picking(problem, params) -> float:
     """The EI guess scaled by (f_peak / f_model)^2: f_peak the largest peak of the tip's
     measured spectrum from the onset in the band, f_model the model's flexural frequency
     at the guess (the estimate `identify.fit` used before matched spectra)."""
-    chain = fit_module._chain(problem, np.asarray([p.guess for p in params]))
+    chain = residuals_module._chain(problem, np.asarray([p.guess for p in params]))
     f_model = frequency_init.flexural_frequency(chain, 0)
     t, y = np.asarray(problem.t[0]), np.asarray(problem.measured[0, :, problem.channels.index("tip1")])
     keep = t >= float(problem.onset[0])
@@ -123,13 +126,13 @@ def test_matched_spectra_find_the_stiffness_where_peak_picking_fails(arm, name, 
     assert abs(math.log(_peak_picking(problem, params) / TRUTH["link1.EI"])) > math.log(1.4)
     said = []
     start = time.perf_counter()
-    x0 = fit_module._frequency_initialise(
-        problem, fit_module._x_from_theta(problem, [p.guess for p in params]), said.append
+    x0 = starts_module._frequency_initialise(
+        problem, parameters_module._x_from_theta(problem, [p.guess for p in params]), said.append
     )
     print(name, f"x{factor_ei}:", said, f"{time.perf_counter() - start:.1f} s")
     assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.12), said
     # the other parameters are not touched
-    np.testing.assert_array_equal(x0[1:], fit_module._x_from_theta(problem, [p.guess for p in params])[1:])
+    np.testing.assert_array_equal(x0[1:], parameters_module._x_from_theta(problem, [p.guess for p in params])[1:])
 
 
 def test_with_the_other_parameters_right_the_match_peaks_at_the_truth(arm):
@@ -143,8 +146,8 @@ def test_with_the_other_parameters_right_the_match_peaks_at_the_truth(arm):
     params = [identify.Parameter(n, v * (0.5 if n == "link1.EI" else 1.0), v * 1e-2, v * 1e2) for n, v in TRUTH.items()]
     problem = identify.make_problem(arm.chain, params, [log], noise=arm.noise)
     said = []
-    x0 = fit_module._frequency_initialise(
-        problem, fit_module._x_from_theta(problem, [p.guess for p in params]), said.append
+    x0 = starts_module._frequency_initialise(
+        problem, parameters_module._x_from_theta(problem, [p.guess for p in params]), said.append
     )
     assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.01), said
 
@@ -157,8 +160,8 @@ def test_a_log_without_flexural_motion_keeps_the_guess(arm):
     with pytest.warns(UserWarning, match=r"log 'synthetic' shows no motion above its noise"):  # (make_problem)
         problem, params = _problem(arm, t, np.zeros((len(t), 1)), 2.0)
     said = []
-    x = fit_module._x_from_theta(problem, [p.guess for p in params])
-    x0 = fit_module._frequency_initialise(problem, x, said.append)
+    x = parameters_module._x_from_theta(problem, [p.guess for p in params])
+    x0 = starts_module._frequency_initialise(problem, x, said.append)
     np.testing.assert_array_equal(x0, x)
     assert len(said) == 1 and "guess kept" in said[0], said
 
@@ -281,13 +284,13 @@ def test_a_long_log_is_compared_over_its_first_flexural_periods(arm, monkeypatch
     t = np.arange(0.0, 3.0, DT)
     problem, params = _problem(arm, t, doublets(t), 2.0)
     guesses = np.asarray([p.guess for p in params])
-    f_model = frequency_init.flexural_frequency(fit_module._chain(problem, jnp.asarray(guesses)), 0)
-    y0s = fit_module._initial_states(problem, jnp.zeros(0))
+    f_model = frequency_init.flexural_frequency(residuals_module._chain(problem, jnp.asarray(guesses)), 0)
+    y0s = residuals_module._initial_states(problem, jnp.zeros(0))
     spans = []
 
     def simulate(thetas, span):
         spans.append(span)
-        outputs, ok = fit_module._predict_jit(problem, jnp.asarray(thetas[0]), y0s, jnp.asarray(span))
+        outputs, ok = residuals_module._predict_jit(problem, jnp.asarray(thetas[0]), y0s, jnp.asarray(span))
         return np.asarray(outputs)[None], np.asarray([bool(np.all(ok))])
 
     limits = (guesses * 1e-3, guesses * 1e3)
@@ -314,8 +317,8 @@ def test_a_tip_channel_of_noise_only_is_flagged_as_a_poor_match(arm):
         params = [identify.Parameter(n, v * f, v * 1e-2, v * 1e2) for (n, v), f in zip(TRUTH.items(), factors)]
         problem = identify.make_problem(arm.chain, params, [log], noise=arm.noise)
         said[kind] = []
-        x = fit_module._x_from_theta(problem, [p.guess for p in params])
-        fit_module._frequency_initialise(problem, x, said[kind].append)
+        x = parameters_module._x_from_theta(problem, [p.guess for p in params])
+        starts_module._frequency_initialise(problem, x, said[kind].append)
     print(said)
     assert not any("WARNING" in m for m in said["intact"]), said
     assert any("WARNING" in m and "no link1.EI tried" in m for m in said["noise only"]), said
@@ -338,8 +341,8 @@ def test_a_tip_channel_dominated_by_noise_keeps_a_right_guess(arm):
     params = [identify.Parameter(n, v * 1.035, v * 1e-2, v * 1e2) for n, v in TRUTH.items()]
     problem = identify.make_problem(arm.chain, params, [log], noise=noise)
     said = []
-    x = fit_module._x_from_theta(problem, [p.guess for p in params])
-    x0 = fit_module._frequency_initialise(problem, x, said.append)
+    x = parameters_module._x_from_theta(problem, [p.guess for p in params])
+    x0 = starts_module._frequency_initialise(problem, x, said.append)
     print(said)
     np.testing.assert_array_equal(x0, x)
     assert len(said) == 1 and "no more than noise alone does" in said[0] and "guess kept" in said[0], said
@@ -396,8 +399,8 @@ def test_both_links_of_a_sine_driven_two_link_arm(guesses):
     at 2.0, 0.58 and 1.4 (guesses (0.5, 2), (2, 0.5), (1.4, 1.4))."""
     problem, params = _two_link_problem(*guesses)
     said = []
-    x0 = fit_module._frequency_initialise(
-        problem, fit_module._x_from_theta(problem, [p.guess for p in params]), said.append
+    x0 = starts_module._frequency_initialise(
+        problem, parameters_module._x_from_theta(problem, [p.guess for p in params]), said.append
     )
     print(guesses, np.exp(x0), said)
     assert math.exp(x0[0]) == pytest.approx(1.0, rel=0.10), said
@@ -411,7 +414,7 @@ def test_a_channel_with_a_free_gain_is_matched_in_shape_only(arm):
     the guess x2. With the gain fixed at 1, the fit's own loss sees the scale, and so does
     the initialisation: it matches a softer link (a larger deflection under the same load),
     as the fit itself would."""
-    from identify import measurement as meas
+    from identify._data import measurement as meas
 
     log = arm.log(1)
     log.outputs["tip1"] = 2.0 * log.outputs["tip1"]
@@ -424,8 +427,8 @@ def test_a_channel_with_a_free_gain_is_matched_in_shape_only(arm):
         measurement = meas.with_effect(meas.Measurement(), "sensor.tip1.gain") if free_gain else None
         problem = identify.make_problem(arm.chain, params, [log], noise=noise, measurement=measurement)
         said[free_gain] = []
-        x = fit_module._x_from_theta(problem, [p.guess for p in params])
-        found[free_gain] = math.exp(fit_module._frequency_initialise(problem, x, said[free_gain].append)[0])
+        x = parameters_module._x_from_theta(problem, [p.guess for p in params])
+        found[free_gain] = math.exp(starts_module._frequency_initialise(problem, x, said[free_gain].append)[0])
     print(found, said)
     assert found[True] == pytest.approx(TRUTH["link1.EI"], rel=0.10), said
     assert "shape only: its gain is free" in said[True][-1]
@@ -454,7 +457,9 @@ def test_a_lightly_damped_curvature_peak_is_matched_by_the_refinement():
     params = [identify.Parameter("link1.EI", 1.5, 0.1, 20.0), identify.Parameter("joint1.damping", 1e-3, 1e-6, 0.1)]
     problem = identify.make_problem(chain, params, [log], noise=noise)
     said = []
-    x0 = fit_module._frequency_initialise(problem, fit_module._x_from_theta(problem, [1.5, 1e-3]), said.append)
+    x0 = starts_module._frequency_initialise(
+        problem, parameters_module._x_from_theta(problem, [1.5, 1e-3]), said.append
+    )
     print(said)
     assert math.exp(x0[0]) == pytest.approx(2.3, rel=0.01), said
     assert not any("WARNING" in m for m in said), said
@@ -478,7 +483,7 @@ def test_each_independent_log_is_banded_at_its_own_payload(arm):
     ]
     params = [identify.Parameter("link1.EI", 2.0, 0.1, 20.0)]
     problem = identify.make_problem(arm.chain, params, logs, noise={"theta1": 1e-4, "tip1": 1e-6})
-    _, singles = fit_module._split(problem)
+    _, singles = fit_independent_module._split(problem)
     got = frequency_init._flexural_frequencies(singles, [np.asarray([2.0])] * 3, 0)
     expected = [
         frequency_init.flexural_frequency(fd.with_parameters(arm.chain, {"link1.EI": 2.0, "payload.mass": m}), 0)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from identify.logs import Calibration, LogError, load_log
+from identify._data.logs import Calibration, LogError, load_log
 
 
 def msg(*parts: str) -> str:
@@ -271,7 +271,7 @@ def test_strain_gauge_column_errors(tmp_path):
     ):
         load_log(path, columns, calibration={"tip1": {"neutral_axis_distance": 1e-3}})
     # a noise level in microstrain (experiment files' [noise]) says how to write it
-    from identify import units
+    from identify._data import units
 
     with pytest.raises(ValueError, match=msg("'2 ue' is a strain; expected a curvature", "'0.002 1/m'")):
         units.parse_quantity("2 ue", units.CURVATURE)
@@ -641,7 +641,7 @@ def test_mat_v73_struct_fields_are_read_by_their_path(tmp_path):
 def test_an_implausible_sampling_rate_asks_about_the_time_unit(dt, hint):
     """A 1 kHz log whose seconds were labelled [ms] loads at 1 MHz (the numbers are valid,
     so the loader cannot refuse them); its summary asks about the unit."""
-    from identify.logs import _sampling
+    from identify._data.logs import _sampling
 
     sampling = _sampling(dt * np.arange(100), 0.0)
     assert (hint in str(sampling)) if hint else sampling.time_unit_hint == ""
@@ -699,7 +699,7 @@ def test_format_md_lists_every_unit_and_spelling():
     `units.UNITS` and `units.ALIASES` (review: five accepted spellings were not listed)."""
     import pathlib
 
-    from identify import units
+    from identify._data import units
 
     doc = (pathlib.Path(__file__).parents[2] / "identify" / "FORMAT.md").read_text()
     missing = [k for k in [*units.UNITS, *units.ALIASES] if f"`[{k}]`" not in doc and f"`{k}`" not in doc]

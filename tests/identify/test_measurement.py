@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from identify import measurement as meas
+from identify._data import measurement as meas
 
 
 def test_highpass_of_a_ramp_is_the_closed_form():

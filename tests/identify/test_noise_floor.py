@@ -10,7 +10,7 @@ from math import comb
 import numpy as np
 import pytest
 
-from identify import noise_floor as nf
+from identify._data import noise_floor as nf
 
 
 def _binomial(k: int) -> np.ndarray:
@@ -148,7 +148,7 @@ def test_bad_samples_are_refused_with_a_message():
 def test_a_declared_noise_in_the_wrong_unit_is_questioned():
     """0.03 deg of white noise on a swing: declared as 0.03 (rad, the review's mistake) it is
     ~57 times the floor and questioned; declared right (0.03 deg), or estimated, it is not."""
-    from identify.noise_floor import declared_noise_warnings, series_floor
+    from identify._data.noise_floor import declared_noise_warnings, series_floor
 
     rng = np.random.default_rng(3)
     t = np.arange(2000) * 5e-3

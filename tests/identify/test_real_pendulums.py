@@ -23,7 +23,7 @@ from scipy.integrate import solve_ivp
 
 import flexdyn as fd
 from identify import clustered_uncertainty, fit, fitted_outputs, load_experiment, make_problem, predict
-from identify.run import log_data, parameters, problem_from_experiment
+from identify._workflow import log_data, parameters, problem_from_experiment
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "identify" / "examples"
 RTOL = 1e-7  # fit solver tolerance; the model error is ~1e-3 rad

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from identify.report import display_unit, state_display_unit
+from identify._data.units import display_unit, state_display_unit
 
 
 @pytest.mark.parametrize(
@@ -30,7 +30,7 @@ def test_state_entries_print_in_the_units_of_their_channels(entry, scale, unit):
 def test_a_long_figure_title_is_wrapped_to_the_figure_width():
     """A 5-inch figure titled with a long experiment name clipped it at both ends (seen:
     "easured vs fitted: ... (Kaheman et al"); wrapped, every line fits and nothing is lost."""
-    from identify.report import wrapped_title
+    from identify._report.fit_plots import wrapped_title
 
     title = "Measured vs fitted: single pendulum free swing (Kaheman et al.)"
     lines = wrapped_title(title, 5.0).splitlines()
@@ -42,7 +42,7 @@ def test_a_long_figure_title_is_wrapped_to_the_figure_width():
 def test_residual_spectrum_resolves_a_low_frequency_over_a_long_log():
     """Review: fixed 256-sample segments gave 0.78 Hz bins at 200 Hz, and a residual at a
     pendulum's 1.27 Hz swing showed up between bins. Oracle: the sine's own frequency."""
-    from identify.report import residual_spectrum
+    from identify._report.fit_plots import residual_spectrum
 
     t = np.arange(0.0, 30.0, 1 / 200)
     f, p = residual_spectrum(t, np.sin(2 * np.pi * 1.27 * t))

@@ -9,21 +9,19 @@ padding and the columns' order are all exercised.
 
 from __future__ import annotations
 
-import sys
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
 
-from identify.residuals import log_blocked, log_jacobian, residuals
-
-fit_module = sys.modules["identify.fit"]  # `identify.fit` is the function
+import identify._fit.levenberg_marquardt as levenberg_marquardt_module
+import identify._model.parameters as parameters_module
+from identify._model.residuals import log_blocked, log_jacobian, residuals
 
 
 def _theta_of(p):
-    return lambda x: fit_module._theta_from_x(p, x)
+    return lambda x: parameters_module._theta_from_x(p, x)
 
 
 def _jacfwd(p, x, y0, off, horizon):
@@ -65,11 +63,11 @@ def test_log_blocked_linearises_to_the_jacobian(multilog_problem):
     is the forward-mode Jacobian, column by column; differentiating the arguments is an
     error, not a wrong answer."""
     p, x, y0, off = multilog_problem
-    z = {"phys": fit_module._z_from_x(p, np.asarray(x)), "y0": y0, "offset": off}
+    z = {"phys": parameters_module._z_from_x(p, np.asarray(x)), "y0": y0, "offset": off}
     z["phys"] = jnp.asarray(z["phys"])
     args = (p, p.sigma, None, 2e-3)
-    fn = log_blocked(fit_module._unpack)
-    plain = fit_module._residual_fn
+    fn = log_blocked(levenberg_marquardt_module._unpack)
+    plain = levenberg_marquardt_module._residual_fn
     np.testing.assert_array_equal(fn(z, args), plain(z, args))
     r, lin = jax.linearize(lambda z_: fn(z_, args), z)
     J_ref = jax.jacfwd(lambda z_: plain(z_, args))(z)
@@ -90,15 +88,15 @@ def test_levenberg_marquardt_takes_the_same_steps(multilog_problem):
     """Levenberg-Marquardt through the block rule takes the iterates of the plain residual
     function (whose linear map JAX builds itself) and reaches the same optimum."""
     p, x, y0, off = multilog_problem
-    z0 = {"phys": jnp.asarray(fit_module._z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
+    z0 = {"phys": jnp.asarray(parameters_module._z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
     args = (p, p.sigma, None, 2e-3)
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
-    blocked = optx.least_squares(log_blocked(fit_module._unpack), solver, z0, args=args, max_steps=60)
-    plain = optx.least_squares(fit_module._residual_fn, solver, z0, args=args, max_steps=60)
+    blocked = optx.least_squares(log_blocked(levenberg_marquardt_module._unpack), solver, z0, args=args, max_steps=60)
+    plain = optx.least_squares(levenberg_marquardt_module._residual_fn, solver, z0, args=args, max_steps=60)
     assert int(blocked.stats["num_steps"]) == int(plain.stats["num_steps"])
     for k in z0:
         np.testing.assert_allclose(blocked.value[k], plain.value[k], rtol=1e-8, atol=1e-12)
-    theta = fit_module._theta_from_x(p, fit_module._x_from_z(p, blocked.value["phys"]))
+    theta = parameters_module._theta_from_x(p, parameters_module._x_from_z(p, blocked.value["phys"]))
     np.testing.assert_allclose(theta[0], 3e-3, rtol=0.05)  # the data's own damping
 
 
@@ -106,7 +104,7 @@ def test_nuisances_only(multilog_problem):
     """With no shared variables (held-out logs: the physical parameters fixed, only each
     log's own initial state and offsets fitted) the Jacobian is the nuisances' columns."""
     p, x, y0, off = multilog_problem
-    theta = fit_module._theta_from_x(p, x)
+    theta = parameters_module._theta_from_x(p, x)
     r_ref, J_ref = _jacfwd(p, x, y0, off, None)
     jac = log_jacobian(p, lambda shared: theta, {}, y0, off, p.sigma, None, 2e-3)
     J = np.asarray(jac.dense(len(p.y0_free), len(p.offset_free)))
@@ -132,7 +130,7 @@ def test_a_trial_point_the_model_refuses_is_a_failed_solve_not_an_error(multilog
     model's parameter check stopped the whole fit ("joint1.stiffness must be finite and >
     0"). Such a point must be what a failed solve is: `FAILED_RESIDUAL` on every used
     sample, so the step is rejected; the other logs' residuals and a good point unchanged."""
-    from identify.residuals import FAILED_RESIDUAL
+    from identify._model.residuals import FAILED_RESIDUAL
 
     p, x, y0_good, off = multilog_problem
     r, ok = jax.jit(lambda th, y: residuals(p, th, y, off, p.sigma, None, 2e-3))(
@@ -158,19 +156,20 @@ def test_an_unbounded_log_scale_parameter_far_out_is_a_bad_point_not_an_error(x_
     the model's check ("must be finite and > 0") stopped the fit. Its natural coordinate
     is clipped (`identify.fit.exp_natural`): the point gives finite residuals or the
     failed-solve ones, and the value inside the clip is exp's."""
+    import flexdyn as fd
     import identify
 
-    chain = fit_module.fd.rigs.rigid_pendulum()
+    chain = fd.rigs.rigid_pendulum()
     t = np.arange(80) * 5e-3
     log = identify.simulate_log(chain, t, initial={"theta1": 0.4}, channels=("theta1",))
     params = [identify.Parameter("hub1.inertia", 2e-5), identify.Parameter("payload.mass", 0.03, 1e-3, 1.0)]
     p = identify.make_problem(chain, params, [log], {"theta1": 1e-3})
     assert p.log_scale[0] and not np.isfinite(np.asarray(p.lower[0]))  # unbounded, log scale
-    theta = fit_module._theta_from_x(p, jnp.asarray([x_far, np.log(0.03)]))
+    theta = parameters_module._theta_from_x(p, jnp.asarray([x_far, np.log(0.03)]))
     assert 0 < float(theta[0]) < np.inf
     r, ok = residuals(p, theta, jnp.zeros(0), jnp.zeros(0), p.sigma, None, 2e-3)
     assert np.all(np.isfinite(np.asarray(r)))
-    np.testing.assert_allclose(fit_module.exp_natural(jnp.asarray(3.0)), np.exp(3.0), rtol=1e-15)
+    np.testing.assert_allclose(parameters_module.exp_natural(jnp.asarray(3.0)), np.exp(3.0), rtol=1e-15)
 
 
 def test_a_per_log_parameter_reaches_its_own_log_only():
@@ -203,7 +202,7 @@ def test_a_per_log_parameter_reaches_its_own_log_only():
     assert p.per_log == (("payload.mass", (1, 2, 3)),)
     masses = [0.02, 0.05, 0.11]
     theta = jnp.asarray([2.5e-3, *masses])
-    x = jnp.asarray(fit_module._x_from_theta(p, np.asarray(theta)))
+    x = jnp.asarray(parameters_module._x_from_theta(p, np.asarray(theta)))
     y0 = jnp.asarray([0.41, 0.52])
     off = jnp.zeros(0)
 

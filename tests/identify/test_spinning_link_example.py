@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 import flexdyn as fd
-from identify import evidence, load_experiment
+from identify import load_experiment
+from identify._diagnose import evidence
 from identify.cli import main
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "identify" / "examples" / "spinning_link"

@@ -15,8 +15,8 @@ import pytest
 from diagnose_cases import PENDULUM_NOISE, PENDULUM_T, pendulum  # tests/ is on sys.path
 
 import flexdyn as fd
-from identify.diagnose import split_logs
-from identify.synthetic import simulate_log
+from identify._diagnose.split import split_logs
+from identify._model.synthetic import simulate_log
 
 
 @pytest.mark.parametrize("fraction", [0.5, 0.6, 0.7, 0.8])

@@ -16,7 +16,7 @@ import optimistix as optx
 import pytest
 from scipy.optimize import least_squares
 
-from identify.trust_region import ScaledTrustRegion, max_gauss_newton_diagonal
+from identify._fit.trust_region import ScaledTrustRegion, max_gauss_newton_diagonal
 
 
 def _info(J, r, y):

@@ -217,7 +217,7 @@ def test_per_log_values_of_one_fit_are_compared_with_their_covariance():
     scatter of the common values. The weighted formula for independent fits, which
     ignores the correlation, fires at p < 0.05 in well under 1 %: it would miss real
     differences."""
-    from identify.uncertainty import _per_log_agreement
+    from identify._fit.uncertainty import _per_log_agreement
 
     rng = np.random.default_rng(5)
     n, trials = 5, 4000

@@ -36,7 +36,7 @@ from jax.flatten_util import ravel_pytree
 import flexdyn as fd
 from flexdyn.simulate import adaptive_controller as _adaptive_controller
 
-from . import channels as ch, measurement as meas
+from .._data import channels as ch, measurement as meas
 
 
 def _values(problem, theta, log_values=None, log_index=None) -> dict:
@@ -434,3 +434,7 @@ def log_blocked(unpack: Callable) -> Callable:
         return jac.r.reshape(-1), jac.apply(t_shared, flat(v["y0"], tv["y0"]), flat(v["offset"], tv["offset"]))
 
     return wrapped
+
+
+# compiled once per problem layout (an eager call re-traces and runs the assembly op by op)
+_predict_jit = eqx.filter_jit(predict)

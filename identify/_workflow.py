@@ -5,9 +5,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import diagnostics
-from .experiment import Experiment, LogSpec
-from .fit import FitResult, LogData, Parameter, Problem, fit, fit_independent, fitted_outputs, make_problem
+from ._data.experiment import Experiment, LogSpec
+from ._diagnose import residual_tests as diagnostics
+from ._diagnose.diagnosis import Diagnosis
+from ._diagnose.search import diagnose_logs
+from ._diagnose.split import split_logs
+from ._fit.fit import fit
+from ._fit.fit_independent import fit_independent
+from ._fit.result import FitResult, fitted_outputs
+from ._model.parameters import Parameter
+from ._model.problem import LogData, Problem, make_problem
 
 
 def log_data(spec: LogSpec, n_joints: int) -> LogData:
@@ -103,3 +110,63 @@ def residual_report(result: FitResult, max_lag: int = 25) -> dict:
             per_channel[c] = item
         report[name] = per_channel
     return report
+
+
+def diagnose(experiment, *, progress=None, **options) -> Diagnosis:
+    """Diagnose an `Experiment` (see the module docstring); `options` go to `diagnose_logs`.
+    The baseline fit starts from the experiment's `[[starts]]` too (`fit_options`'
+    `extra_starts`, unless the caller gives them)."""
+    from ._data.experiment import Experiment
+    from ._workflow import log_data, parameters
+
+    if not isinstance(experiment, Experiment):
+        raise TypeError(
+            f"diagnose: expected an Experiment (identify.load_experiment(path)), got {type(experiment).__name__} "
+            f"{experiment!r}"
+        )
+    options["fit_options"] = {"extra_starts": experiment.starts, **(options.get("fit_options") or {})}
+
+    n = experiment.chain.n_links
+    fit_logs = [log_data(s, n) for s in experiment.fit_logs]
+    val_logs = [log_data(s, n) for s in experiment.validation_logs]
+    time_split = not val_logs and len(fit_logs) == 1
+    fit_logs, held, desc = split_logs(fit_logs, val_logs)
+    noise = {c: v for c, v in experiment.noise.items() if v is not None}
+    return diagnose_logs(
+        experiment.chain,
+        # (a time split holds out a segment of the one log: a per-log parameter is its value)
+        parameters(experiment, per_log=not time_split),
+        fit_logs,
+        held,
+        noise,
+        measurement=experiment.measurement,
+        split=desc,
+        progress=progress,
+        **options,
+    )
+
+
+def validate(exp, result, progress=None):
+    """The fitted model on every validation log (`identify.evaluate_held_out`: physical
+    parameters fixed, each log's own initial-state entries and offsets re-estimated).
+    Returns `(outputs, report, nuisances)` in the layout of `identify.fitted_outputs`,
+    `identify.residual_report` and `FitResult.initial_states/offsets`."""
+    from ._fit.result import fitted_outputs
+    from ._workflow import evaluate_held_out, residual_report
+
+    held = evaluate_held_out(result, exp, progress=progress)
+    nuisances = {
+        name: {
+            "initial_states": {k: v[0] for k, v in held.initial_states.get(name, {}).items()},
+            "offsets": {k: v[0] for k, v in held.offsets.get(name, {}).items()},
+            # (each held-out log's own value of a per-log parameter, `Parameter.per_log`)
+            "parameters": {p: by_log[name] for p, by_log in held.per_log.items()},
+        }
+        for name in held.problem.log_names
+    }
+    return fitted_outputs(held), residual_report(held), nuisances
+
+
+#: `identify fit` adds cluster-robust intervals (`identify.clustered_uncertainty`) from this
+#: many fit logs on (fewer clusters give an interval too uncertain to be useful).
+CLUSTER_MIN_LOGS = 5

@@ -173,7 +173,7 @@ def declared_noise_warnings(declared: dict, quality: dict) -> list[str]:
     `NOISE_MISMATCH` of it. Found in review: `"0.03"` meant as degrees and read as
     0.03 rad (57 times the floor) widened every interval 7x in silence; a declared noise
     in the wrong unit is the usual cause."""
-    from .report import display_unit
+    from .units import display_unit
 
     out = []
     for c, sigma in declared.items():

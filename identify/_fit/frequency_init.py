@@ -100,8 +100,8 @@ from scipy.special import i0e, i1e
 
 import flexdyn as fd
 
-from .noise_floor import channel_floors
-from .residuals import _chain
+from .._data.noise_floor import channel_floors
+from .._model.residuals import _chain
 
 #: EI factors tried around the guess (flexural frequency ~ sqrt(EI): 1/4 to 4 times the
 #: guess's, in steps of 2^(1/4), 19 %)

@@ -14,56 +14,30 @@ from pathlib import Path
 
 import numpy as np
 
+from .._data.units import display_unit
+
 FIT_PLOT = "measured_vs_fitted.png"
+
+
 RESIDUALS_PLOT = "residuals.png"
+
+
 SPECTRUM_PLOT = "residual_spectrum.png"
+
+
 AUTOCORRELATION_PLOT = "residual_autocorrelation.png"
+
+
 CORRELATION_PLOT = "parameter_correlation.png"
+
+
 BY_LOG_PLOT = "parameters_by_log.png"
+
+
 PLOT_FILES = (FIT_PLOT, RESIDUALS_PLOT, SPECTRUM_PLOT, AUTOCORRELATION_PLOT, CORRELATION_PLOT)
 
+
 DPI = 110
-
-
-def jsonable(x):
-    """`x` in plain JSON types for `result.json` and `diagnosis.json`: arrays as lists,
-    paths as strings, and NaN and infinities (a parameter the data do not determine has an
-    infinite standard error and interval) as null, which every JSON reader accepts."""
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    if isinstance(x, Path):
-        return str(x)
-    return x
-
-
-def display_unit(channel: str) -> tuple[float, str]:
-    """(scale, unit) to show an SI channel value in: degrees for angles, mm for lengths."""
-    if channel.startswith(("theta", "phi", "alpha")):
-        return 180.0 / np.pi, "deg"
-    if channel.startswith(("tip", "end_")):
-        return 1e3, "mm"
-    if channel.startswith("curvature"):
-        return 1.0, "1/m"
-    if channel.startswith("accel_"):
-        return 1.0, "m/s^2"
-    return 1.0, "SI"
-
-
-def state_display_unit(entry: str) -> tuple[float, str]:
-    """(scale, unit) to show a state entry in (`identify.channels.state_names`): angles
-    (`theta1`, `alpha1`) in deg, modal coordinates (`q1_1`: m, RMS deflection of the mode)
-    in mm, and their `_rate`s per second."""
-    base, rate = (entry[: -len("_rate")], True) if entry.endswith("_rate") else (entry, False)
-    scale, unit = (1e3, "mm") if base.startswith("q") else display_unit(base)
-    return scale, f"{unit}/s" if rate else unit
 
 
 def _figure(rows, cols, title, width=5.0, height=2.8):

@@ -29,7 +29,8 @@ import numpy as np
 import scipy.stats
 
 from . import covariance
-from .fit import FitResult, jacobian_blocks_at
+from .jacobian import jacobian_blocks_at
+from .result import FitResult
 
 
 @dataclasses.dataclass

@@ -44,7 +44,7 @@ import numpy as np
 import flexdyn as fd
 from flexdyn._checks import as_float_array
 
-from . import measurement as meas
+from .._data import measurement as meas
 
 NAMES = (
     "coulomb_friction",

@@ -13,9 +13,14 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from . import covariance, evidence as ev  # noqa: E402
-from .diagnose import DETECTION_LIMITS_MEANING, note_text, round_verdicts  # noqa: E402
-from .report import display_unit, jsonable, wrapped_title  # noqa: E402
+from .._data.units import display_unit
+from .._diagnose import evidence as ev  # noqa: E402
+from .._diagnose.diagnosis import DETECTION_LIMITS_MEANING
+from .._diagnose.notes import note_text
+from .._diagnose.scores import round_verdicts  # noqa: E402
+from .._fit import covariance
+from .fit_plots import wrapped_title  # noqa: E402
+from .json import jsonable
 
 JSON_FILE = "diagnosis.json"
 REPORT_FILE = "report.md"

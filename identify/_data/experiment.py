@@ -238,7 +238,7 @@ class Experiment:
 def _noise_text(channel: str, sigma: float) -> str:
     """`0.000349066 rad (0.02 deg)`: SI, and in the unit the reports use when it differs
     (review: `identify check` echoed a "0.02 deg" noise as rad only)."""
-    from .report import display_unit
+    from .units import display_unit
 
     si = u.SI_UNIT[u.channel_dimension(channel)]
     scale, unit = display_unit(channel)

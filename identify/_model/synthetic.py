@@ -13,9 +13,9 @@ import numpy as np
 
 import flexdyn as fd
 
-from . import channels as ch, measurement as meas
-from .channels import state_names
-from .fit import LogData
+from .._data import channels as ch, measurement as meas
+from .._data.channels import state_names
+from .problem import LogData
 
 
 def simulate_log(

@@ -37,8 +37,8 @@ import numpy as np
 
 from flexdyn.stiffening import first_mode_stiffening
 
-from . import diagnostics
-from .report import display_unit
+from .._data.units import display_unit
+from . import residual_tests as diagnostics
 
 STIFFENING_THRESHOLD = 0.01  # relative change of omega_1^2 above which a check is flagged
 

@@ -29,6 +29,8 @@ from __future__ import annotations
 import math
 import re
 
+import numpy as np
+
 TIME = "time"
 ANGLE = "angle"
 LENGTH = "length"
@@ -265,3 +267,25 @@ def article(word: str) -> str:
 
 def _example_unit(dimension: str) -> str:
     return {ANGLE: "deg", LENGTH: "mm", TIME: "ms"}.get(dimension, SI_UNIT.get(dimension, ""))
+
+
+def display_unit(channel: str) -> tuple[float, str]:
+    """(scale, unit) to show an SI channel value in: degrees for angles, mm for lengths."""
+    if channel.startswith(("theta", "phi", "alpha")):
+        return 180.0 / np.pi, "deg"
+    if channel.startswith(("tip", "end_")):
+        return 1e3, "mm"
+    if channel.startswith("curvature"):
+        return 1.0, "1/m"
+    if channel.startswith("accel_"):
+        return 1.0, "m/s^2"
+    return 1.0, "SI"
+
+
+def state_display_unit(entry: str) -> tuple[float, str]:
+    """(scale, unit) to show a state entry in (`identify.channels.state_names`): angles
+    (`theta1`, `alpha1`) in deg, modal coordinates (`q1_1`: m, RMS deflection of the mode)
+    in mm, and their `_rate`s per second."""
+    base, rate = (entry[: -len("_rate")], True) if entry.endswith("_rate") else (entry, False)
+    scale, unit = (1e3, "mm") if base.startswith("q") else display_unit(base)
+    return scale, f"{unit}/s" if rate else unit

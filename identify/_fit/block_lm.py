@@ -39,7 +39,7 @@ import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
-from .residuals import Layout
+from .._model.residuals import Layout
 
 _NUISANCES = ("y0", "offset")
 

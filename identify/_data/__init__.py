@@ -1,0 +1,1 @@
+"""Private: the public API is `identify/__init__.py`."""

@@ -1,0 +1,382 @@
+"""`Diagnosis`: what `diagnose_logs` returns, with its summary and JSON form."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+import flexdyn as fd
+
+from .._data import measurement as meas, noise_floor as nf
+from .._fit import covariance
+from .._fit.result import FitResult
+from .._model.parameters import _at_bounds
+from .._model.problem import Problem
+from .._model.residuals import (
+    _initial_states,
+    _offsets,
+)
+from .held_out import _held_out_summary
+from .joint_model import _predict
+from .notes import note_text
+from .scores import _limit_text, round_verdicts
+
+#: what `Diagnosis.detection_limits` are, as the summary and the report say it
+DETECTION_LIMITS_MEANING = (
+    "the smallest effect of each candidate not named that these logs would have let the search name, "
+    "linearised at the final model (`identify.diagnose.detection_limits`; on simulated pendulum logs, dry "
+    "friction at its limit was named in 7 of 12 trials, at 1.5x in 12 of 12, at 0.67x in none)"
+)
+
+
+@dataclasses.dataclass
+class Diagnosis:
+    """What `diagnose` found (see `summary()` and `to_dict()`)."""
+
+    split: str
+    baseline: FitResult
+    evidence: dict
+    rounds: list  # per round: list of Score (sorted by dBIC)
+    causes: list  # Cause, in the order accepted
+    held_out: dict  # {'baseline': {ch: rms}, 'extended': {ch: rms}, 'gain': {ch: ratio}, 'gain_total': ...}
+    delta_bic_total: float
+    fraction_explained: float
+    # None when the baseline's held-out residual is not above the noise level (e.g. noise
+    # "estimate"d from the baseline's own residual): there is no excess to explain
+    fraction_of_excess_explained: float | None
+    extended_chain: fd.Chain
+    extended_measurement: meas.Measurement
+    extended_parameters: dict
+    outputs: dict  # per held-out and fit log: t, measured, baseline, extended
+    modal_frequencies_hz: list
+    wall_time: float
+    # every parameter of the extended model (baseline and extensions): name -> {value,
+    # std_error, ci95}, from the exact Jacobian of its final fit
+    extended_intervals: dict = dataclasses.field(default_factory=dict)
+    # weighted costs (sums of squared residuals over the noise) of the baseline and the
+    # extended model on the fit and held-out data; N (`n_fit`, `n_held_out`) and the
+    # number of added parameters `k`: what the totals are computed from
+    costs: dict = dataclasses.field(default_factory=dict)
+    # what the baseline model assumes that the logs may break (`evidence.stiffening_checks`:
+    # a flexible link spinning or hanging enough to need geometric stiffening)
+    model_checks: list = dataclasses.field(default_factory=list)
+    # what the search decided not to try, and why: `{'round': n, 'text': ...}` (candidates
+    # not refitted in round n, counted over the whole search)
+    notes: list = dataclasses.field(default_factory=list)
+    # the catalogue entries not tried at all, and why: name -> reason (an entry that does
+    # not apply to the rig or the logs, one the caller excluded, one already in the model)
+    not_tried: dict = dataclasses.field(default_factory=dict)
+    # the smallest effect of each continuous candidate not named that these logs would have
+    # let the search name (BIC test and held-out gain), linearised at the final model
+    # (`detection_limits`): label -> {parameter: {"value", "criterion", "unit", "neutral"}},
+    # "value" the offset from the neutral value (inf: not seen to first order)
+    detection_limits: dict = dataclasses.field(default_factory=dict)
+    # the held-out gain a cause had to reach (`diagnose_logs`' `min_gain`)
+    min_gain: float = 1.1
+    # the per-log parameters (`Parameter.per_log`) of the extended model: name -> {log:
+    # value (SI)}, the fit logs' fitted with it (also in `extended_parameters` as
+    # `name[log]`, with intervals), the held-out logs' refitted there like their initial
+    # states (what the held-out scores were computed at)
+    per_log: dict = dataclasses.field(default_factory=dict)
+    # which logs of `per_log` are held out
+    held_out_logs: tuple = ()
+
+    def marginal_text(self, c) -> str:
+        """What a cause's marginal held-out gain (`Cause.marginal`) means."""
+        return (
+            f"its held-out gain {c.held_out_gain:.4f}x is within two standard errors ({c.held_out_gain_se:.2g} "
+            f"each) of the {self.min_gain:g}x bar it passed: as likely a chance pass as an effect; confirm it on "
+            "more held-out data (or a noisy input column may be what it fits)"
+        )
+
+    @property
+    def named(self) -> list[str]:
+        return [c.name for c in self.causes]
+
+    @property
+    def left_unexplained(self) -> list[str]:
+        """The channels whose held-out residual under the extended model is above
+        `identify.noise_floor.POOR_FIT` times the held-out data's model-free noise floor."""
+        floor = self.held_out.get("noise_floor", {})
+        return [c for c, rms in self.held_out["extended"].items() if c in floor and rms > nf.POOR_FIT * floor[c]]
+
+    @property
+    def excess_explained_text(self) -> str:
+        """`fraction_of_excess_explained` as text ("n/a ..." when there is no excess)."""
+        if self.fraction_of_excess_explained is None:
+            return "n/a, the baseline's held-out residual is not above the noise level"
+        return f"{self.fraction_of_excess_explained:.3f}"
+
+    @property
+    def baseline_converged(self) -> bool:
+        """Whether the baseline fit's solver converged (a parameter on its bound does not
+        count against it here: in a diagnosis that is often the missing effect's symptom,
+        and `notes` says so). `identify diagnose` exits 3 when it did not."""
+        return self.baseline.stages[-1]["result"] == "successful"
+
+    @property
+    def extended_at_bounds(self) -> list[str]:
+        """The baseline's parameters whose value in the extended model lies on one of
+        their bounds (judged as `FitResult.at_bounds` is). Found in review: the real
+        pendulum's `joint1.damping` went to its lower bound once air drag took over the
+        damping, and nothing said so."""
+        if not self.causes:
+            return []
+        problem = self.baseline.problem
+        xs = []
+        for name, log, value in zip(problem.names, problem.log_scale, self.baseline.values):
+            v = float(self.extended_parameters.get(name, value))
+            xs.append(math.log(v) if log and v > 0 else (-math.inf if log else v))
+        return _at_bounds(problem, np.asarray(xs))
+
+    def at_bound_lines(self) -> list[str]:
+        """A sentence per parameter of `extended_at_bounds`."""
+        return [
+            f"{n} = {float(self.extended_parameters[n]):.5g} ended on a bound in the extended model: what it stood for "
+            "in the baseline may now be carried by the named cause(s) (its interval is then meaningless), or its "
+            "bound is too narrow (widen it if that is physical)"
+            for n in self.extended_at_bounds
+        ]
+
+    def detection_limit_lines(self) -> list[str]:
+        """One line per candidate not named: the smallest effect that would have been
+        named, per parameter, and the criterion that sets it."""
+        out = []
+        for lab, per in self.detection_limits.items():
+            parts = [
+                f"{n} {_limit_text(p)} ({p['criterion']})"
+                if math.isfinite(p["value"])
+                else f"{n}: not seen apart from the model's own parameters (to first order)"
+                for n, p in per.items()
+            ]
+            out.append(f"{lab}: {'; '.join(parts)}")
+        return out
+
+    def summary(self) -> str:
+        lines = [f"held-out data: {self.split}", ""]
+        if self.causes:
+            lines.append("accepted causes:")
+            for c in self.causes:
+                lines.append(
+                    f"  {c.name} at {c.where} ({c.description}): dBIC {c.delta_bic:.1f}, "
+                    f"held-out gain {c.held_out_gain:.2f}x"
+                    + (f" (SE {c.held_out_gain_se:.2g})" if np.isfinite(c.held_out_gain_se) else "")
+                    + (f" (together with {', '.join(c.together_with)}: the pair's scores)" if c.together_with else "")
+                )
+                for n, p in c.parameters.items():
+                    lines.append(
+                        f"    {n} = {p['value']:.{covariance.digits(p['value'], p['std_error'])}g}"
+                        + (f" {p['unit']}" if p["unit"] and p["unit"] != "1" else "")  # (a gain's "1" read as a typo)
+                        + f" (SE {p['std_error']:.2g}, 95 % CI {covariance.interval_text(*p['ci95'])})"
+                    )
+                for w in c.warnings:
+                    lines.append(f"    IMPLAUSIBLE: {w}")
+                if c.marginal(self.min_gain):
+                    lines.append(f"    MARGINAL: {self.marginal_text(c)}")
+        else:
+            lines.append("no catalogue entry explains the residual significantly (see the evidence and the scores)")
+        for line in self.at_bound_lines():
+            lines.append(f"on a bound: {line}")
+        for check in self.model_checks:
+            if check["flagged"]:
+                lines.append(f"model check: {check['message']}")
+        lines.append("")
+        floor = self.held_out.get("noise_floor", {})
+        lines.append(
+            "held-out RMS per channel (baseline -> extended, gain; the data's model-free noise floor, "
+            "identify.noise_floor):"
+        )
+        from .._data.units import display_unit
+
+        for c in self.held_out["baseline"]:
+            k, unit = display_unit(c)  # (review: the console's values had no unit; SI rad beside report.md's deg)
+            lines.append(
+                f"  {c} ({unit}): {k * self.held_out['baseline'][c]:.4g} -> {k * self.held_out['extended'][c]:.4g} "
+                f"({self.held_out['gain'][c]:.2f}x)" + (f"; floor {k * floor[c]:.4g}" if c in floor else "")
+            )
+        for c in self.left_unexplained:
+            ratio = self.held_out["extended"][c] / floor[c]
+            lines.append(
+                f"  {c}: the {'extended' if self.causes else 'baseline'} model's held-out residual is still "
+                f"{ratio:.3g} times the noise floor: an effect is left unexplained (or the noise is not white, "
+                "or the logged input is noisy: noise on a torque column drives the model, not the rig)"
+            )
+        for name, by_log in self.per_log.items():
+            unit = _unit(self.baseline.problem, name)
+            unit = f" ({unit})" if unit and unit != "1" else ""
+            fitted = ", ".join(f"{log} {v:.5g}" for log, v in by_log.items() if log not in self.held_out_logs)
+            held = ", ".join(f"{log} {v:.5g}" for log, v in by_log.items() if log in self.held_out_logs)
+            lines.append(
+                f"per log: {name}{unit}: {fitted} (fitted)" + (f"; {held} (held out, refitted there)" if held else "")
+            )
+        lines.append(
+            f"total dBIC {self.delta_bic_total:.1f}; fraction of the held-out residual explained "
+            f"{self.fraction_explained:.3f} (of its excess over the noise: {self.excess_explained_text})"
+        )
+        lines.extend(f"note: {note_text(n)}" for n in self.notes)
+        if self.not_tried:
+            lines.append("not tried:")
+            lines.extend(f"  {n}: {why}" for n, why in self.not_tried.items())
+        if self.detection_limits:
+            lines.append(f"detection limits ({DETECTION_LIMITS_MEANING}):")
+            lines.extend(f"  {text}" for text in self.detection_limit_lines())
+        for r, scores in enumerate(self.rounds, start=1):
+            lines.append("")
+            lines.append(f"round {r}: candidates (best first)")
+            w = max([34] + [len(s.label) for s in scores])  # a pair's label is long
+            lines.append(f"  {'candidate':<{w}} {'dBIC':>10} {'p-value':>9} {'held-out gain':>14}  accepted")
+            verdict = round_verdicts(scores)
+            for s in scores:
+                if s.screened:
+                    lines.append(f"  {s.label:<{w}} {s.delta_bic:>10.1f}   (predicted; not fitted: {s.screen_reason})")
+                    continue
+                lines.append(
+                    f"  {s.label:<{w}} {s.delta_bic:>10.1f} {s.p_value:>9.2g} {s.held_out_gain:>13.3f}x  "
+                    f"{verdict[s.label]}"
+                )
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        return {
+            "split": self.split,
+            "baseline": self.baseline.to_dict(),
+            "evidence": self.evidence,
+            "rounds": [[dataclasses.asdict(s) for s in scores] for scores in self.rounds],
+            "causes": [dataclasses.asdict(c) for c in self.causes],
+            "named": self.named,
+            "held_out": self.held_out,
+            "delta_bic_total": self.delta_bic_total,
+            "fraction_explained": self.fraction_explained,
+            "fraction_of_excess_explained": self.fraction_of_excess_explained,
+            "extended_parameters": self.extended_parameters,
+            "extended_intervals": self.extended_intervals,
+            "baseline_converged": self.baseline_converged,
+            "extended_at_bounds": self.extended_at_bounds,
+            "costs": self.costs,
+            "model_checks": self.model_checks,
+            "notes": self.notes,
+            "not_tried": self.not_tried,
+            "detection_limits": self.detection_limits,
+            "per_log": self.per_log,
+            "held_out_logs": list(self.held_out_logs),
+            "modal_frequencies_hz": self.modal_frequencies_hz,
+            "wall_time_s": self.wall_time,
+        }
+
+
+def _with_totals(diag: Diagnosis, wall_time: float) -> Diagnosis:
+    """`diag` with the totals computed from its `costs`: dBIC of the extended model against
+    the baseline (`N ln(RSS_ext / RSS_0) + k ln N`), the fraction of the held-out residual
+    explained, and of its excess over the noise (expected cost `N_held_out`)."""
+    c = diag.costs
+    n, k = c["n_fit"], c["k"]
+    fit0, fit1 = c["fit"]["baseline"], c["fit"]["extended"]
+    ho0, ho1 = c["held_out"]["baseline"], c["held_out"]["extended"]
+    dbic = n * math.log(max(fit1, 1e-300) / fit0) + k * math.log(n) if diag.causes else 0.0
+    excess = ho0 - c["n_held_out"]
+    return dataclasses.replace(
+        diag,
+        delta_bic_total=float(dbic),
+        fraction_explained=float(1.0 - ho1 / ho0) if ho0 > 0 else 0.0,
+        fraction_of_excess_explained=float((ho0 - ho1) / excess) if excess > 0 else None,
+        wall_time=wall_time,
+    )
+
+
+def _stacked(outer: Diagnosis, inner: Diagnosis) -> Diagnosis:
+    """A search that ended on a structural change (`outer`) continued by the search from
+    that structural model (`inner`, whose baseline is it, every accepted effect's
+    parameters free). Rounds and causes are concatenated; the causes `outer` accepted
+    report their parameters from the final extended model; the extended model, its costs
+    and held-out RMS are `inner`'s, compared with `outer`'s baseline."""
+    causes = [
+        dataclasses.replace(
+            c,
+            parameters={
+                n: {**inner.extended_intervals[n], "unit": p["unit"]} if n in inner.extended_intervals else p
+                for n, p in c.parameters.items()
+            },
+        )
+        for c in outer.causes
+    ]
+    outputs = {}
+    for name, e in outer.outputs.items():
+        ie = inner.outputs[name]
+        outputs[name] = {**e, "extended": ie.get("extended", ie["baseline"])}
+    costs = {
+        **outer.costs,
+        "fit": {"baseline": outer.costs["fit"]["baseline"], "extended": inner.costs["fit"]["extended"]},
+        "held_out": {"baseline": outer.costs["held_out"]["baseline"], "extended": inner.costs["held_out"]["extended"]},
+        "k": outer.costs["k"] + inner.costs["k"],
+    }
+    return dataclasses.replace(
+        outer,
+        rounds=outer.rounds + inner.rounds,
+        causes=causes + inner.causes,
+        # the inner search's rounds continue the outer's count
+        # (the inner search's baseline notes are about the model after the outer rounds; one
+        # the outer search already made is not repeated)
+        notes=outer.notes
+        + [
+            {**n, "round": n["round"] + len(outer.rounds)}
+            for n in inner.notes
+            if not (n["round"] == 0 and any(o["text"] == n["text"] for o in outer.notes))
+        ],
+        # not tried by either search (the inner one may try what the outer could not)
+        not_tried={n: why for n, why in outer.not_tried.items() if n in inner.not_tried},
+        held_out=_held_out_summary(
+            outer.held_out["baseline"],
+            inner.held_out["extended"],
+            costs["held_out"]["baseline"],
+            costs["held_out"]["extended"],
+            outer.held_out["noise_floor"],
+        ),
+        extended_chain=inner.extended_chain,
+        extended_measurement=inner.extended_measurement,
+        extended_parameters=inner.extended_parameters,
+        extended_intervals=inner.extended_intervals,
+        per_log=inner.per_log,
+        outputs=outputs,
+        costs=costs,
+        detection_limits=inner.detection_limits,
+    )
+
+
+def _unit(problem: Problem, name: str) -> str:
+    from .._model.problem import parameter_unit
+
+    return parameter_unit(problem, name)
+
+
+def _unit_chain(name: str) -> str:
+    return {"stiffness": "N m/rad", "rotor_inertia": "kg m^2"}.get(name.rsplit(".", 1)[-1], "")
+
+
+def _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, held_out) -> dict:
+    """Measured, baseline and extended outputs (SI) on the fit and held-out logs, for plots."""
+    out = {}
+    variants = [("baseline", v_base, idx0, logf0)]
+    if current["layout"]:
+        variants.append(("extended", current["v"], current["idx"], current["logf"]))
+    for role, problem in (("fit", joint.problem), ("held-out", ho_problem)):
+        for name, v, idx, logf in variants:
+            theta = theta_of(v, idx, logf)
+            if role == "fit":
+                y0s, off = _initial_states(problem, v["y0"]), _offsets(problem, v["offset"])
+            else:
+                _, w = held_out(theta[None], nuisances=True)
+                y0s, off = _initial_states(problem, w["y0"][0]), _offsets(problem, w["offset"][0])
+                theta = w["theta"][0]  # (the held-out problem's: its logs' own per-log values in)
+            pred, _ = _predict(problem, theta, y0s, None, step)
+            pred = np.asarray(pred + off[:, None, :])
+            valid, present = np.asarray(problem.valid), np.asarray(problem.present)
+            for l, log in enumerate(problem.log_names):
+                k = valid[l]
+                entry = out.setdefault(log, {"role": role, "t": np.asarray(problem.t[l])[k], "measured": {}})
+                for j, c in enumerate(problem.channels):
+                    if present[l, j]:
+                        entry["measured"][c] = np.asarray(problem.measured[l, k, j])
+                        entry.setdefault(name, {})[c] = pred[l, k, j]
+    return out

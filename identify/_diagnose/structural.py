@@ -1,0 +1,223 @@
+"""Structural candidates (a missing mode, joint elasticity): each its own model, fitted and scored."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+import flexdyn as fd
+from flexdyn._checks import error_reason
+
+from .._data import measurement as meas
+from .._fit.fit import fit
+from .._fit.result import FitResult
+from .._fit.steps import SimulationFailed
+from .._model.parameters import Parameter
+from .._model.problem import make_problem
+from . import catalogue as cat
+from .held_out import _held_out_batch, _held_out_start, _Own, _own_starts, _with_extra_state
+from .joint_model import _used
+from .scores import Score, _rms_per_channel, gain_standard_error
+
+
+@dataclasses.dataclass(frozen=True)
+class _StructuralFits:
+    """What every structural candidate's fit shares in one diagnosis: the baseline
+    (`base`, its free `parameters`), the superset measurement model (`measurement`), the
+    fit and held-out logs, the channels and their noise `sigma`, the `N` residuals the
+    information criterion counts, and the acceptance thresholds."""
+
+    base: object  # the baseline's `FitResult`
+    parameters: list
+    measurement: meas.Measurement
+    fit_logs: list
+    held_out_logs: list
+    channels: tuple
+    sigma: np.ndarray
+    N: int
+    rtol: float
+    bic_threshold: float
+    min_gain: float
+    max_frequency_hz: float
+    nyquist_hz: float
+    say: Callable[[str], None]
+
+    def score(self, c, current: dict, rms_cur: float):
+        return _structural_score(self, c, current, rms_cur)
+
+
+class _FailedTowardRigid(str):
+    """A structural candidate's failure reason (a `str`) whose fit drifted to the model
+    the candidate extends; `.evidence`: what that says, for the note."""
+
+    def __new__(cls, reason: str, evidence: str):
+        out = super().__new__(cls, reason)
+        out.evidence = evidence
+        return out
+
+
+def _rigid_limit(c, error, nyquist_hz: float) -> str | None:
+    """For a `joint_elasticity` fit that failed because its simulation needed more steps
+    than allowed (`identify.fit.SimulationFailed`): when the joint mode at the values where
+    it failed is far above the logs' Nyquist frequency, the evidence that the fit was
+    making the joint rigid (None otherwise). The joint mode is at least
+    `sqrt(k / J_rotor) / (2 pi)` (the rotor on its spring against a locked link; a free
+    link raises it: `omega^2 = k (1/J_rotor + 1/J_link)`).
+
+    Found on a driven rigid pendulum whose logs hide dry friction: the elastic-joint fit
+    took the stiffness from 2.7e-3 to 87 N m/rad and the rotor inertia from 1.5e-5 to
+    8.6e-8 kg m^2, a joint mode of >= 5 kHz against a 100 Hz Nyquist frequency, and the
+    adaptive solve ran out of steps; the note said "no evidence either way"."""
+    if c.name != "joint_elasticity" or not isinstance(error, SimulationFailed):
+        return None
+    if not any("limit of" in why for why in error.logs.values()):
+        return None
+    k = error.values.get(f"{c.where}.stiffness")
+    rotor = error.values.get(f"{c.where}.rotor_inertia")
+    if k is None or rotor is None or not (k > 0 and rotor > 0):
+        return None
+    f_joint = math.sqrt(k / rotor) / (2 * math.pi)
+    if f_joint < 10 * nyquist_hz:
+        return None
+    return (
+        f"the fit was making the joint rigid: where its simulation ran out of steps, the joint mode is at least "
+        f"{f_joint:.3g} Hz ({c.where}.stiffness {k:.3g} N m/rad, rotor inertia {rotor:.3g} kg m^2), "
+        f"{f_joint / nyquist_hz:.0f}x the logs' Nyquist frequency {nyquist_hz:.3g} Hz: evidence against an elastic "
+        "joint the logs resolve"
+    )
+
+
+def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float):
+    """Fit a structural candidate as a model of its own (baseline parameters refitted from
+    the baseline's values, accepted continuous effects kept at their fitted values).
+    Returns `(score, model)` (`model`: the fitted chain, its measurement, the free
+    parameters at their fitted values, the fit, the held-out weighted cost), or, when the
+    fit failed, the reason (a string, for `Diagnosis.notes`; found on the spinning-link
+    example: a failed candidate was only printed, and missing from the report)."""
+    base, parameters, sup_meas = setting.base, setting.parameters, setting.measurement
+    channels, sigma, N, rtol, say = setting.channels, setting.sigma, setting.N, setting.rtol, setting.say
+    fit_logs, held_out_logs = setting.fit_logs, setting.held_out_logs
+    bic_threshold, min_gain, max_f = setting.bic_threshold, setting.min_gain, setting.max_frequency_hz
+    values = {n: val for n, val, _ in current["layout"]}
+    base_chain = base.chain
+    struct_chain, new = cat.structural_model(base_chain, c, max_frequency_hz=max_f)
+    m = sup_meas
+    if values:
+        chain_vals, meas_vals = meas.split_values(values)
+        struct_chain, _ = cat.superset(struct_chain, meas.Measurement(), channels, [])
+        struct_chain = fd.with_parameters(struct_chain, chain_vals)
+        m = meas.with_parameters(sup_meas, meas_vals)
+    params = [
+        dataclasses.replace(p, guess=float(np.clip(_value_of(base, p.name), p.lower or -np.inf, p.upper or np.inf)))
+        for p in parameters
+    ]
+    params += [Parameter(n, g) for n, g in new.items()]
+    noise = dict(zip(channels, sigma))
+    say(f"  structural candidate {c.label}: fitting its own model ...")
+    try:
+        problem = make_problem(
+            struct_chain,
+            params,
+            _with_extra_state(fit_logs, struct_chain),
+            noise,
+            measurement=m,
+            rtol=rtol,
+            atol=1e-2 * rtol,
+        )
+        res = fit(
+            problem,
+            params,
+            horizons=None,
+            n_stages=2,
+            n_starts=8 if new else 1,
+            first_damping=0.0,  # without new parameters, a warm start from the baseline's values
+            start_spread=3.0,
+            estimate_noise=False,
+            frequency_init=False,
+            restart_poor_fit=False,
+            max_steps=60,
+            grid_error=None,  # as the baseline's (`diagnose_logs`)
+            # (a per-log parameter's guess is one value for all logs: start them at their own too)
+            extra_starts=_own_starts(base),
+        )
+        fitted = fd.with_parameters(struct_chain, res.shared_value)
+        # the held-out logs' own values of the per-log parameters are their only free ones
+        own = [
+            dataclasses.replace(p, guess=_value_of(res, p.name), per_log=True)
+            for p in params
+            if getattr(p, "per_log", False)
+        ]
+        ho_problem = make_problem(
+            fitted,
+            own,
+            _with_extra_state(held_out_logs, struct_chain),
+            noise,
+            measurement=m,
+            rtol=rtol,
+            atol=1e-2 * rtol,
+        )
+        ho_own = _Own.of(ho_problem)
+        v0 = _held_out_start(ho_problem, ho_own, res)
+        thetas = jnp.zeros((1, len(ho_problem.names)))  # (every entry is an own value)
+        r_ho, _, _ = _held_out_batch(ho_problem, thetas, v0, ho_own, jnp.asarray(sigma), res.step, 25)
+    except (RuntimeError, ValueError) as e:
+        reason = error_reason(e)
+        say(f"  structural candidate {c.label} failed: {reason}")
+        rigid = _rigid_limit(c, e, setting.nyquist_hz)
+        return reason if rigid is None else _FailedTowardRigid(reason, rigid)
+    k = len(new)
+    k_eff = max(k, 1)
+    dbic = N * math.log(max(res.cost, 1e-300) / current["cost"]) + k * math.log(N)
+    dof = max(N - len(problem.names) - len(problem.y0_free) - len(problem.offset_free), 1)
+    F = ((current["cost"] - res.cost) / k_eff) / (res.cost / dof)
+    p_value = float(stats.f.sf(F, k_eff, dof))
+    used = _used(ho_problem)
+    r_ho = np.asarray(r_ho[0])
+    rms_ch = _rms_per_channel(ho_problem, r_ho, np.asarray(sigma))
+    rms_c = float(np.sqrt(np.mean(r_ho[used] ** 2)))
+    gain = rms_cur / rms_c if rms_c > 0 else np.inf
+    vals = {n: float(v) for n, v in res.value.items() if n in new}
+    # the new parameters' intervals from the structural model's own fit (exact Jacobian)
+    intervals = {
+        n: {"std_error": float(res.std_errors[i]), "ci95": [float(res.ci_low[i]), float(res.ci_high[i])]}
+        for i, n in enumerate(res.names)
+        if n in new
+    }
+    score = Score(
+        c.name,
+        c.where,
+        vals,
+        float(res.cost),
+        float(dbic),
+        p_value,
+        rms_ch,
+        float(gain),
+        bool(dbic < -bic_threshold and gain >= min_gain),
+        k,
+        intervals=intervals,
+        held_out_gain_se=gain_standard_error(np.asarray(current["ho"]), r_ho[used]),
+    )
+    fitted_params = [dataclasses.replace(p, guess=_value_of(res, p.name)) for p in params]
+    model = {
+        "chain": fitted,
+        "measurement": m,
+        "parameters": fitted_params,
+        "fit": res,
+        "held_out_cost": float(np.sum(r_ho[used] ** 2)),
+        "held_out_problem": ho_problem,
+        "held_out_residual": r_ho[used],
+    }
+    return score, model
+
+
+def _value_of(result: FitResult, name: str) -> float:
+    """A free parameter's fitted value; for a per-log one (`Parameter.per_log`), the median
+    of the logs' values (a start for a refit)."""
+    if name in result.per_log:
+        return float(np.median(list(result.per_log[name].values())))
+    return float(result.value[name])

@@ -1,0 +1,563 @@
+"""The fitting problem: logs (`LogData`) and free parameters gathered into a `Problem`."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import flexdyn as fd
+
+from .._data import channels as ch, measurement as meas, noise_floor as nf
+from .._data.channels import state_names
+from .._data.logs import PLAUSIBLE_RATE_HZ
+from .._data.measurement import Measurement
+from .._data.units import display_unit
+from .parameters import Parameter
+
+
+@dataclasses.dataclass(frozen=True)
+class LogData:
+    """One measured log, in SI units.
+
+    - `t`: sample times, s, increasing (non-uniform spacing and gaps are fine).
+    - `outputs`: channel name -> samples, e.g. `{'theta1': ..., 'tip1': ...}`.
+    - `torque`: applied joint torques at `t`, shape (T, n_joints), N m, or None.
+    - `initial`: known initial-state entries by name (`theta1`, `q1_1`, `theta1_rate`, ...);
+      entries not given are 0.
+    - `fit_initial`: initial-state entries to estimate for this log.
+    - `offsets`: output channels whose constant sensor offset is estimated for this log.
+    - `set`: known parameter values of this log that differ from the rig's, SI (a payload
+      sweep: `{'payload.mass': 0.02}`); the rig's values elsewhere. A parameter set in any
+      log cannot be a free one.
+    """
+
+    t: np.ndarray
+    outputs: dict
+    torque: np.ndarray | None = None
+    initial: dict = dataclasses.field(default_factory=dict)
+    fit_initial: tuple = ()
+    offsets: tuple = ()
+    name: str = "log"
+    set: dict = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def from_log(cls, log, n_joints: int, **entries) -> LogData:
+        """The `LogData` of a loaded log (`identify.load_log`'s `Log`): times from its first
+        sample, its output channels, its `torque<j>` columns as the torque of joint j (0
+        for a joint without one; None when it has none), `entries` (`initial`,
+        `fit_initial`, `offsets`, `name`) passed on. Review: users of `load_log` had to
+        write this conversion themselves."""
+        try:
+            torque = log.torque(n_joints)
+        except ValueError as e:
+            raise ValueError(f"LogData.from_log: {e}") from None
+        entries.setdefault("name", log.name)
+        return cls(
+            t=np.asarray(log.t_relative, float),
+            outputs={c: np.asarray(v, float) for c, v in log.outputs.items()},
+            torque=torque,
+            **entries,
+        )
+
+
+class _LogLabels:
+    """The logs' names, carried as static data that compares equal whenever the number of
+    logs agrees. They label results and enter no computation, so problems that differ
+    only in their logs' names share compiled programs (a fit compiles in 10-30 s; before,
+    fitting a second experiment with the same layout but other log names compiled again).
+    Safe because no jitted function returns anything built from them."""
+
+    __slots__ = ("names",)
+
+    def __init__(self, names):
+        self.names = tuple(names.names if isinstance(names, _LogLabels) else names)
+
+    def __eq__(self, other):
+        return isinstance(other, _LogLabels) and len(self.names) == len(other.names)
+
+    def __hash__(self):
+        return hash((_LogLabels, len(self.names)))
+
+    def __repr__(self):
+        return repr(self.names)
+
+
+class Problem(eqx.Module):
+    """A fitting problem: the base chain, the free parameters and all logs, padded to a
+    common length (`valid` masks the padding)."""
+
+    chain: fd.Chain
+    measurement: Measurement  # sensors' calibration/dynamics and actuator lags (identify.measurement)
+    lower: jax.Array  # natural coordinates (log for positive parameters); -inf/inf if none
+    upper: jax.Array
+    t: jax.Array  # (L, T)
+    valid: jax.Array  # (L, T) bool
+    measured: jax.Array  # (L, T, C)
+    present: jax.Array  # (L, C) bool: log l records channel c
+    sigma: jax.Array  # (C,)
+    torque_t: jax.Array  # (L, T)
+    torque_v: jax.Array  # (L, T, n_joints)
+    y0_known: jax.Array  # (L, 2n)
+    onset: jax.Array  # (L,) s, on each log's clock: where its input or motion starts (`log_onset`)
+    log_set: jax.Array  # (L, K): each log's values of the parameters `log_set_names` (`LogData.set`)
+    names: tuple[str, ...] = eqx.field(static=True)
+    log_scale: tuple[bool, ...] = eqx.field(static=True)
+    channels: tuple[str, ...] = eqx.field(static=True)
+    y0_free: tuple[tuple[int, int], ...] = eqx.field(static=True)  # (log, state index)
+    offset_free: tuple[tuple[int, int], ...] = eqx.field(static=True)  # (log, channel index)
+    labels: _LogLabels = eqx.field(static=True, converter=_LogLabels)  # the logs' names: `log_names`
+    rtol: float = eqx.field(static=True)
+    atol: float = eqx.field(static=True)
+    dt: float | None = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    # the channels whose noise level make_problem was given (`fit` keeps them by default)
+    declared: tuple[str, ...] = eqx.field(static=True, default=())
+    log_set_names: tuple[str, ...] = eqx.field(static=True, default=())
+    # the per-log free parameters (`Parameter.per_log`): (name, the index in `names` of each
+    # log's own one, in log order), ...
+    per_log: tuple[tuple[str, tuple[int, ...]], ...] = eqx.field(static=True, default=())
+    # the free parameters' guesses, SI (an array: a static field would compile a program
+    # per guess), so that `fit(problem)` needs no parameter list
+    guess: jax.Array | None = None
+
+    @property
+    def log_names(self) -> tuple[str, ...]:
+        return self.labels.names
+
+    @property
+    def parameters(self) -> list[Parameter]:
+        """The free parameters as given to `make_problem`: names, guesses and bounds (SI;
+        None for none)."""
+        if self.guess is None:
+            raise ValueError("this Problem was not made by make_problem: it holds no guesses; pass the parameters")
+        if not self.names:
+            return []
+
+        def bound(natural, log):
+            natural = float(natural)
+            return None if not math.isfinite(natural) else (math.exp(natural) if log else natural)
+
+        # (a stacked problem, `fit_independent`'s, holds one row per log: the same)
+        guesses = np.asarray(self.guess).reshape(-1, len(self.names))[0]
+        lower = np.asarray(self.lower).reshape(-1, len(self.names))[0]
+        upper = np.asarray(self.upper).reshape(-1, len(self.names))[0]
+        first = {index[0]: name for name, index in self.per_log}  # (a per-log one: once, as given)
+        own = {i for _, index in self.per_log for i in index}
+        return [
+            Parameter(first.get(i, n), float(g), bound(lo, log), bound(hi, log), per_log=i in first)
+            for i, (n, g, lo, hi, log) in enumerate(zip(self.names, guesses, lower, upper, self.log_scale))
+            if i not in own or i in first
+        ]
+
+    def base_name(self, name: str) -> str:
+        """The rig's parameter a free parameter is: `payload.mass` for the per-log
+        `payload.mass[m20g]`, the name itself otherwise."""
+        for base, index in self.per_log:
+            if name in (self.names[i] for i in index):
+                return base
+        return name
+
+    @property
+    def shared_names(self) -> tuple[str, ...]:
+        """The free parameters shared by all logs (all but the per-log ones)."""
+        own = {i for _, index in self.per_log for i in index}
+        return tuple(n for i, n in enumerate(self.names) if i not in own)
+
+
+def _log_set(chain, measurement, logs, free: set, known: set) -> tuple[tuple[str, ...], np.ndarray]:
+    """The parameters some log sets (`LogData.set`) and each log's values `(L, K)` (the
+    rig's where a log does not set one), each log's checked as the rig would check it."""
+    names = sorted({n for log in logs for n in log.set})
+    for log in logs:
+        for n in log.set:
+            if n not in known:
+                raise ValueError(
+                    f"log {log.name!r}: set {n!r} is not a parameter{fd.params.did_you_mean(n, known)}; "
+                    f"this chain has: {', '.join(sorted(known))}"
+                )
+            if n in free:
+                raise ValueError(
+                    f"log {log.name!r}: set {n!r} is also a free parameter; a known value per log and a fitted "
+                    "one exclude each other (fit a value per log with Parameter(..., per_log=True), or every "
+                    "parameter per log with fit_independent, or drop it from the parameters)"
+                )
+    base = [
+        float(meas.get_parameter(measurement, n) if meas.is_measurement_parameter(n) else fd.get_parameter(chain, n))
+        for n in names
+    ]
+    values = np.tile(np.asarray(base, float), (len(logs), 1)).reshape(len(logs), len(names))
+    for l, log in enumerate(logs):
+        for k, n in enumerate(names):
+            if n in log.set:
+                v = log.set[n]
+                if isinstance(v, bool) or not isinstance(v, int | float | np.floating | np.integer):
+                    raise ValueError(f"log {log.name!r}: set {n!r} expected a number (SI), got {v!r}")
+                values[l, k] = float(v)
+        chain_values, sensor_values = meas.split_values(dict(zip(names, values[l])))
+        try:  # the rig's own checks (a negative mass, a NaN)
+            fd.with_parameters(chain, chain_values)
+            meas.with_parameters(measurement, sensor_values)
+        except ValueError as e:
+            raise ValueError(f"log {log.name!r}: set: {e}") from None
+    return tuple(names), values
+
+
+def _check_log_data(log: LogData) -> None:
+    """A `LogData` built in Python gets the checks the CSV loader makes (found in review:
+    a NaN in an output read "SVD did not converge", a NaN in the torque "check guesses
+    and bounds", arrays of the wrong length numpy's reshape errors), naming the log, the
+    channel and the first bad sample."""
+    if not isinstance(log, LogData):
+        hint = (
+            ": convert it with identify.LogData.from_log(log, n_joints, fit_initial=..., ...)"
+            if hasattr(log, "t_relative")
+            else ""
+        )
+        raise TypeError(f"make_problem: expected identify.LogData entries, got {type(log).__name__}{hint}")
+    where = f"log {log.name!r}"
+    t = np.asarray(log.t, dtype=float)
+    if t.ndim != 1 or t.size < 2:
+        raise ValueError(f"{where}: t expected a 1-D array of at least 2 sample times (s), got shape {t.shape}")
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        raise ValueError(f"{where}: t[{bad[0]}] is {t[bad[0]]}; expected finite sample times (s)")
+    steps = np.flatnonzero(np.diff(t) <= 0)
+    if steps.size:
+        i = int(steps[0]) + 1
+        raise ValueError(
+            f"{where}: t must be strictly increasing; t[{i}] = {t[i]:.9g} s after t[{i - 1}] = {t[i - 1]:.9g} s"
+        )
+    if not log.outputs:
+        raise ValueError(f"{where}: no output channels (outputs is empty)")
+    rate = 1.0 / float(np.median(np.diff(t)))
+    if rate < PLAUSIBLE_RATE_HZ[0]:
+        warnings.warn(
+            f"{where}: sampled at {rate:.3g} Hz over {t[-1] - t[0]:.4g} s, below any rig's log "
+            f"({PLAUSIBLE_RATE_HZ[0]:g} Hz): are its times in milliseconds? (in seconds: t / 1000); a fit of it "
+            "can run for hours",
+            UserWarning,
+            stacklevel=4,
+        )
+    series = [(f"outputs[{c!r}]", v, (t.size,)) for c, v in log.outputs.items()]
+    if log.torque is not None:
+        tq = np.asarray(log.torque, dtype=float)
+        series.append(("torque", tq, f"({t.size},) or ({t.size}, n_joints)"))
+    for label, values, shape in series:
+        v = np.asarray(values, dtype=float)
+        if v.shape[:1] != (t.size,) or v.ndim > (2 if label == "torque" else 1):
+            raise ValueError(f"{where}: {label} has shape {v.shape}; expected {shape}, one row per sample time")
+        bad = np.flatnonzero(~np.all(np.isfinite(v.reshape(t.size, -1)), axis=1))
+        if bad.size:
+            raise ValueError(
+                f"{where}: {label} is not finite at sample {bad[0]} (t = {t[bad[0]]:.9g} s); "
+                "drop or fill such samples before fitting"
+            )
+
+
+#: `make_problem` warns of a log whose every channel varies about its mean by less than
+#: this many times its model-free noise floor (`identify.noise_floor`)
+AT_REST = 3.0
+
+
+def _warn_if_at_rest(log: LogData) -> None:
+    """Warn when a log shows no motion above its noise: on every channel the RMS about its
+    mean is below `AT_REST` times the channel's model-free noise floor (white noise alone
+    gives 1). Found in review: a pendulum hanging still for 5 s was fitted without a word,
+    "converged", and reported its hub inertia to within a factor of 3.7 (95 %) from noise
+    and the fitted initial angle's 0.01 deg. A static test under a load does determine the
+    static parameters (a mass times its centre's distance, from torque against angle), so
+    this warns and does not refuse."""
+    t = np.asarray(log.t, dtype=float)
+    if t.size <= nf.ORDER + 1:
+        return
+    parts = []
+    for c, v in log.outputs.items():
+        y = np.asarray(v, dtype=float)
+        spread = float(np.std(y))
+        floor = nf.noise_floor(t, y)
+        if spread > AT_REST * floor:  # (a constant channel, all zeros included, is at rest)
+            return
+        scale, unit = display_unit(c)
+        parts.append(f"{c} {scale * spread:.3g} {unit} RMS about its mean, noise floor {scale * floor:.3g} {unit}")
+    driven = log.torque is not None and np.any(np.asarray(log.torque, dtype=float) != 0)
+    warnings.warn(
+        f"log {log.name!r} shows no motion above its noise ({'; '.join(parts)}): a log at rest carries no "
+        "information about inertia, damping or stiffness, and the fit's intervals for them would come from the "
+        "noise; check the log (the right file? the sensor connected?)"
+        + ("; a static test under load determines only static parameters" if driven else ""),
+        UserWarning,
+        stacklevel=3,
+    )
+
+
+def _check_same_parameters(problem: Problem, parameters, caller: str) -> None:
+    """The free parameters passed to a fit must be the problem's, in its order: the
+    guesses are read by position (found in review: `fit(problem, [hub1.inertia])` on a
+    problem made for `link1.EI` used the inertia's guess as EI's, silently)."""
+    given = tuple((p.name, bool(getattr(p, "per_log", False))) for p in parameters)
+    expected = tuple((p.name, p.per_log) for p in problem.parameters) if problem.guess is not None else None
+    if expected is None:
+        expected = tuple((n, False) for n in problem.names)
+    if given != expected:
+        show = lambda pairs: [n + (" (per log)" if per else "") for n, per in pairs]  # noqa: E731
+        raise ValueError(
+            f"{caller}: parameters {show(given)} are not the problem's {show(expected)} (as given to "
+            "make_problem, in that order)"
+        )
+
+
+def make_problem(
+    chain: fd.Chain,
+    parameters: Sequence[Parameter],
+    logs: Sequence[LogData],
+    noise: dict | None = None,
+    *,
+    rtol: float = 1e-10,
+    atol: float = 1e-12,
+    dt: float | None = None,
+    max_steps: int = 100_000,
+    measurement: Measurement | None = None,
+) -> Problem:
+    """Build a `Problem`. `noise` maps channels to their standard deviation (SI); channels
+    not in it start at 1 % of the channel's measured RMS and are re-estimated by `fit`
+    (by default only those: `fit(estimate_noise=True)` re-estimates the given ones too).
+
+    `measurement` (`identify.measurement.Measurement`): sensor gains, offsets, delays,
+    high-pass cut-offs and actuator lags between the model and the log; its parameters
+    (`sensor.tip1.gain`, `actuator1.lag`, ...) can be free parameters like the chain's.
+
+    `rtol`, `atol` (adaptive Tsit5) or `dt` (fixed-step RK4) set the simulation. The
+    default tolerances are tight on purpose: an adaptive solver's step choices make the
+    loss a slightly noisy function of the parameters (measured: 1e-5 relative at rtol
+    1e-7 on a flexible pendulum), which stalls Levenberg-Marquardt near the optimum."""
+    if not logs:
+        raise ValueError("make_problem: expected at least one log")
+    measurement = Measurement() if measurement is None else measurement
+    chain_names = set(fd.parameter_names(chain))
+    known = chain_names | set(meas.parameter_names(measurement))
+    names, log_scale, lower, upper, per_log = [], [], [], [], []
+    listed = [p.name for p in parameters]
+    twice = sorted({n for n in listed if listed.count(n) > 1})
+    if twice:  # review: both were fitted, and `FitResult.value` kept one of them
+        raise ValueError(f"make_problem: free parameter(s) {', '.join(map(repr, twice))} listed more than once")
+    for p in parameters:
+        if p.name not in known and fd.params.absent_optional_term(chain, p.name):
+            # review: the 30 names listed did not say how to add the term (the experiment
+            # file adds it by itself)
+            raise ValueError(
+                f"free parameter {p.name!r} is an optional term this chain does not have: add it with "
+                f"`fd.with_optional_terms(chain, [{p.name!r}])` (at 0.0, its neutral value) before make_problem"
+            )
+        if p.name not in known:
+            raise ValueError(
+                f"free parameter {p.name!r} does not exist{fd.params.did_you_mean(p.name, known)}; "
+                f"this chain has: {', '.join(sorted(known))}"
+            )
+        signed = fd.is_signed(chain, p.name) if p.name in chain_names else meas.is_signed(p.name)
+        lo = -np.inf if p.lower is None else float(p.lower)
+        hi = np.inf if p.upper is None else float(p.upper)
+        if lo >= hi:
+            raise ValueError(f"free parameter {p.name!r}: lower bound {lo!r} is not below the upper bound {hi!r}")
+        if not lo <= p.guess <= hi:
+            raise ValueError(f"free parameter {p.name!r}: guess {p.guess!r} is not inside bounds [{lo!r}, {hi!r}]")
+        if not signed:
+            if p.guess <= 0 or (p.lower is not None and p.lower <= 0):
+                raise ValueError(
+                    f"free parameter {p.name!r} is positive and fitted in log space: guess and lower bound "
+                    f"must be > 0, got guess {p.guess!r}, lower {p.lower!r}"
+                )
+            lo, hi = (np.log(lo) if np.isfinite(lo) else -np.inf), np.log(hi)
+        if p.per_log:  # one free parameter per log, `name[log]`, next to each other
+            per_log.append((p.name, tuple(range(len(names), len(names) + len(logs)))))
+            own = [f"{p.name}[{log.name}]" for log in logs]
+        else:
+            own = [p.name]
+        names.extend(own)
+        log_scale.extend([not signed] * len(own))
+        lower.extend([lo] * len(own))
+        upper.extend([hi] * len(own))
+    seen = set()
+    for log in logs:
+        if log.name in seen:
+            raise ValueError(f"make_problem: two logs are named {log.name!r}; names label the results and must differ")
+        seen.add(log.name)
+        _check_log_data(log)
+        _warn_if_at_rest(log)
+    channels = sorted({c for log in logs for c in log.outputs})
+    for c in channels:
+        ch.check_channel(chain, c)
+    log_set_names, log_set = _log_set(chain, measurement, logs, set(listed), known)
+    states = state_names(chain)
+    n2 = len(states)
+    L = len(logs)
+    T = max(len(log.t) for log in logs)
+    nj = chain.n_links
+    t = np.zeros((L, T))
+    valid = np.zeros((L, T), bool)
+    measured = np.zeros((L, T, len(channels)))
+    present = np.zeros((L, len(channels)), bool)
+    torque_v = np.zeros((L, T, nj))
+    y0_known = np.zeros((L, n2))
+    y0_free, offset_free = [], []
+    for l, log in enumerate(logs):
+        tl = np.asarray(log.t, float)
+        k = len(tl)
+        t[l, :k], t[l, k:] = tl, tl[-1]
+        valid[l, :k] = True
+        for c, values in log.outputs.items():
+            j = channels.index(c)
+            measured[l, :k, j] = np.asarray(values, float)
+            present[l, j] = True
+        if log.torque is not None:
+            tv = np.asarray(log.torque, float).reshape(k, -1)
+            if tv.shape[1] != nj:
+                raise ValueError(f"log {log.name!r}: torque has {tv.shape[1]} column(s), the rig has {nj} joint(s)")
+            torque_v[l, :k], torque_v[l, k:] = tv, tv[-1]
+        for name, value in log.initial.items():
+            if name not in states:
+                raise ValueError(f"log {log.name!r}: initial-state entry {name!r} is not one of {states}")
+            y0_known[l, states.index(name)] = float(value)
+        for field in ("fit_initial", "offsets"):
+            entries = list(getattr(log, field))
+            twice = sorted({e for e in entries if entries.count(e) > 1})
+            if twice:
+                raise ValueError(f"log {log.name!r}: {field} lists {', '.join(map(repr, twice))} more than once")
+        for name in log.fit_initial:
+            if name not in states:
+                raise ValueError(f"log {log.name!r}: fit_initial entry {name!r} is not one of {states}")
+            y0_free.append((l, states.index(name)))
+        for c in log.offsets:
+            if c not in log.outputs:
+                raise ValueError(f"log {log.name!r}: offset for channel {c!r}, which the log does not record")
+            offset_free.append((l, channels.index(c)))
+    noise = dict(noise or {})
+    for c in sorted(set(noise) - set(channels)):  # review: a typo ("theta") dropped the noise level in silence
+        try:
+            ch.check_channel(chain, c)
+        except ValueError as e:
+            raise ValueError(f"make_problem: noise: {e}; the logs record {channels}") from None
+        # a channel of this chain that no log records: its noise level is not used
+    sigma = []
+    for j, c in enumerate(channels):
+        if noise.get(c) is not None:
+            if not (np.isfinite(float(noise[c])) and float(noise[c]) > 0):
+                raise ValueError(f"make_problem: noise[{c!r}] expected a standard deviation > 0 (SI), got {noise[c]!r}")
+            sigma.append(float(noise[c]))
+        else:
+            rms = np.sqrt(np.mean(measured[:, :, j][valid & present[:, j : j + 1]] ** 2))
+            sigma.append(0.01 * rms if rms > 0 else 1.0)
+    onset = []
+    for l, log in enumerate(logs):
+        k = len(log.t)
+        # a channel given no noise level is judged at rest against at least its own
+        # model-free floor in this log: 1 % of its RMS can be under its noise, and noise
+        # then read as motion (review: onsets at 0.012-0.018 s of logs driven from 0.1 s)
+        at_rest = [
+            sigma[j] if noise.get(c) is not None else max(sigma[j], nf.series_floor(t[l, :k], measured[l, :k, j]))
+            for j, c in enumerate(channels)
+            if present[l, j]
+        ]
+        onset.append(log_onset(t[l, :k], torque_v[l, :k], measured[l, :k][:, present[l]], np.asarray(at_rest)))
+    return Problem(
+        chain=chain,
+        measurement=measurement,
+        lower=jnp.asarray(lower),
+        upper=jnp.asarray(upper),
+        t=jnp.asarray(t),
+        valid=jnp.asarray(valid),
+        measured=jnp.asarray(measured),
+        present=jnp.asarray(present),
+        sigma=jnp.asarray(sigma),
+        torque_t=jnp.asarray(t),
+        torque_v=jnp.asarray(torque_v),
+        y0_known=jnp.asarray(y0_known),
+        onset=jnp.asarray(onset, dtype=float),
+        log_set=jnp.asarray(log_set),
+        names=tuple(names),
+        log_scale=tuple(log_scale),
+        channels=tuple(channels),
+        y0_free=tuple(y0_free),
+        offset_free=tuple(offset_free),
+        labels=tuple(log.name for log in logs),
+        rtol=rtol,
+        atol=atol,
+        dt=dt,
+        max_steps=max_steps,
+        declared=tuple(c for c in channels if noise.get(c) is not None),
+        log_set_names=log_set_names,
+        per_log=tuple(per_log),
+        guess=jnp.asarray(_guesses_made(parameters, len(logs)), dtype=float),
+    )
+
+
+def _guesses_made(parameters, n_logs: int) -> list[float]:
+    """`make_problem`'s guesses in its names' order (a per-log one's once per log)."""
+    return [float(p.guess) for p in parameters for _ in range(n_logs if p.per_log else 1)]
+
+
+#: `log_onset`: a log moves once a channel leaves its resting value by more than this many
+#: noise standard deviations (a false trigger on Gaussian noise: 6e-7 per sample).
+ONSET_SIGMAS = 5.0
+
+
+#: `log_onset`: a channel's resting value is the median of at most this many first samples
+ONSET_REST_SAMPLES = 16
+
+
+def log_onset(t, torque, measured, sigma) -> float:
+    """The time (s, on the log's clock) from which a log that starts at rest is driven: the
+    earlier of
+    - the input's start: the sample before the first one with a non-zero torque (the torque
+      is linear between samples, so it starts to rise there);
+    - the motion's start, where it comes first (the arm nudged before the input): the
+      sample before the first one at which a recorded channel is more than `ONSET_SIGMAS`
+      noise standard deviations from its resting value, the median of its first
+      `ONSET_REST_SAMPLES` samples (of those before the input, if fewer).
+
+    The first sample's time for every other log: one with no input (a release, a free
+    decay: it moves from its initial state), and one whose torque is not zero at its first
+    sample (driven from its start, or holding the arm against gravity: the first sample is
+    the safe choice).
+
+    `t` `(T,)`, `torque` `(T, n_joints)`, `measured` `(T, C)`, `sigma` `(C,)` (SI).
+
+    A fit's horizons count from here (`fit`, `identify.residuals.predict`): a rig that sits
+    still for seconds before the experimenter starts the input is common, and a growing
+    horizon counted from the log's start would fit its first stages to the rest alone
+    (measured: a 4-parameter flexible arm at rest for 3 s before two 0.05 N m doublets,
+    guesses 20 % off, 8 noise seeds: 7 fits within the accuracy bars, the eighth with joint
+    damping -98.6 % and payload +20 %; counted from the onset, 8 of 8)."""
+    t, torque = np.asarray(t, float), np.asarray(torque, float).reshape(len(t), -1)
+    measured, sigma = np.asarray(measured, float).reshape(len(t), -1), np.asarray(sigma, float)
+    driven = np.flatnonzero(np.any(torque != 0.0, axis=1))
+    if driven.size == 0 or driven[0] == 0:
+        return float(t[0])
+    k = k_in = int(driven[0])
+    if measured.shape[1]:
+        rest = np.median(measured[: min(k_in, ONSET_REST_SAMPLES)], axis=0)
+        moved = np.flatnonzero(np.any(np.abs(measured[:k_in] - rest) > ONSET_SIGMAS * sigma, axis=1))
+        if moved.size:
+            k = int(moved[0])
+    return float(t[max(k - 1, 0)])
+
+
+def parameter_unit(problem: Problem, name: str) -> str:
+    """SI unit of a free parameter of `problem` (chain or measurement parameter; a per-log
+    one's, `name[log]`, is its parameter's)."""
+    name = problem.base_name(name)
+    if meas.is_measurement_parameter(name):
+        return meas.unit(name, ch.channel_unit)
+    return fd.parameter_unit(problem.chain, name)
+
+
+def _guesses(problem: Problem, parameters) -> list[float]:
+    """The guesses of `parameters` (checked to be the problem's) in `problem.names` order:
+    a per-log parameter's guess once per log."""
+    return _guesses_made(parameters, problem.t.shape[0])

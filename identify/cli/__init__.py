@@ -1,0 +1,194 @@
+"""The `identify` command line (also `python -m identify`).
+
+    identify fit EXPERIMENT.toml [--out DIR] [--stages N] [--no-frequency-init] [--max-restarts N]
+                 [--no-restart-poor-fit] [--quiet] [--force] [--any-rate]
+    identify diagnose EXPERIMENT.toml [--out DIR] [--only NAME,...] [--max-effects N] [--quiet] [--force]
+                      [--any-rate]
+    identify check EXPERIMENT.toml [--any-rate]
+
+`check` reads the experiment file and its logs with every check a fit makes and prints
+what a fit would start from, in seconds (nothing compiled or written): exit 0 if a fit
+can start, 2 with the file, line and key if not.
+
+`diagnose` fits the experiment's model, shows what it gets wrong, tries the catalogue of
+model extensions (`identify.catalogue`), names the cause(s) whose gain is significant and
+writes `diagnosis.json`, `report.md` and plots (default folder
+`./<experiment file stem>-diagnosis/`; see `identify.diagnose`).
+
+loads the experiment (see `identify/FORMAT.md`), fits its free parameters to its fit
+logs, checks the fit on its validation logs, prints the parameter table, the
+identifiability warnings and a residual summary, and writes into the output folder
+(default `./<experiment file stem>-fit/`):
+
+- `result.json`: `FitResult.to_dict()`, the residual report, the validation results,
+  the model's natural frequencies, the experiment's name and path, versions;
+- `measured_vs_fitted.png`, `residuals.png`, `residual_spectrum.png`,
+  `residual_autocorrelation.png`, `parameter_correlation.png` (`identify.report`);
+- `.identify-output`: marks the folder as written by this command.
+
+The output folder policy never risks an input: the command refuses (exit code 2) to
+write into a folder that holds an input of the experiment (the experiment file or a log),
+and, unless `--force`, into an existing folder that holds files other than ours or that a
+previous run did not mark. `--force` only lets it write its own file names next to other
+files; it never deletes anything and never writes over an input.
+
+A log sampled below 1 Hz is refused (exit code 2) unless `--any-rate`: on a rig it is
+almost always a time column in milliseconds labelled [s], and simulating its 1000-fold
+span would take hours.
+
+Exit codes: 0 done, the fit converged; 1 the fit failed; 2 a usage error, an unreadable
+experiment or log, a refused output folder or sampling rate; 3 (`fit`) the fit finished and
+its results are written, but it did not converge or a parameter ended on its bound
+(`converged: false` in `result.json`, the WARNING printed says which); 3 (`diagnose`) the
+diagnosis is written, but the baseline fit's solver did not converge
+(`baseline_converged: false` in `diagnosis.json`; a baseline parameter on its bound is
+only noted: there it is often the missing effect's symptom).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="identify", description="System identification of flexdyn rigs from measured logs."
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    fit = sub.add_parser(
+        "fit",
+        help="fit an experiment's free parameters to its logs",
+        description="Fit the free parameters of an experiment file (identify/FORMAT.md) to its fit logs, check "
+        "the fit on its validation logs, print the results and write result.json and plots.",
+    )
+    fit.add_argument("experiment", type=Path, help="the experiment file (TOML)")
+    fit.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder, created if needed (default: ./<experiment stem>-fit in the current folder)",
+    )
+    fit.add_argument(
+        "--stages",
+        type=int,
+        default=4,
+        metavar="N",
+        help="horizon stages of the fit: the horizon (from each log's onset, where its input or motion starts) "
+        "doubles N-1 times up to the logs' length (default 4; 1 is plain single shooting)",
+    )
+    fit.add_argument(
+        "--no-frequency-init",
+        action="store_true",
+        help="keep the guesses of the links' EI as given (default: each free link<i>.EI with a recorded tip or "
+        "curvature channel starts where the model's simulated spectrum best matches the log's)",
+    )
+    fit.add_argument(
+        "--max-restarts",
+        type=int,
+        default=2,
+        metavar="N",
+        help="if the fit ends with a parameter on a bound, or a channel's residual above twice its noise floor "
+        "estimated from the log alone, run the growing horizon again from up to N other optima of the first stage "
+        "(default 2; 0: never)",
+    )
+    fit.add_argument(
+        "--no-restart-poor-fit",
+        action="store_true",
+        help="restart only when a parameter ends on a bound, not on a poor fit (a model that misses an effect "
+        "is poor from every start: the restart costs one more fit and the fit reports the misfit either way)",
+    )
+    fit.add_argument(
+        "--independent",
+        action="store_true",
+        help="fit every fit log on its own (each log its own parameter values, all logs in one batch: "
+        "identify.fit_independent) and test whether they agree (weighted mean and a chi-square test per "
+        "parameter); the logs must estimate the same initial-state entries and offsets",
+    )
+    fit.add_argument("--quiet", action="store_true", help="print no progress, only the results")
+    fit.add_argument(
+        "--any-rate",
+        action="store_true",
+        help="fit logs sampled below 1 Hz too (refused by default: most often a time column in ms labelled [s])",
+    )
+    fit.add_argument(
+        "--force",
+        action="store_true",
+        help="write our files into --out even if it holds other files (they are never deleted or overwritten)",
+    )
+    ck = sub.add_parser(
+        "check",
+        help="read an experiment file and its logs and say what a fit would start from, without fitting",
+        description="Load the experiment file (identify/FORMAT.md) and its logs with every check a fit makes, "
+        "print the rig, the free parameters, the logs and the set-up checks, and exit: 0 if a fit could start, 2 "
+        "(with the file, line and key) if not. Nothing is compiled or written (a few seconds).",
+    )
+    ck.add_argument("experiment", type=Path, help="the experiment file (TOML)")
+    ck.add_argument("--any-rate", action="store_true", help="as for fit")
+    dg = sub.add_parser(
+        "diagnose",
+        help="find what the model gets wrong, name the cause, extend the model, measure the gain",
+        description="Fit the experiment's model holding data out, show the residual evidence, fit every "
+        "applicable model extension of the catalogue, name the significant cause(s) and write diagnosis.json, "
+        "report.md and plots.",
+    )
+    dg.add_argument("experiment", type=Path, help="the experiment file (TOML)")
+    dg.add_argument("--out", type=Path, default=None, help="output folder (default: ./<experiment stem>-diagnosis)")
+    dg.add_argument(
+        "--only",
+        default=None,
+        metavar="NAMES",
+        # (written out: importing the catalogue would import JAX before --help;
+        # tests/identify/test_cli.py checks it against catalogue.NAMES)
+        help="comma-separated catalogue entries to try (default: all that apply): "
+        "coulomb_friction, quadratic_damping, missing_mode, joint_elasticity, sensor_delay, sensor_gain_offset, "
+        "sensor_highpass, actuator_lag, backlash, base_tilt, geometric_stiffening",
+    )
+    dg.add_argument("--max-effects", type=int, default=3, metavar="N", help="effects to stack at most (default 3)")
+    dg.add_argument(
+        "--fit-all",
+        action="store_true",
+        help="fit every candidate in full (default: one Gauss-Newton step screens them and the 3 most "
+        "promising are fitted; slower)",
+    )
+    dg.add_argument("--quiet", action="store_true", help="print no progress, only the results")
+    dg.add_argument("--force", action="store_true", help="as for fit")
+    dg.add_argument("--any-rate", action="store_true", help="as for fit")
+    return parser
+
+
+def main(argv=None) -> int:
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2, already printed)
+        return int(e.code or 0) if not isinstance(e.code, str) else 2
+    with warnings.catch_warnings():  # (restores `showwarning` on the way out)
+        warnings.showwarning = _show_warning
+        # (the commands import the library, and with it JAX, only once parsed: `--help` stays fast)
+        if args.command == "fit":
+            from .fit_command import _fit_command
+
+            return _fit_command(args)
+        if args.command == "diagnose":
+            from .diagnose_command import _diagnose_command
+
+            return _diagnose_command(args)
+        if args.command == "check":
+            from .check_command import _check_command
+
+            return _check_command(args)
+    return 2  # pragma: no cover (argparse requires a command)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """A warning as the commands print it: `WARNING: message` on stderr, without Python's
+    source location and line of code (found in review: a user of the command line read
+    `.../identify/run.py:36: UserWarning:` and the library's source line)."""
+    print(f"WARNING: {message}", file=sys.stderr if file is None else file, flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
