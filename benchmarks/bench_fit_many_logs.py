@@ -99,9 +99,9 @@ def problem(L: int, per_log: str = ""):
         for i, (n, v) in enumerate(TRUTH.items())
     ]
     p = identify.make_problem(chain, params, logs, noise)
-    x = jnp.asarray(parameters_module._x_from_theta(p, problem_module._guesses(p, params)))
+    x = jnp.asarray(parameters_module.x_from_theta(p, problem_module.guesses_of(p, params)))
     z = {
-        "phys": jnp.asarray(parameters_module._z_from_x(p, np.asarray(x))),
+        "phys": jnp.asarray(parameters_module.z_from_x(p, np.asarray(x))),
         "y0": jnp.asarray([p.y0_known[a, b] for a, b in p.y0_free]),
         "offset": jnp.zeros(len(p.offset_free)),
     }
@@ -133,7 +133,7 @@ def dense_rule(fn):
 @eqx.filter_jit
 def jac_ours(p, x, z):
     jac = log_jacobian(
-        p, lambda x_: parameters_module._theta_from_x(p, x_), x, z["y0"], z["offset"], p.sigma, None, STEP
+        p, lambda x_: parameters_module.theta_from_x(p, x_), x, z["y0"], z["offset"], p.sigma, None, STEP
     )
     return jac.r.reshape(-1), jac.dense(len(p.y0_free), len(p.offset_free))
 
@@ -141,7 +141,7 @@ def jac_ours(p, x, z):
 @eqx.filter_jit
 def jac_dense(p, x, z):
     def fn(v):
-        return residuals(p, parameters_module._theta_from_x(p, v["x"]), v["y0"], v["offset"], p.sigma, None, STEP)[0]
+        return residuals(p, parameters_module.theta_from_x(p, v["x"]), v["y0"], v["offset"], p.sigma, None, STEP)[0]
 
     v = {"x": x, "y0": z["y0"], "offset": z["offset"]}
     J = jax.jacfwd(fn)(v)
@@ -150,7 +150,7 @@ def jac_dense(p, x, z):
 
 @eqx.filter_jit
 def residual(p, x, z):
-    return residuals(p, parameters_module._theta_from_x(p, x), z["y0"], z["offset"], p.sigma, None, STEP)[0]
+    return residuals(p, parameters_module.theta_from_x(p, x), z["y0"], z["offset"], p.sigma, None, STEP)[0]
 
 
 _dense_lm = dense_rule(levenberg_marquardt_module._residual_fn)

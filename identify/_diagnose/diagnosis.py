@@ -12,11 +12,11 @@ import flexdyn as fd
 from .._data import measurement as meas, noise_floor as nf
 from .._fit import covariance
 from .._fit.result import FitResult
-from .._model.parameters import _at_bounds
+from .._model.parameters import names_at_bounds
 from .._model.problem import Problem
 from .._model.residuals import (
-    _initial_states,
-    _offsets,
+    initial_states_of,
+    sensor_offsets,
 )
 from .held_out import _held_out_summary
 from .joint_model import _predict
@@ -129,7 +129,7 @@ class Diagnosis:
         for name, log, value in zip(problem.names, problem.log_scale, self.baseline.values):
             v = float(self.extended_parameters.get(name, value))
             xs.append(math.log(v) if log and v > 0 else (-math.inf if log else v))
-        return _at_bounds(problem, np.asarray(xs))
+        return names_at_bounds(problem, np.asarray(xs))
 
     def at_bound_lines(self) -> list[str]:
         """A sentence per parameter of `extended_at_bounds`."""
@@ -364,10 +364,10 @@ def _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, hel
         for name, v, idx, logf in variants:
             theta = theta_of(v, idx, logf)
             if role == "fit":
-                y0s, off = _initial_states(problem, v["y0"]), _offsets(problem, v["offset"])
+                y0s, off = initial_states_of(problem, v["y0"]), sensor_offsets(problem, v["offset"])
             else:
                 _, w = held_out(theta[None], nuisances=True)
-                y0s, off = _initial_states(problem, w["y0"][0]), _offsets(problem, w["offset"][0])
+                y0s, off = initial_states_of(problem, w["y0"][0]), sensor_offsets(problem, w["offset"][0])
                 theta = w["theta"][0]  # (the held-out problem's: its logs' own per-log values in)
             pred, _ = _predict(problem, theta, y0s, None, step)
             pred = np.asarray(pred + off[:, None, :])

@@ -15,7 +15,7 @@ import optimistix as optx
 
 from .._data import noise_floor as nf
 from .._fit.result import FitResult
-from .._model.parameters import _x_from_z, _z_from_x, exp_natural
+from .._model.parameters import exp_natural, x_from_z, z_from_x
 from .._model.problem import Problem
 from .._model.residuals import (
     log_blocked,
@@ -71,7 +71,7 @@ def detection_limits(
     nb = j.nb
     n_layout = len(current["layout"])
     v = current["v"]
-    xb = _x_from_z(_bounds(j), v["zb"])
+    xb = x_from_z(_bounds(j), v["zb"])
     N = int(np.sum(used))
     out = {}
 
@@ -150,7 +150,7 @@ class _Own(eqx.Module):
         """`theta` with the own entries at the transformed coordinates `z`."""
         if not self.log_scale:
             return theta
-        x = _x_from_z(self, z)
+        x = x_from_z(self, z)
         values = jnp.stack([exp_natural(x[i]) if lg else x[i] for i, lg in enumerate(self.log_scale)])
         return theta.at[self.pos].set(values)
 
@@ -158,7 +158,7 @@ class _Own(eqx.Module):
         """The transformed coordinates of own values (SI)."""
         values = np.asarray(values, float)
         x = np.where(np.asarray(self.log_scale, bool), np.log(np.maximum(values, 1e-300)), values)
-        return jnp.asarray(_z_from_x(self, x), dtype=float)
+        return jnp.asarray(z_from_x(self, x), dtype=float)
 
 
 def _held_unpack(args):

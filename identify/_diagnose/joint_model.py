@@ -14,13 +14,13 @@ import numpy as np
 import optimistix as optx
 
 from .._fit.steps import aligned_step
-from .._model.parameters import _x_from_z, exp_natural
+from .._model.parameters import exp_natural, x_from_z
 from .._model.problem import Problem
 from .._model.residuals import (
-    _initial_states,
-    _predict_jit,
+    initial_states_of,
     log_blocked,
     log_jacobian,
+    predict_jit,
     residuals as _residuals_from,
 )
 
@@ -52,7 +52,7 @@ def _bounds(j: _Joint):
 
 def _unpack(args):
     j, idx, logf, sigma, step = args
-    return j.problem, lambda v: _theta(j, _x_from_z(_bounds(j), v["zb"]), v["xe"], idx, logf), sigma, None, step
+    return j.problem, lambda v: _theta(j, x_from_z(_bounds(j), v["zb"]), v["xe"], idx, logf), sigma, None, step
 
 
 def _residual(v, args):
@@ -85,7 +85,7 @@ def _jacobian(j: _Joint, xb, xe, y0, off, idx, logf, sigma, step):
     return jac.r.reshape(-1), jac.dense(len(j.problem.y0_free), len(j.problem.offset_free))
 
 
-_predict = _predict_jit  # shared with identify.fit.fitted_outputs: one compiled program
+_predict = predict_jit  # shared with identify.fit.fitted_outputs: one compiled program
 
 
 Z_SATURATION = 6.0
@@ -263,7 +263,7 @@ def _finer_step(problem: Problem, theta, y0_free, step, sigma) -> tuple:
     `|y(h) - y(h/2)| 32/31`); within a quarter of the bar, that is the answer (three
     simulations' worth). Otherwise each step is compared with the outputs at
     `step / REFERENCE_DIVISOR`."""
-    y0s = _initial_states(problem, y0_free)
+    y0s = initial_states_of(problem, y0_free)
     mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
     sigma = np.asarray(sigma)
 

@@ -17,7 +17,7 @@ from .._data import measurement as meas
 from .._fit import covariance
 from .._fit.fit import fit
 from .._fit.result import fitted_outputs
-from .._model.parameters import Z95, Parameter, _x_from_z
+from .._model.parameters import Z95, Parameter, x_from_z
 from .._model.problem import make_problem
 from . import catalogue as cat, evidence as ev
 from .diagnosis import Diagnosis, _stacked, _traces, _unit, _unit_chain, _with_totals
@@ -274,7 +274,7 @@ def diagnose_logs(
         return idx, logf, x
 
     def theta_of(v, idx, logf):
-        xb = _x_from_z(_bounds(joint), v["zb"])
+        xb = x_from_z(_bounds(joint), v["zb"])
         return _theta(joint, xb, v["xe"], jnp.asarray(idx), jnp.asarray(logf))
 
     # Batches are padded to fixed sizes so that every round reuses the compiled programs.
@@ -322,7 +322,7 @@ def diagnose_logs(
             # Screening: one Gauss-Newton step from every start (exact Jacobians, all the
             # free parameters), predicting each candidate's cost; only the `n_fit` most
             # promising candidates get the full multi-start fit.
-            xb_cur = _x_from_z(_bounds(joint), v_start["zb"])
+            xb_cur = x_from_z(_bounds(joint), v_start["zb"])
             B = len(batch)
             size = max(screen_size.get("B", B), B)
             screen_size.setdefault("B", B)
@@ -756,7 +756,7 @@ def diagnose_logs(
     if current["layout"]:
         v = current["v"]
         idx_c, logf_c = current["idx"], current["logf"]
-        xb = _x_from_z(_bounds(joint), v["zb"])
+        xb = x_from_z(_bounds(joint), v["zb"])
         r, J = _jacobian(
             joint, xb, v["xe"], v["y0"], v["offset"], jnp.asarray(idx_c), jnp.asarray(logf_c), sigma_j, step
         )

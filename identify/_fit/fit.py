@@ -15,19 +15,19 @@ import numpy as np
 import flexdyn as fd
 
 from .._data import noise_floor as nf
-from .._model.parameters import Parameter, _at_bounds, _x_from_theta, _x_from_z, _z_from_x
-from .._model.problem import Problem, _check_same_parameters, _guesses
+from .._model.parameters import Parameter, names_at_bounds, x_from_theta, x_from_z, z_from_x
+from .._model.problem import Problem, check_same_parameters, guesses_of
 from .jacobian import _covariance_at
 from .levenberg_marquardt import _check_budgets, _check_damping, _result_name, _solve
 from .quality import (
     NOISE_AGREEMENT,
     NOISE_ROUNDS,
-    _floors,
     _noise_text,
     _noise_to_estimate,
     _reestimate_sigma,
     _residual_ms,
     _same_misfit,
+    noise_floors,
 )
 from .result import FitResult, _finish
 from .starts import _distinct, _extra_starts, _frequency_initialise, _starts
@@ -137,16 +137,16 @@ def fit(
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps, early_max_steps=early_max_steps)
     parameters = problem.parameters if parameters is None else parameters
-    _check_same_parameters(problem, parameters, "fit")
+    check_same_parameters(problem, parameters, "fit")
     extra = _extra_starts(problem, parameters, extra_starts)
     fd.ensure_mapping_headroom()  # a fit compiles ~10-50 programs (flexdyn.program_cache)
     start = time.perf_counter()
     say = progress or (lambda msg: None)
-    x0 = _x_from_theta(problem, _guesses(problem, parameters))
+    x0 = x_from_theta(problem, guesses_of(problem, parameters))
     if frequency_init:
         x0 = _frequency_initialise(problem, x0, say, grid_safety)
     z = {
-        "phys": jnp.asarray(_z_from_x(problem, x0)),
+        "phys": jnp.asarray(z_from_x(problem, x0)),
         "y0": jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float),
         "offset": jnp.zeros(len(problem.offset_free)),
     }
@@ -171,7 +171,7 @@ def fit(
         runs = [
             _solve(
                 problem,
-                {"phys": jnp.asarray(_z_from_x(problem, x)), "y0": z["y0"], "offset": z["offset"]},
+                {"phys": jnp.asarray(z_from_x(problem, x)), "y0": z["y0"], "offset": z["offset"]},
                 sigma,
                 jnp.asarray(h),
                 step,
@@ -208,7 +208,7 @@ def fit(
     # try the next-best starts, and keep the one off the bounds that explains the data
     # best (`identify.noise_floor.score`: unlike the cost, it does not depend on the noise
     # weights each attempt re-estimated).
-    floors = _floors(problem)
+    floors = noise_floors(problem)
     outcomes, why = [], ""
     for attempt, z in enumerate(candidates):
         if attempt:
@@ -229,8 +229,8 @@ def fit(
             say,
             0.0 if n_starts > 1 and problem.names else first_damping,
         )
-        x = _x_from_z(problem, z["phys"])
-        bounded = bool(_at_bounds(problem, np.asarray(x)))
+        x = x_from_z(problem, z["phys"])
+        bounded = bool(names_at_bounds(problem, np.asarray(x)))
         ms = _residual_ms(problem, z, sigma_a, step, lin)
         quality = nf.goodness(problem.channels, ms, *floors)
         poor = [c for c, q in quality.items() if q["poor"]]
@@ -278,7 +278,7 @@ def fit(
     _, _, z, sigma, step, lin, tried, ms = outcomes[kept]
     stages.extend(tried)
     say("  computing standard errors (exact Jacobian at the optimum) ...")
-    x = _x_from_z(problem, z["phys"])
+    x = x_from_z(problem, z["phys"])
     cov, blocks = _covariance_at(problem, x, z, sigma, step, *lin)
     result = _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, ms, blocks)
     return dataclasses.replace(result, sigma_estimated=tuple(estimate_noise))

@@ -16,18 +16,18 @@ import flexdyn as fd
 
 from .._data import noise_floor as nf
 from .._data.channels import state_names
-from .._model.parameters import Parameter, _x_from_theta, _x_from_z, _z_from_x
-from .._model.problem import Problem, _check_same_parameters, _guesses
+from .._model.parameters import Parameter, x_from_theta, x_from_z, z_from_x
+from .._model.problem import Problem, check_same_parameters, guesses_of
 from .jacobian import _covariance_at, _SimulationFailed
 from .levenberg_marquardt import _check_budgets, _check_damping, _result_name, _solve
 from .quality import (
     NOISE_AGREEMENT,
     NOISE_ROUNDS,
-    _floors,
     _noise_range_text,
     _noise_to_estimate,
     _reestimate_sigma_per_log,
     _residual_ms,
+    noise_floors,
 )
 from .result import FitResult, _finish
 from .starts import _frequency_initialise_independent
@@ -128,15 +128,15 @@ def fit_independent(
             "per_log=False"
         )
     parameters = problem.parameters if parameters is None else parameters
-    _check_same_parameters(problem, parameters, "fit_independent")
+    check_same_parameters(problem, parameters, "fit_independent")
     fd.ensure_mapping_headroom()  # flexdyn.program_cache
     start = time.perf_counter()
     say = progress or (lambda msg: None)
     stacked, singles = _split(problem)
     L = len(singles)
-    x0 = _x_from_theta(problem, _guesses(problem, parameters))
+    x0 = x_from_theta(problem, guesses_of(problem, parameters))
     z1 = {
-        "phys": jnp.asarray(_z_from_x(problem, x0)),
+        "phys": jnp.asarray(z_from_x(problem, x0)),
         "y0": None,
         "offset": jnp.zeros(len(singles[0].offset_free)),
     }
@@ -280,7 +280,7 @@ def fit_independent(
     z_start = z
     z, sigma, step, lin, stages = grow(z, sigma0)
     ms = quality(z, sigma, step, lin)
-    floors = [_floors(q) for q in singles]
+    floors = [noise_floors(q) for q in singles]
     scores = np.asarray([nf.score(ms[k], *floors[k]) for k in range(L)])
     poor = [k for k in range(L) if any(q["poor"] for q in nf.goodness(problem.channels, ms[k], *floors[k]).values())]
     good = [k for k in range(L) if k not in poor]
@@ -325,7 +325,7 @@ def fit_independent(
             for k in better:
                 stages[k], ms[k] = stages[k] + stages2[k], ms2[k]
     say("  computing standard errors (exact Jacobians at the optima) ...")
-    x = jnp.stack([_x_from_z(singles[k], z["phys"][k]) for k in range(L)])
+    x = jnp.stack([x_from_z(singles[k], z["phys"][k]) for k in range(L)])
     cov_blocks, failed = [], []
     for k in range(L):
         try:

@@ -101,7 +101,7 @@ from scipy.special import i0e, i1e
 import flexdyn as fd
 
 from .._data.noise_floor import channel_floors
-from .._model.residuals import _chain
+from .._model.residuals import chain_at
 
 #: EI factors tried around the guess (flexural frequency ~ sqrt(EI): 1/4 to 4 times the
 #: guess's, in steps of 2^(1/4), 19 %)
@@ -493,7 +493,7 @@ def _flexural_frequencies(problems, thetas, link: int) -> list[float | None]:
         first = np.asarray(problem.log_set[0]) if problem.log_set_names else None  # (the first log's known values)
         key = theta.tobytes() + (b"" if first is None else first.tobytes())
         if key not in seen:
-            seen[key] = flexural_frequency(_chain(problem, jnp.asarray(theta), first, 0), link)
+            seen[key] = flexural_frequency(chain_at(problem, jnp.asarray(theta), first, 0), link)
         out.append(seen[key])
     return out
 

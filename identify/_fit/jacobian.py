@@ -6,12 +6,12 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._model.parameters import _SIGMOID_Z_MAX, _dx_dz, _theta_from_x
+from .._model.parameters import SIGMOID_Z_MAX, dx_dz, theta_from_x
 from .._model.problem import Problem
 from .._model.residuals import (
     FAILED_RESIDUAL,
-    _used,
     log_jacobian,
+    used_mask,
 )
 from . import covariance
 from .block_lm import Layout
@@ -25,7 +25,7 @@ def _jacobian_natural(problem: Problem, x, y0_free, offset_free, sigma, step):
     log's simulation succeeded, full horizon; one forward-mode solve per log
     (`identify.residuals.log_jacobian`)."""
 
-    theta_of = lambda x_: _theta_from_x(problem, x_)  # noqa: E731
+    theta_of = lambda x_: theta_from_x(problem, x_)  # noqa: E731
     jac = log_jacobian(problem, theta_of, x, y0_free, offset_free, sigma, None, step)
     return jac.r.reshape(-1), jac.dense(len(problem.y0_free), len(problem.offset_free)), jnp.all(jac.ok)
 
@@ -33,7 +33,7 @@ def _jacobian_natural(problem: Problem, x, y0_free, offset_free, sigma, step):
 @eqx.filter_jit
 def _jacobian_blocks(problem: Problem, x, y0_free, offset_free, sigma, step):
     """As `_jacobian_natural`, the blocks (`identify.residuals.LogJacobian`), no dense `J`."""
-    theta_of = lambda x_: _theta_from_x(problem, x_)  # noqa: E731
+    theta_of = lambda x_: theta_from_x(problem, x_)  # noqa: E731
     return log_jacobian(problem, theta_of, x, y0_free, offset_free, sigma, None, step)
 
 
@@ -66,17 +66,17 @@ def _natural_blocks(problem: Problem, z, lin, horizon):
     solve's linearisation `lin` at `z` (w.r.t. the unconstrained `z`; the shared columns
     divided by `d x / d z` give them w.r.t. the natural coordinates), or None where it
     cannot stand for the full Jacobian: its horizon left samples out, or a parameter sits so
-    near a bound that `d x / d z` loses precision (`_SIGMOID_Z_MAX`) or underflows. Raises
+    near a bound that `d x / d z` loses precision (`SIGMOID_Z_MAX`) or underflows. Raises
     if a log's simulation failed there (its residuals are the failure value of
     `identify.residuals.residuals`)."""
     mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
-    if horizon is not None and not np.array_equal(np.asarray(_used(problem, float(horizon))), mask):
+    if horizon is not None and not np.array_equal(np.asarray(used_mask(problem, float(horizon))), mask):
         return None  # the horizon's samples are not all of them
     zp = np.asarray(z["phys"])
     two_sided = np.isfinite(np.asarray(problem.lower)) & np.isfinite(np.asarray(problem.upper))
-    if np.any(two_sided & (np.abs(zp) > _SIGMOID_Z_MAX)):
+    if np.any(two_sided & (np.abs(zp) > SIGMOID_Z_MAX)):
         return None
-    scale = _dx_dz(problem, zp)
+    scale = dx_dz(problem, zp)
     if not np.all(np.isfinite(scale) & (np.abs(scale) > 1e-250)):
         return None
     r, S, U = (np.asarray(a) for a in lin)

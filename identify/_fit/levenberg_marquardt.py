@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._model.parameters import _theta_from_x, _x_from_z
+from .._model.parameters import theta_from_x, x_from_z
 from .._model.problem import Problem
 from .._model.residuals import (
     log_blocked,
@@ -22,7 +22,7 @@ from .trust_region import ScaledTrustRegion
 
 def _unpack(args):
     problem, sigma, horizon, step = args
-    return problem, lambda v: _theta_from_x(problem, _x_from_z(problem, v["phys"])), sigma, horizon, step
+    return problem, lambda v: theta_from_x(problem, x_from_z(problem, v["phys"])), sigma, horizon, step
 
 
 def _residual_fn(z, args):

@@ -9,11 +9,11 @@ import numpy as np
 
 from .._data import measurement as meas, noise_floor as nf
 from .._data.units import display_unit
-from .._model.parameters import _theta_from_x, _x_from_z
+from .._model.parameters import theta_from_x, x_from_z
 from .._model.problem import Problem
 from .._model.residuals import (
-    _used,
     residuals as _residuals_from,
+    used_mask,
 )
 
 #: `FitResult.summary`: a residual this many times its noise floor is more likely a set-up
@@ -51,10 +51,10 @@ def _residual_ms(problem: Problem, z, sigma, step, lin=None) -> np.ndarray:
     r = None
     if lin is not None:
         (r_lin, *_), horizon = lin
-        if horizon is None or np.array_equal(np.asarray(_used(problem, float(horizon))), mask):
+        if horizon is None or np.array_equal(np.asarray(used_mask(problem, float(horizon))), mask):
             r = r_lin
     if r is None:
-        theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
+        theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
         r, _ = _residuals_from(problem, theta, z["y0"], z["offset"], sigma, None, step)
     res = np.asarray(r).reshape(mask.shape) * np.asarray(sigma)
     return np.sum(np.where(mask, res, 0.0) ** 2, axis=1) / np.maximum(mask.sum(axis=1), 1)
@@ -86,7 +86,7 @@ def _reversed_channels(problem: Problem, z, sigma, step, channels) -> dict:
     residual 861x the floor, with only generic advice; the fitted simulation then barely
     moves (a payload of 4 kg), so the whole traces do not correlate and the first push
     is what tells. One simulation, only on a poor fit."""
-    theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
+    theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
     r, _ = _residuals_from(problem, theta, z["y0"], z["offset"], sigma, None, step)
     meas_ = np.asarray(problem.measured)
     pred = np.asarray(r).reshape(meas_.shape) * np.asarray(sigma) + meas_
@@ -166,7 +166,7 @@ def _initial_far(problem: Problem, init: dict, offs: dict, sigma) -> dict:
     return out
 
 
-def _floors(problem: Problem):
+def noise_floors(problem: Problem):
     """`identify.noise_floor.channel_floors` of the problem's logs."""
     return nf.channel_floors(problem.t, problem.measured, problem.valid, problem.present)
 
@@ -248,7 +248,7 @@ def _noise_range_text(channels, sigma, estimated) -> str:
 
 
 def _reestimate_sigma(problem: Problem, z, sigma, channels, step):
-    theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
+    theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
     r, _ = _residuals_from(problem, theta, z["y0"], z["offset"], sigma, None, step)
     r = np.asarray(r).reshape(problem.measured.shape) * np.asarray(sigma)
     mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])

@@ -13,12 +13,12 @@ from .._data import channels as ch, measurement as meas, noise_floor as nf
 from .._data.channels import state_names
 from .._data.measurement import Measurement
 from .._data.units import display_unit
-from .._model.parameters import Z95, _at_bounds, _theta_from_x, _x_from_z
-from .._model.problem import Problem, _guesses, parameter_unit
+from .._model.parameters import Z95, names_at_bounds, theta_from_x, x_from_z
+from .._model.problem import Problem, guesses_of, parameter_unit
 from .._model.residuals import (
-    _initial_states,
-    _offsets,
-    _predict_jit,
+    initial_states_of,
+    predict_jit,
+    sensor_offsets,
 )
 from . import covariance
 from .covariance import Covariance
@@ -26,9 +26,9 @@ from .quality import (
     GROSS_MISFIT,
     WEIGHT_MISMATCH,
     _floor_above_residual_notes,
-    _floors,
     _initial_far,
     _reversed_channels,
+    noise_floors,
 )
 
 
@@ -378,8 +378,8 @@ def _finish(
     q = p + len(problem.y0_free)
     for k, (l, c) in enumerate(problem.offset_free):
         offs.setdefault(problem.log_names[l], {})[problem.channels[c]] = (float(z["offset"][k]), float(se_nat[q + k]))
-    at_bounds = _at_bounds(problem, xs)
-    quality = nf.goodness(problem.channels, residual_ms, *_floors(problem))
+    at_bounds = names_at_bounds(problem, xs)
+    quality = nf.goodness(problem.channels, residual_ms, *noise_floors(problem))
     poor = [c for c, q in quality.items() if q["poor"]]
     reversed_channels = _reversed_channels(problem, z, sigma, step, poor) if poor else {}
     initial_far = _initial_far(problem, init, offs, sigma)
@@ -389,7 +389,7 @@ def _finish(
     return FitResult(
         names=list(problem.names),
         values=values,
-        guesses=np.array(_guesses(problem, parameters), float),
+        guesses=np.array(guesses_of(problem, parameters), float),
         std_errors=se,
         ci_low=lo,
         ci_high=hi,
@@ -420,9 +420,9 @@ def fitted_outputs(result: FitResult) -> dict:
     """Per log: `{'t', 'measured': {ch: ...}, 'simulated': {ch: ...}, 'residual': {ch: ...}}`
     (SI; simulated includes the fitted sensor offsets), for plots and residual tests."""
     problem, z = result.problem, result.z
-    theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
-    pred, _ = _predict_jit(problem, theta, _initial_states(problem, z["y0"]), None, result.step)
-    off = _offsets(problem, z["offset"])
+    theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
+    pred, _ = predict_jit(problem, theta, initial_states_of(problem, z["y0"]), None, result.step)
+    off = sensor_offsets(problem, z["offset"])
     pred = np.asarray(pred + off[:, None, :])
     meas, valid, present = np.asarray(problem.measured), np.asarray(problem.valid), np.asarray(problem.present)
     out = {}

@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._model.parameters import _theta_from_x, _x_from_theta, _z_from_x
-from .._model.problem import Problem, _guesses
+from .._model.parameters import theta_from_x, x_from_theta, z_from_x
+from .._model.problem import Problem, guesses_of
 from .frequency_init import STIFFNESS, initialise_stiffness
 from .steps import _grid_step, _span_horizon
 
@@ -42,11 +42,11 @@ def _stiffness_limits(problem: Problem):
     lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
     span = hi - lo
     margin = np.where(np.isfinite(span), 1e-3 * span, 0.0)
-    return tuple(np.asarray(_theta_from_x(problem, jnp.asarray(b)), float) for b in (lo + margin, hi - margin))
+    return tuple(np.asarray(theta_from_x(problem, jnp.asarray(b)), float) for b in (lo + margin, hi - margin))
 
 
 def _z_rows(problem: Problem, thetas) -> np.ndarray:
-    return np.stack([_z_from_x(problem, _x_from_theta(problem, theta)) for theta in thetas])
+    return np.stack([z_from_x(problem, x_from_theta(problem, theta)) for theta in thetas])
 
 
 def _frequency_initialise(problem: Problem, x0: np.ndarray, say, safety: float = 0.5) -> np.ndarray:
@@ -66,8 +66,8 @@ def _frequency_initialise(problem: Problem, x0: np.ndarray, say, safety: float =
         _, ok, outputs = _grid_step(problem, z, _span_horizon(problem, span), safety)
         return np.asarray(outputs)[None], np.asarray(ok)[None]
 
-    theta = np.asarray(_theta_from_x(problem, jnp.asarray(x0)))
-    return _x_from_theta(problem, initialise_stiffness([problem], theta[None], limits, simulate, say)[0])
+    theta = np.asarray(theta_from_x(problem, jnp.asarray(x0)))
+    return x_from_theta(problem, initialise_stiffness([problem], theta[None], limits, simulate, say)[0])
 
 
 def _frequency_initialise_independent(problem: Problem, singles, stacked, z, x0, grid, safety: float, say):
@@ -90,7 +90,7 @@ def _frequency_initialise_independent(problem: Problem, singles, stacked, z, x0,
         _, ok, outputs = grid(stacked, {**z, "phys": batch_phys(thetas)}, _span_horizon(problem, span), safety)
         return np.asarray(outputs)[:n_logs], np.asarray(ok)[:n_logs]
 
-    theta = np.asarray(_theta_from_x(problem, jnp.asarray(x0)))
+    theta = np.asarray(theta_from_x(problem, jnp.asarray(x0)))
     thetas = initialise_stiffness(singles, np.tile(theta, (n_logs, 1)), limits, simulate, say)
     return {**z, "phys": batch_phys(thetas)}
 
@@ -99,7 +99,7 @@ def _extra_starts(problem: Problem, parameters, extra_starts) -> list:
     """`fit`'s `extra_starts` in natural coordinates (the guesses where a start names no
     value), each checked: known parameter names, finite values inside the bounds."""
     out = []
-    guess = dict(zip(problem.names, _guesses(problem, parameters)))
+    guess = dict(zip(problem.names, guesses_of(problem, parameters)))
     for k, start in enumerate(extra_starts):
         unknown = sorted(set(start) - set(problem.names) - {name for name, _ in problem.per_log})
         if unknown:
@@ -112,7 +112,7 @@ def _extra_starts(problem: Problem, parameters, extra_starts) -> list:
             x = math.log(v) if lg and v > 0 else v
             if not (np.isfinite(v) and (v > 0 or not lg) and lo <= x <= hi):
                 raise ValueError(f"fit: extra_starts[{k}]: {n} = {v!r} is not a finite value inside its bounds")
-        out.append(_x_from_theta(problem, theta))
+        out.append(x_from_theta(problem, theta))
     return out
 
 

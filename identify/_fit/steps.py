@@ -12,12 +12,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._model.parameters import _theta_from_x, _x_from_z
+from .._model.parameters import theta_from_x, x_from_z
 from .._model.problem import Problem
 from .._model.residuals import (
-    _initial_states,
-    _used,
+    initial_states_of,
     predict,
+    used_mask,
 )
 
 
@@ -27,8 +27,8 @@ def _grid_step(problem: Problem, z, horizon, safety: float):
     adaptive solver (the problem's rtol/atol) takes at the current parameters; whether
     every log's solve succeeded; the simulated outputs `(L, T, C)` (what
     `_frequency_initialise` compares with the logs)."""
-    theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
-    outputs, ok, n = predict(problem, theta, _initial_states(problem, z["y0"]), horizon, stats=True)
+    theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
+    outputs, ok, n = predict(problem, theta, initial_states_of(problem, z["y0"]), horizon, stats=True)
     # The span from the onset: an early stage's solve starts there, and the last stage's
     # takes a handful of steps for the rest before it (at rest the error estimate is 0 and
     # the steps grow tenfold each), so the mean step over the whole log would be the
@@ -118,8 +118,8 @@ def _simulation_failure(problem: Problem, z, horizon) -> SimulationFailed:
     """Why the logs' simulation at `z` over `horizon` failed, per log (one more solve,
     only after a failure; review: "the simulation at the current parameters failed" said
     neither which log, nor why, nor at which values)."""
-    theta = np.asarray(_theta_from_x(problem, _x_from_z(problem, z["phys"])))
-    ok, limit = _solve_flags(problem, jnp.asarray(theta), _initial_states(problem, z["y0"]), jnp.asarray(horizon))
+    theta = np.asarray(theta_from_x(problem, x_from_z(problem, z["phys"])))
+    ok, limit = _solve_flags(problem, jnp.asarray(theta), initial_states_of(problem, z["y0"]), jnp.asarray(horizon))
     logs = {}
     for name, ok_l, limit_l in zip(problem.log_names, np.asarray(ok), np.asarray(limit)):
         if not ok_l:
@@ -200,9 +200,9 @@ def _grid_errors(problem: Problem, z, horizon, steps, reference, sigma, bar):
     first that passes; `bar` = inf simulates the first step only). The steps are simulated
     one after another (a `scan`: under `vmap` every one would take as many steps as the
     finest; under `fit_independent`'s vmap the skip is a select, both sides computed)."""
-    theta = _theta_from_x(problem, _x_from_z(problem, z["phys"]))
-    y0s = _initial_states(problem, z["y0"])
-    mask = _used(problem, horizon)
+    theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
+    y0s = initial_states_of(problem, z["y0"])
+    mask = used_mask(problem, horizon)
 
     def one(h):
         outputs, ok = predict(problem, theta, y0s, horizon, h)

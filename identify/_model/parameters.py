@@ -39,7 +39,7 @@ class Parameter:
     per_log: bool = False
 
 
-def _x_from_z(problem: Problem, z):
+def x_from_z(problem: Problem, z):
     lo, hi = problem.lower, problem.upper
     both = jnp.isfinite(lo) & jnp.isfinite(hi)
     only_lo = jnp.isfinite(lo) & ~jnp.isfinite(hi)
@@ -53,7 +53,7 @@ def _x_from_z(problem: Problem, z):
     )
 
 
-def _z_from_x(problem: Problem, x):
+def z_from_x(problem: Problem, x):
     lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
     x = np.asarray(x, float)
     z = x.copy()
@@ -85,18 +85,18 @@ def exp_natural(x):
     return jnp.exp(jnp.clip(x, -LOG_CLIP, LOG_CLIP))
 
 
-def _theta_from_x(problem: Problem, x):
+def theta_from_x(problem: Problem, x):
     if not problem.names:
         return jnp.zeros((0,), x.dtype)
     return jnp.stack([exp_natural(x[i]) if problem.log_scale[i] else x[i] for i in range(len(problem.names))])
 
 
-def _x_from_theta(problem: Problem, theta):
+def x_from_theta(problem: Problem, theta):
     return np.array([np.log(v) if s else v for v, s in zip(theta, problem.log_scale)], float)
 
 
-def _dx_dz(problem: Problem, z_phys) -> np.ndarray:
-    """`d x / d z` of `_x_from_z` (elementwise), host-side."""
+def dx_dz(problem: Problem, z_phys) -> np.ndarray:
+    """`d x / d z` of `x_from_z` (elementwise), host-side."""
     lo, hi, z = np.asarray(problem.lower), np.asarray(problem.upper), np.asarray(z_phys, float)
 
     def sig(v):  # the logistic, to full relative precision in both tails, without overflow
@@ -116,10 +116,10 @@ def _dx_dz(problem: Problem, z_phys) -> np.ndarray:
 # JAX's derivative of the logistic, sigma (1 - sigma), loses digits in 1 - sigma (relative
 # 1e-16 / (1 - sigma), 1e-9 here): the linearisation w.r.t. z would not give the natural
 # Jacobian to full precision, so it is recomputed.
-_SIGMOID_Z_MAX = 15.0
+SIGMOID_Z_MAX = 15.0
 
 
-def _at_bounds(problem: Problem, xs: np.ndarray) -> list[str]:
+def names_at_bounds(problem: Problem, xs: np.ndarray) -> list[str]:
     """Names of the parameters whose natural coordinate is on (within 0.1 % of the range
     of) a finite bound."""
     lo_b, hi_b = np.asarray(problem.lower), np.asarray(problem.upper)

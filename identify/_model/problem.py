@@ -297,7 +297,7 @@ def _warn_if_at_rest(log: LogData) -> None:
     )
 
 
-def _check_same_parameters(problem: Problem, parameters, caller: str) -> None:
+def check_same_parameters(problem: Problem, parameters, caller: str) -> None:
     """The free parameters passed to a fit must be the problem's, in its order: the
     guesses are read by position (found in review: `fit(problem, [hub1.inertia])` on a
     problem made for `link1.EI` used the inertia's guess as EI's, silently)."""
@@ -557,7 +557,7 @@ def parameter_unit(problem: Problem, name: str) -> str:
     return fd.parameter_unit(problem.chain, name)
 
 
-def _guesses(problem: Problem, parameters) -> list[float]:
+def guesses_of(problem: Problem, parameters) -> list[float]:
     """The guesses of `parameters` (checked to be the problem's) in `problem.names` order:
     a per-log parameter's guess once per log."""
     return _guesses_made(parameters, problem.t.shape[0])

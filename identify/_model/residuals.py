@@ -57,7 +57,7 @@ def _values(problem, theta, log_values=None, log_index=None) -> dict:
     return values
 
 
-def _chain(problem, theta, log_values=None, log_index=None):
+def chain_at(problem, theta, log_values=None, log_index=None):
     """The problem's chain at parameters `theta`, with a log's known values `log_values`
     (a row of `Problem.log_set`) and per-log values (`_values`) if given."""
     values = _values(problem, theta, log_values, log_index)
@@ -70,7 +70,7 @@ def _measurement(problem, theta, log_values=None, log_index=None):
     return meas.with_parameters(problem.measurement, sensors)
 
 
-def _initial_states(problem, y0_free):
+def initial_states_of(problem, y0_free):
     """Initial states `(L, 2n)`: the known ones with the free entries `y0_free` (in
     `problem.y0_free` order) set."""
     y0 = problem.y0_known
@@ -81,7 +81,7 @@ def _initial_states(problem, y0_free):
     return y0
 
 
-def _offsets(problem, offset_free):
+def sensor_offsets(problem, offset_free):
     """Sensor offsets `(L, C)`: zero but for the free ones (`problem.offset_free` order)."""
     off = jnp.zeros(problem.present.shape)
     if problem.offset_free:
@@ -133,7 +133,7 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     refuse (`_admissible`) count as a failed solve. `log_values`: the log's row of
     `Problem.log_set`; `log_index`: its index (for per-log parameters, `Problem.per_log`)."""
     theta, y0, admissible = _admissible(problem, theta, y0)
-    asm = fd.assemble(_chain(problem, theta, log_values, log_index))
+    asm = fd.assemble(chain_at(problem, theta, log_values, log_index))
     sensors = _measurement(problem, theta, log_values, log_index)
     if horizon is None:
         t_begin, t_end = t[0], t[-1]
@@ -198,7 +198,7 @@ def predict(problem, theta, y0s, horizon=None, step=None, *, stats: bool = False
     return jax.vmap(one)(problem.t, problem.torque_v, y0s, problem.onset, problem.log_set, jnp.arange(L))
 
 
-def _used(problem, horizon):
+def used_mask(problem, horizon):
     """`(L, T, C)` mask of the residuals that count: valid samples of recorded channels,
     within the horizon (up to `onset + horizon`, each log's `Problem.onset`)."""
     mask = problem.valid[:, :, None] & problem.present[:, None, :]
@@ -216,11 +216,11 @@ def residuals(problem, theta, y0_free, offset_free, sigma, horizon, step=None):
     success flag per log. A failed solve (wild parameters during the search) gives
     residuals of `FAILED_RESIDUAL` (1e6), so the optimiser rejects the step; the final solution is checked
     separately."""
-    y0s = _initial_states(problem, y0_free)
+    y0s = initial_states_of(problem, y0_free)
     pred, ok = predict(problem, theta, y0s, horizon, step)
-    r = (pred + _offsets(problem, offset_free)[:, None, :] - problem.measured) / sigma
+    r = (pred + sensor_offsets(problem, offset_free)[:, None, :] - problem.measured) / sigma
     r = jnp.where(ok[:, None, None], r, FAILED_RESIDUAL)
-    return jnp.where(_used(problem, horizon), r, 0.0).reshape(-1), ok
+    return jnp.where(used_mask(problem, horizon), r, 0.0).reshape(-1), ok
 
 
 # ---------------------------------------------------------------------------
@@ -330,8 +330,8 @@ def log_jacobian(problem, theta_of: Callable, shared, y0_free, offset_free, sigm
     y0_pos, y0_index, y0_used = _slots(problem.y0_free, L)
     off_pos, off_index, off_used = _slots(problem.offset_free, L)
     u = _spread(jnp.asarray(y0_free, dtype), y0_pos, y0_used)
-    offsets = _offsets(problem, offset_free)
-    mask = _used(problem, horizon)
+    offsets = sensor_offsets(problem, offset_free)
+    mask = used_mask(problem, horizon)
 
     # Per-log parameters (`Problem.per_log`): a log's residuals depend on its own entries of
     # the shared vector only, so each solve carries the common entries' and its own
@@ -437,4 +437,4 @@ def log_blocked(unpack: Callable) -> Callable:
 
 
 # compiled once per problem layout (an eager call re-traces and runs the assembly op by op)
-_predict_jit = eqx.filter_jit(predict)
+predict_jit = eqx.filter_jit(predict)

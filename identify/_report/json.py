@@ -27,7 +27,7 @@ def jsonable(x):
     return x
 
 
-def _versions() -> dict:
+def package_versions() -> dict:
     import importlib.metadata as md
 
     out = {"python": platform.python_version()}

@@ -169,17 +169,17 @@ def main(argv=None) -> int:
         warnings.showwarning = _show_warning
         # (the commands import the library, and with it JAX, only once parsed: `--help` stays fast)
         if args.command == "fit":
-            from .fit_command import _fit_command
+            from .fit_command import run_fit
 
-            return _fit_command(args)
+            return run_fit(args)
         if args.command == "diagnose":
-            from .diagnose_command import _diagnose_command
+            from .diagnose_command import run_diagnose
 
-            return _diagnose_command(args)
+            return run_diagnose(args)
         if args.command == "check":
-            from .check_command import _check_command
+            from .check_command import run_check
 
-            return _check_command(args)
+            return run_check(args)
     return 2  # pragma: no cover (argparse requires a command)
 
 

@@ -25,7 +25,7 @@ def _set_up_checks(exp) -> list[str]:
     return lines
 
 
-def _check_command(args) -> int:
+def run_check(args) -> int:
     """`identify check`: load the experiment with every check a fit makes before it
     compiles anything (the file, the logs, the problem `make_problem` builds: its logs at
     rest, its sampling) and print what a fit would start from (review: the only way to
@@ -51,9 +51,9 @@ def _check_command(args) -> int:
     import numpy as np
 
     from .._data.noise_floor import declared_noise_warnings, pooled
-    from .._fit.quality import _floors
+    from .._fit.quality import noise_floors
 
-    floor, count = _floors(problem)
+    floor, count = noise_floors(problem)
     floors = np.sqrt(pooled(floor**2, count))
     quality = {c: {"noise_floor": float(f)} for c, f in zip(problem.channels, floors) if np.isfinite(f)}
     for line in declared_noise_warnings(exp.noise, quality):

@@ -6,13 +6,13 @@ import sys
 import time
 from pathlib import Path
 
-from .._report.json import _versions
+from .._report.json import package_versions
 from .check_command import _set_up_checks
 from .fit_command import _failure_text
 from .output import NOT_CONVERGED, PROGRESS_FILE, _experiment_and_folder, _Refused, _write_marker, check_output_folder
 
 
-def _diagnose_command(args) -> int:
+def run_diagnose(args) -> int:
     start = time.perf_counter()
 
     def say(msg=""):
@@ -98,7 +98,7 @@ def _diagnose_command(args) -> int:
     extra = {
         "experiment": {"name": exp.name, "path": str(Path(exp.path).resolve())},
         "command": ["identify", "diagnose", str(args.experiment)],
-        "versions": _versions(),
+        "versions": package_versions(),
     }
     written = write_report(diag, out, title=exp.name, extra=extra)
     print()

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from flexdyn.linear import natural_frequencies
 
-from .._report.json import _versions
+from .._report.json import package_versions
 from .._workflow import CLUSTER_MIN_LOGS, validate
 from .check_command import _set_up_checks
 from .output import (
@@ -134,7 +134,7 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
-def _fit_command(args) -> int:
+def run_fit(args) -> int:
     start = time.perf_counter()
     quiet = args.quiet
 
@@ -331,7 +331,7 @@ def _fit_command(args) -> int:
     doc["modal_configuration"] = where
     doc["options"] = {"stages": args.stages}
     doc["command"] = ["identify", "fit", *map(str, _argv_tail(args))]
-    doc["versions"] = _versions()
+    doc["versions"] = package_versions()
     (out / RESULT_FILE).write_text(json.dumps(plots.jsonable(doc), indent=1) + "\n")
     written = [out / MARKER, out / RESULT_FILE]
     written += plots.write_plots(
@@ -435,7 +435,7 @@ def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
         "residuals": reports,
         "options": {"stages": args.stages, "independent": True},
         "command": ["identify", "fit", *map(str, _argv_tail(args))],
-        "versions": _versions(),
+        "versions": package_versions(),
     }
     (out / RESULT_FILE).write_text(json.dumps(plots.jsonable(doc), indent=1) + "\n")
     roles = {name: "fit" for name in outputs}

@@ -43,7 +43,7 @@ def multilog_problem():
         identify.Parameter("payload.mass", 0.03, 1e-3, 1.0),
     ]
     p = identify.make_problem(chain, params, logs, {"theta1": 1e-3, "end_x": 1e-4})
-    x = jnp.asarray(parameters_module._x_from_theta(p, [q.guess for q in params]))
+    x = jnp.asarray(parameters_module.x_from_theta(p, [q.guess for q in params]))
     y0 = jnp.asarray([0.41, 0.05, -0.02])
     off = jnp.asarray([1e-3, -2e-3, 5e-4])
     return p, x, y0, off

@@ -60,7 +60,7 @@ def test_block_levenberg_marquardt_takes_optimistix_steps(multilog_problem):
     steps: near the optimum a trial's actual cost reduction is round-off, ~1e-12 of the
     cost, and the trust region's accept/reject decision there goes either way.)"""
     p, x, y0, off = multilog_problem
-    z0 = {"phys": jnp.asarray(parameters_module._z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
+    z0 = {"phys": jnp.asarray(parameters_module.z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
     args = (p, p.sigma, None, 2e-3)
     fn = levenberg_marquardt_module._residual_fn_lm
     block_lm = BlockLevenbergMarquardt(1e-4, 1e-10, Layout.of(p), norm=optx.rms_norm)
@@ -135,7 +135,7 @@ def test_a_fit_of_many_logs_recovers_the_truth():
         assert abs(offset - offsets[l]) < 4 * se, (l, offset, offsets[l], se)
     # its standard errors came block by block (identify.covariance.blocked); the dense
     # Jacobian's SVD at the same optimum gives the same ones
-    x = parameters_module._x_from_z(problem, res.z["phys"])
+    x = parameters_module.x_from_z(problem, res.z["phys"])
     sigma = jnp.asarray([res.sigma[c] for c in problem.channels])
     r, J, ok = jacobian_module._jacobian_natural(problem, x, res.z["y0"], res.z["offset"], sigma, res.step)
     dense = jacobian_module._dense_covariance(problem, r, J)

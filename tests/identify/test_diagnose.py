@@ -118,19 +118,19 @@ def test_a_candidate_that_needs_a_finer_step_gets_one():
     import jax.numpy as jnp
 
     from identify._model.problem import make_problem
-    from identify._model.residuals import _predict_jit
+    from identify._model.residuals import predict_jit
 
     for coulomb in (1e-3, None):
         logs = pendulum_logs(pendulum(coulomb=coulomb), 0)
         problem = make_problem(pendulum(coulomb=coulomb), [], logs, {"theta1": PENDULUM_NOISE}, rtol=1e-12, atol=1e-14)
         theta = jnp.zeros(0)
         y0 = jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float)
-        y0s = residuals_module._initial_states(problem, y0)
+        y0s = residuals_module.initial_states_of(problem, y0)
         mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
-        adaptive = np.asarray(_predict_jit(problem, theta, y0s, None, None)[0])
+        adaptive = np.asarray(predict_jit(problem, theta, y0s, None, None)[0])
 
         def off(step):
-            pred = np.asarray(_predict_jit(problem, theta, y0s, None, jnp.asarray(step))[0])
+            pred = np.asarray(predict_jit(problem, theta, y0s, None, jnp.asarray(step))[0])
             return float(np.max(np.where(mask, np.abs(pred - adaptive) / PENDULUM_NOISE, 0.0)))
 
         at, finer = joint_model_module._finer_step(

@@ -163,7 +163,7 @@ def test_recovery_accuracy_and_ci(arm):
             fresh = fresh_covariance(result)
             assert_standard_errors_match(result, fresh)
             # and the fallback without that linearisation (block Jacobian computed afresh)
-            x = parameters_module._x_from_z(result.problem, result.z["phys"])
+            x = parameters_module.x_from_z(result.problem, result.z["phys"])
             sigma = np.asarray([result.sigma[c] for c in result.problem.channels])
             fallback, _ = jacobian_module._covariance_at(result.problem, x, result.z, sigma, result.step)
             np.testing.assert_allclose(fallback.std_errors, fresh.std_errors, rtol=1e-8)
@@ -263,7 +263,7 @@ def test_a_log_that_rests_before_its_input_is_fitted_from_its_onset(arm):
     # An early stage simulates the log from its onset (the rest skipped): the arm rests at
     # its equilibrium until the input, so by time invariance the outputs up to the stage's
     # horizon are the whole log's solve's (both adaptive, rtol 1e-10)
-    y0s = residuals_module._initial_states(problem, jnp.zeros(0))
+    y0s = residuals_module.initial_states_of(problem, jnp.zeros(0))
     truth = jnp.asarray(list(TRUTH.values()))
     early, ok_early = residuals_module.predict(problem, truth, y0s, jnp.asarray(0.3))
     whole, ok_whole = residuals_module.predict(problem, truth, y0s)
@@ -271,7 +271,7 @@ def test_a_log_that_rests_before_its_input_is_fitted_from_its_onset(arm):
     assert bool(ok_early[0]) and bool(ok_whole[0]) and within.sum() >= round(REST_S / DT) + 70  # 0.28 s of motion
     np.testing.assert_allclose(np.asarray(early[0])[within], np.asarray(whole[0])[within], rtol=0, atol=1e-9)
     x0 = starts_module._frequency_initialise(
-        problem, parameters_module._x_from_theta(problem, [p.guess for p in params]), print
+        problem, parameters_module.x_from_theta(problem, [p.guess for p in params]), print
     )
     assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.15)
     start = time.perf_counter()
@@ -921,7 +921,7 @@ def test_fit_rejects_a_bad_extra_start_by_name(start, message):
 
 
 def test_dx_dz_is_the_derivative_of_the_bound_transform():
-    """`_dx_dz` (host-side, for the standard errors) against `jax.jacfwd` of `_x_from_z`,
+    """`dx_dz` (host-side, for the standard errors) against `jax.jacfwd` of `x_from_z`,
     for each kind of bound: both finite, lower only, upper only, none."""
     import types
 
@@ -932,8 +932,8 @@ def test_dx_dz_is_the_derivative_of_the_bound_transform():
         lower=jnp.asarray([-1.0, 0.5, -np.inf, -np.inf]), upper=jnp.asarray([3.0, np.inf, 2.0, np.inf])
     )
     for z in (np.array([0.3, -1.2, 0.7, 5.0]), np.array([-30.0, 40.0, -40.0, -2.0])):
-        exact = np.diag(np.asarray(jax.jacfwd(lambda z_: parameters_module._x_from_z(problem, z_))(jnp.asarray(z))))
-        np.testing.assert_allclose(parameters_module._dx_dz(problem, z), exact, rtol=1e-12, atol=0.0)
+        exact = np.diag(np.asarray(jax.jacfwd(lambda z_: parameters_module.x_from_z(problem, z_))(jnp.asarray(z))))
+        np.testing.assert_allclose(parameters_module.dx_dz(problem, z), exact, rtol=1e-12, atol=0.0)
 
 
 def test_standard_errors_fall_back_to_a_fresh_jacobian_when_the_last_solve_saw_part_of_the_log(arm):
@@ -1029,8 +1029,8 @@ def test_a_fit_that_ends_in_a_wrong_basin_restarts_from_the_next_start(arm, monk
 
     def first_attempt_in_the_wrong_basin(problem, z, sigma, horizons, *rest):
         if not attempts:
-            x = parameters_module._x_from_theta(problem, [WRONG_BASIN[n] for n in problem.names])
-            z, horizons = {**z, "phys": jnp.asarray(parameters_module._z_from_x(problem, x))}, horizons[-1:]
+            x = parameters_module.x_from_theta(problem, [WRONG_BASIN[n] for n in problem.names])
+            z, horizons = {**z, "phys": jnp.asarray(parameters_module.z_from_x(problem, x))}, horizons[-1:]
         attempts.append(1)
         return grow(problem, z, sigma, horizons, *rest)
 
@@ -1548,8 +1548,8 @@ def test_the_reversed_sign_check_survives_a_noisy_torque_column(arm, flipped):
             log, outputs=outputs, torque=log.torque + np.random.default_rng(100 + seed).normal(0, 0.002, tau.shape)
         )
         problem = identify.make_problem(arm.chain, params, [noisy], noise=arm.noise)
-        x = parameters_module._x_from_theta(problem, [wrong[n] for n in problem.names])
-        z = {"phys": jnp.asarray(parameters_module._z_from_x(problem, x)), "y0": jnp.zeros(0), "offset": jnp.zeros(0)}
+        x = parameters_module.x_from_theta(problem, [wrong[n] for n in problem.names])
+        z = {"phys": jnp.asarray(parameters_module.z_from_x(problem, x)), "y0": jnp.zeros(0), "offset": jnp.zeros(0)}
         named.append(quality_module._reversed_channels(problem, z, problem.sigma, None, ["theta1", "tip1"]))
     if flipped:
         assert all(list(n) == ["theta1"] for n in named), named

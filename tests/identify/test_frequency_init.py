@@ -80,7 +80,7 @@ def _peak_picking(problem, params) -> float:
     """The EI guess scaled by (f_peak / f_model)^2: f_peak the largest peak of the tip's
     measured spectrum from the onset in the band, f_model the model's flexural frequency
     at the guess (the estimate `identify.fit` used before matched spectra)."""
-    chain = residuals_module._chain(problem, np.asarray([p.guess for p in params]))
+    chain = residuals_module.chain_at(problem, np.asarray([p.guess for p in params]))
     f_model = frequency_init.flexural_frequency(chain, 0)
     t, y = np.asarray(problem.t[0]), np.asarray(problem.measured[0, :, problem.channels.index("tip1")])
     keep = t >= float(problem.onset[0])
@@ -127,12 +127,12 @@ def test_matched_spectra_find_the_stiffness_where_peak_picking_fails(arm, name, 
     said = []
     start = time.perf_counter()
     x0 = starts_module._frequency_initialise(
-        problem, parameters_module._x_from_theta(problem, [p.guess for p in params]), said.append
+        problem, parameters_module.x_from_theta(problem, [p.guess for p in params]), said.append
     )
     print(name, f"x{factor_ei}:", said, f"{time.perf_counter() - start:.1f} s")
     assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.12), said
     # the other parameters are not touched
-    np.testing.assert_array_equal(x0[1:], parameters_module._x_from_theta(problem, [p.guess for p in params])[1:])
+    np.testing.assert_array_equal(x0[1:], parameters_module.x_from_theta(problem, [p.guess for p in params])[1:])
 
 
 def test_with_the_other_parameters_right_the_match_peaks_at_the_truth(arm):
@@ -147,7 +147,7 @@ def test_with_the_other_parameters_right_the_match_peaks_at_the_truth(arm):
     problem = identify.make_problem(arm.chain, params, [log], noise=arm.noise)
     said = []
     x0 = starts_module._frequency_initialise(
-        problem, parameters_module._x_from_theta(problem, [p.guess for p in params]), said.append
+        problem, parameters_module.x_from_theta(problem, [p.guess for p in params]), said.append
     )
     assert math.exp(x0[0]) == pytest.approx(TRUTH["link1.EI"], rel=0.01), said
 
@@ -160,7 +160,7 @@ def test_a_log_without_flexural_motion_keeps_the_guess(arm):
     with pytest.warns(UserWarning, match=r"log 'synthetic' shows no motion above its noise"):  # (make_problem)
         problem, params = _problem(arm, t, np.zeros((len(t), 1)), 2.0)
     said = []
-    x = parameters_module._x_from_theta(problem, [p.guess for p in params])
+    x = parameters_module.x_from_theta(problem, [p.guess for p in params])
     x0 = starts_module._frequency_initialise(problem, x, said.append)
     np.testing.assert_array_equal(x0, x)
     assert len(said) == 1 and "guess kept" in said[0], said
@@ -284,13 +284,13 @@ def test_a_long_log_is_compared_over_its_first_flexural_periods(arm, monkeypatch
     t = np.arange(0.0, 3.0, DT)
     problem, params = _problem(arm, t, doublets(t), 2.0)
     guesses = np.asarray([p.guess for p in params])
-    f_model = frequency_init.flexural_frequency(residuals_module._chain(problem, jnp.asarray(guesses)), 0)
-    y0s = residuals_module._initial_states(problem, jnp.zeros(0))
+    f_model = frequency_init.flexural_frequency(residuals_module.chain_at(problem, jnp.asarray(guesses)), 0)
+    y0s = residuals_module.initial_states_of(problem, jnp.zeros(0))
     spans = []
 
     def simulate(thetas, span):
         spans.append(span)
-        outputs, ok = residuals_module._predict_jit(problem, jnp.asarray(thetas[0]), y0s, jnp.asarray(span))
+        outputs, ok = residuals_module.predict_jit(problem, jnp.asarray(thetas[0]), y0s, jnp.asarray(span))
         return np.asarray(outputs)[None], np.asarray([bool(np.all(ok))])
 
     limits = (guesses * 1e-3, guesses * 1e3)
@@ -317,7 +317,7 @@ def test_a_tip_channel_of_noise_only_is_flagged_as_a_poor_match(arm):
         params = [identify.Parameter(n, v * f, v * 1e-2, v * 1e2) for (n, v), f in zip(TRUTH.items(), factors)]
         problem = identify.make_problem(arm.chain, params, [log], noise=arm.noise)
         said[kind] = []
-        x = parameters_module._x_from_theta(problem, [p.guess for p in params])
+        x = parameters_module.x_from_theta(problem, [p.guess for p in params])
         starts_module._frequency_initialise(problem, x, said[kind].append)
     print(said)
     assert not any("WARNING" in m for m in said["intact"]), said
@@ -341,7 +341,7 @@ def test_a_tip_channel_dominated_by_noise_keeps_a_right_guess(arm):
     params = [identify.Parameter(n, v * 1.035, v * 1e-2, v * 1e2) for n, v in TRUTH.items()]
     problem = identify.make_problem(arm.chain, params, [log], noise=noise)
     said = []
-    x = parameters_module._x_from_theta(problem, [p.guess for p in params])
+    x = parameters_module.x_from_theta(problem, [p.guess for p in params])
     x0 = starts_module._frequency_initialise(problem, x, said.append)
     print(said)
     np.testing.assert_array_equal(x0, x)
@@ -400,7 +400,7 @@ def test_both_links_of_a_sine_driven_two_link_arm(guesses):
     problem, params = _two_link_problem(*guesses)
     said = []
     x0 = starts_module._frequency_initialise(
-        problem, parameters_module._x_from_theta(problem, [p.guess for p in params]), said.append
+        problem, parameters_module.x_from_theta(problem, [p.guess for p in params]), said.append
     )
     print(guesses, np.exp(x0), said)
     assert math.exp(x0[0]) == pytest.approx(1.0, rel=0.10), said
@@ -427,7 +427,7 @@ def test_a_channel_with_a_free_gain_is_matched_in_shape_only(arm):
         measurement = meas.with_effect(meas.Measurement(), "sensor.tip1.gain") if free_gain else None
         problem = identify.make_problem(arm.chain, params, [log], noise=noise, measurement=measurement)
         said[free_gain] = []
-        x = parameters_module._x_from_theta(problem, [p.guess for p in params])
+        x = parameters_module.x_from_theta(problem, [p.guess for p in params])
         found[free_gain] = math.exp(starts_module._frequency_initialise(problem, x, said[free_gain].append)[0])
     print(found, said)
     assert found[True] == pytest.approx(TRUTH["link1.EI"], rel=0.10), said
@@ -458,7 +458,7 @@ def test_a_lightly_damped_curvature_peak_is_matched_by_the_refinement():
     problem = identify.make_problem(chain, params, [log], noise=noise)
     said = []
     x0 = starts_module._frequency_initialise(
-        problem, parameters_module._x_from_theta(problem, [1.5, 1e-3]), said.append
+        problem, parameters_module.x_from_theta(problem, [1.5, 1e-3]), said.append
     )
     print(said)
     assert math.exp(x0[0]) == pytest.approx(2.3, rel=0.01), said

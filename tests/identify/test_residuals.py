@@ -21,7 +21,7 @@ from identify._model.residuals import log_blocked, log_jacobian, residuals
 
 
 def _theta_of(p):
-    return lambda x: parameters_module._theta_from_x(p, x)
+    return lambda x: parameters_module.theta_from_x(p, x)
 
 
 def _jacfwd(p, x, y0, off, horizon):
@@ -63,7 +63,7 @@ def test_log_blocked_linearises_to_the_jacobian(multilog_problem):
     is the forward-mode Jacobian, column by column; differentiating the arguments is an
     error, not a wrong answer."""
     p, x, y0, off = multilog_problem
-    z = {"phys": parameters_module._z_from_x(p, np.asarray(x)), "y0": y0, "offset": off}
+    z = {"phys": parameters_module.z_from_x(p, np.asarray(x)), "y0": y0, "offset": off}
     z["phys"] = jnp.asarray(z["phys"])
     args = (p, p.sigma, None, 2e-3)
     fn = log_blocked(levenberg_marquardt_module._unpack)
@@ -88,7 +88,7 @@ def test_levenberg_marquardt_takes_the_same_steps(multilog_problem):
     """Levenberg-Marquardt through the block rule takes the iterates of the plain residual
     function (whose linear map JAX builds itself) and reaches the same optimum."""
     p, x, y0, off = multilog_problem
-    z0 = {"phys": jnp.asarray(parameters_module._z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
+    z0 = {"phys": jnp.asarray(parameters_module.z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
     args = (p, p.sigma, None, 2e-3)
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
     blocked = optx.least_squares(log_blocked(levenberg_marquardt_module._unpack), solver, z0, args=args, max_steps=60)
@@ -96,7 +96,7 @@ def test_levenberg_marquardt_takes_the_same_steps(multilog_problem):
     assert int(blocked.stats["num_steps"]) == int(plain.stats["num_steps"])
     for k in z0:
         np.testing.assert_allclose(blocked.value[k], plain.value[k], rtol=1e-8, atol=1e-12)
-    theta = parameters_module._theta_from_x(p, parameters_module._x_from_z(p, blocked.value["phys"]))
+    theta = parameters_module.theta_from_x(p, parameters_module.x_from_z(p, blocked.value["phys"]))
     np.testing.assert_allclose(theta[0], 3e-3, rtol=0.05)  # the data's own damping
 
 
@@ -104,7 +104,7 @@ def test_nuisances_only(multilog_problem):
     """With no shared variables (held-out logs: the physical parameters fixed, only each
     log's own initial state and offsets fitted) the Jacobian is the nuisances' columns."""
     p, x, y0, off = multilog_problem
-    theta = parameters_module._theta_from_x(p, x)
+    theta = parameters_module.theta_from_x(p, x)
     r_ref, J_ref = _jacfwd(p, x, y0, off, None)
     jac = log_jacobian(p, lambda shared: theta, {}, y0, off, p.sigma, None, 2e-3)
     J = np.asarray(jac.dense(len(p.y0_free), len(p.offset_free)))
@@ -165,7 +165,7 @@ def test_an_unbounded_log_scale_parameter_far_out_is_a_bad_point_not_an_error(x_
     params = [identify.Parameter("hub1.inertia", 2e-5), identify.Parameter("payload.mass", 0.03, 1e-3, 1.0)]
     p = identify.make_problem(chain, params, [log], {"theta1": 1e-3})
     assert p.log_scale[0] and not np.isfinite(np.asarray(p.lower[0]))  # unbounded, log scale
-    theta = parameters_module._theta_from_x(p, jnp.asarray([x_far, np.log(0.03)]))
+    theta = parameters_module.theta_from_x(p, jnp.asarray([x_far, np.log(0.03)]))
     assert 0 < float(theta[0]) < np.inf
     r, ok = residuals(p, theta, jnp.zeros(0), jnp.zeros(0), p.sigma, None, 2e-3)
     assert np.all(np.isfinite(np.asarray(r)))
@@ -202,7 +202,7 @@ def test_a_per_log_parameter_reaches_its_own_log_only():
     assert p.per_log == (("payload.mass", (1, 2, 3)),)
     masses = [0.02, 0.05, 0.11]
     theta = jnp.asarray([2.5e-3, *masses])
-    x = jnp.asarray(parameters_module._x_from_theta(p, np.asarray(theta)))
+    x = jnp.asarray(parameters_module.x_from_theta(p, np.asarray(theta)))
     y0 = jnp.asarray([0.41, 0.52])
     off = jnp.zeros(0)
 
