@@ -64,6 +64,8 @@ from .linear import (
     damped_modes as damped_modes,
     linearize as linearize,
     modal_analysis as modal_analysis,
+    modal_configuration as modal_configuration,
+    natural_frequencies as natural_frequencies,
     stable_step as stable_step,
     stiffness_matrix as stiffness_matrix,
 )

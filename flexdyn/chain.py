@@ -1,4 +1,4 @@
-r"""A planar serial chain of rigid and flexible links: kinematics, energies and the
+"""A planar serial chain of rigid and flexible links: kinematics, energies and the
 equations of motion.
 
 Design note (how the equations are formed, and why they are exact)
@@ -111,11 +111,14 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import NONNEGATIVE, POSITIVE, as_float_array, checked_part
+from .kinematics import frames, modal_slice, quadratic_of, reach_length, stiffening_of
 from .modes import GAUSS_W, GAUSS_X, evaluate_shapes, mode_shapes
 from .nonlinear import backlash_energy, has_nonlinear_forces, nonlinear_forces
 from .parts import ElasticJoint, FlexibleLink, Hub, Payload, RigidJoint, RigidLink
 
 Link = RigidLink | FlexibleLink
+
+
 Joint = RigidJoint | ElasticJoint
 
 
@@ -223,11 +226,6 @@ def layout(chain: Chain) -> Layout:
         names.extend(f"q{i}_{j}" for j in range(1, link.n_modes + 1))
         k += link.n_modes
     return Layout(tuple(rotor), tuple(theta), tuple(modal), tuple(actuated), tuple(names))
-
-
-# ---------------------------------------------------------------------------
-# Assembly: mode shapes and shape integrals, computed once per parameter set.
-# ---------------------------------------------------------------------------
 
 
 class LinkMatrices(eqx.Module):
@@ -443,112 +441,6 @@ def check_batch(chain: Chain, caller: str) -> None:
                 )
 
 
-# ---------------------------------------------------------------------------
-# Kinematics and energies
-# ---------------------------------------------------------------------------
-
-
-def _rot(angle):
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    return jnp.array([[c, -s], [s, c]])
-
-
-class Frames(NamedTuple):
-    """Positions and absolute angles along the chain (base frame)."""
-
-    origin: tuple  # o_i, joint positions, (2,) each
-    angle: tuple  # phi_i, absolute angle of link i's root frame
-    tip_angle: tuple  # psi_i = phi_i + v_i'(l_i)
-    rotor_carrier: tuple  # absolute angle of the frame carrying rotor i (psi_{i-1})
-    end: Array  # o_{n+1}, position of the tip of the last link
-
-
-def frames(asm: AssembledChain, Q) -> Frames:
-    lay = asm.layout
-    o = jnp.zeros(2)
-    psi = jnp.zeros(())
-    origins, angles, tips, carriers = [], [], [], []
-    for i, lm in enumerate(asm.links):
-        phi = psi + Q[lay.theta[i]]
-        q = _modal(lay, Q, i)
-        origins.append(o)
-        angles.append(phi)
-        carriers.append(psi)
-        tip_local = jnp.stack([_reach(asm, i, q), jnp.dot(lm.tip_shape, q)])
-        o = o + _rot(phi) @ tip_local
-        psi = phi + jnp.dot(lm.tip_slope, q)
-        tips.append(psi)
-    return Frames(tuple(origins), tuple(angles), tuple(tips), tuple(carriers), o)
-
-
-def frames_and_rates(asm: AssembledChain, Q, Qd) -> tuple[Frames, Frames]:
-    """`frames(asm, Q)` and its time derivative along `Qd`, by the velocity recursion
-
-        phi_dot_i = psi_dot_{i-1} + theta_dot_i,
-        o_dot_{i+1} = o_dot_i + phi_dot_i S R(phi_i) [l_i + u_i(l_i), v_i(l_i)]
-                    + R(phi_i) [u_dot_i(l_i), v_dot_i(l_i)],
-        psi_dot_i = phi_dot_i + v_dot_i'(l_i),
-
-    (`S` the 90-degree rotation; `u_i = 0` without geometric stiffening), written out so
-    that the kinetic energy carries no nested derivative (smaller graphs to compile and to
-    differentiate)."""
-    lay = asm.layout
-    o, o_dot = jnp.zeros(2), jnp.zeros(2)
-    psi, psi_dot = jnp.zeros(()), jnp.zeros(())
-    pos = ([], [], [], [])
-    vel = ([], [], [], [])
-    for i, lm in enumerate(asm.links):
-        phi = psi + Q[lay.theta[i]]
-        phi_dot = psi_dot + Qd[lay.theta[i]]
-        q, qd = _modal(lay, Q, i), _modal(lay, Qd, i)
-        for lst, val in zip(pos, (o, phi, None, psi)):
-            lst.append(val)
-        for lst, val in zip(vel, (o_dot, phi_dot, None, psi_dot)):
-            lst.append(val)
-        R = _rot(phi)
-        tip_local = jnp.stack([_reach(asm, i, q), jnp.dot(lm.tip_shape, q)])
-        tip_rate = jnp.stack([_reach_rate(asm, i, q, qd), jnp.dot(lm.tip_shape, qd)])
-        arm = R @ tip_local
-        o_dot = o_dot + phi_dot * jnp.stack([-arm[1], arm[0]]) + R @ tip_rate
-        o = o + arm
-        psi = phi + jnp.dot(lm.tip_slope, q)
-        psi_dot = phi_dot + jnp.dot(lm.tip_slope, qd)
-        pos[2][-1] = psi
-        vel[2][-1] = psi_dot
-    f = Frames(tuple(pos[0]), tuple(pos[1]), tuple(pos[2]), tuple(pos[3]), o)
-    fd = Frames(tuple(vel[0]), tuple(vel[1]), tuple(vel[2]), tuple(vel[3]), o_dot)
-    return f, fd
-
-
-def _modal(lay: Layout, Q, i):
-    idx = lay.modal[i]
-    return Q[idx[0] : idx[-1] + 1] if idx else jnp.zeros((0,), Q.dtype)
-
-
-def _stiffening(asm: AssembledChain, i: int) -> bool:
-    """Whether link i has geometric stiffening (static structure)."""
-    return bool(getattr(asm.chain.links[i], "geometric_stiffening", False))
-
-
-def _quadratic(A, x, y):
-    """`x^T A y` on scalar components (see `kinetic_energy`)."""
-    return jnp.sum(x[:, None] * A * y[None, :])
-
-
-def _reach(asm: AssembledChain, i: int, q):
-    """Axial position of link i's tip in its root frame, m: `l + u(l)`, `u(l) = -1/2 q^T
-    shortening q` with geometric stiffening, `l` without."""
-    lm = asm.links[i]
-    return lm.length - 0.5 * _quadratic(lm.shortening, q, q) if _stiffening(asm, i) else lm.length
-
-
-def _reach_rate(asm: AssembledChain, i: int, q, qd):
-    """Time derivative of `_reach`, m/s."""
-    if not _stiffening(asm, i):
-        return jnp.zeros((), q.dtype)
-    return -_quadratic(asm.links[i].shortening, q, qd)
-
-
 def kinetic_energy(asm: AssembledChain | Chain, Q, Qd):
     """Total kinetic energy T(Q, Q_dot), J (formula in the module docstring).
 
@@ -568,7 +460,7 @@ def kinetic_energy(asm: AssembledChain | Chain, Q, Qd):
     vx = vy = psi = psi_dot = zero  # o_dot of the current joint, tip angle and rate of the previous link
     T = zero
     for i, lm in enumerate(asm.links):
-        q, qd = _modal(lay, Q, i), _modal(lay, Qd, i)
+        q, qd = modal_slice(lay, Q, i), modal_slice(lay, Qd, i)
         carrier_rate = psi_dot
         phi = psi + Q[lay.theta[i]]
         omega = psi_dot + Qd[lay.theta[i]]
@@ -577,11 +469,11 @@ def kinetic_energy(asm: AssembledChain | Chain, Q, Qd):
         aq, aqd, bqd = jnp.sum(lm.a * q), jnp.sum(lm.a * qd), jnp.sum(lm.b * qd)
         qdMqd = jnp.sum(qd[:, None] * lm.modal_mass * qd[None, :])
         c1 = lm.c1
-        if _stiffening(asm, i):  # the axial shortening u(x) = -1/2 q^T G(x) q, to second order:
+        if stiffening_of(asm, i):  # the axial shortening u(x) = -1/2 q^T G(x) q, to second order:
             # c1 -> c1 - 1/2 q^T H0 q, Mq -> Mq - H1 in the omega^2 term, and -u_x q^T H0 q_dot
             H0q = jnp.sum(lm.shortening_mass * q[None, :], axis=1)
             c1 = c1 - 0.5 * jnp.sum(q * H0q)
-            qMq = _quadratic(lm.modal_mass - lm.shortening_moment, q, q)
+            qMq = quadratic_of(lm.modal_mass - lm.shortening_moment, q, q)
             T = T - ux * jnp.sum(qd * H0q)
         else:
             qMq = jnp.sum(q[:, None] * lm.modal_mass * q[None, :])
@@ -597,7 +489,7 @@ def kinetic_energy(asm: AssembledChain | Chain, Q, Qd):
             T = T + 0.5 * joint.rotor_inertia * (carrier_rate + joint.gear_ratio * s_dot) ** 2
         # next joint: o_dot += omega S R(phi) [l, d] + R(phi) [0, d_dot] (the position o itself is not needed)
         d, d_dot = jnp.sum(lm.tip_shape * q), jnp.sum(lm.tip_shape * qd)
-        if _stiffening(asm, i):  # the tip also moves along the link as it bends: + R(phi) [reach_dot, 0]
+        if stiffening_of(asm, i):  # the tip also moves along the link as it bends: + R(phi) [reach_dot, 0]
             Gq = jnp.sum(lm.shortening * q[None, :], axis=1)
             reach, reach_dot = lm.length - 0.5 * jnp.sum(q * Gq), -jnp.sum(qd * Gq)
         else:
@@ -624,12 +516,12 @@ def potential_energy(asm: AssembledChain | Chain, Q):
     wx = wy = zero  # sum of mass-weighted positions, kg m
     V = zero
     for i, lm in enumerate(asm.links):
-        q = _modal(lay, Q, i)
+        q = modal_slice(lay, Q, i)
         phi = psi + Q[lay.theta[i]]
         c, s = jnp.cos(phi), jnp.sin(phi)
         aq = jnp.sum(lm.a * q)
         m = lm.mass + chain.hubs[i].mass
-        c1 = lm.c1 - 0.5 * _quadratic(lm.shortening_mass, q, q) if _stiffening(asm, i) else lm.c1
+        c1 = lm.c1 - 0.5 * quadratic_of(lm.shortening_mass, q, q) if stiffening_of(asm, i) else lm.c1
         wx = wx + m * ox + c * c1 - s * aq  # + R(phi) [c1 + int rho u, a.q]
         wy = wy + m * oy + s * c1 + c * aq
         V = V + 0.5 * jnp.sum(q[:, None] * lm.stiffness * q[None, :])
@@ -640,7 +532,7 @@ def potential_energy(asm: AssembledChain | Chain, Q):
                 V = V + 0.5 * joint.stiffness * delta**2
             else:
                 V = V + backlash_energy(joint.stiffness, delta, joint.backlash)
-        d, reach = jnp.sum(lm.tip_shape * q), _reach(asm, i, q)
+        d, reach = jnp.sum(lm.tip_shape * q), reach_length(asm, i, q)
         ox, oy = ox + c * reach - s * d, oy + s * reach + c * d
         psi = phi + jnp.sum(lm.tip_slope * q)
     mp = chain.payload.mass
@@ -657,7 +549,7 @@ def dissipation(asm: AssembledChain, Qd):
         R = R + 0.5 * joint.damping * Qd[lay.actuated[i]] ** 2
         if joint.elastic:
             R = R + 0.5 * joint.spring_damping * (Qd[lay.rotor[i]] - Qd[lay.theta[i]]) ** 2
-        qd = _modal(lay, Qd, i)
+        qd = modal_slice(lay, Qd, i)
         R = R + 0.5 * jnp.sum(qd[:, None] * lm.damping * qd[None, :])
     return R
 
@@ -666,11 +558,6 @@ def total_energy(asm: AssembledChain | Chain, Q, Qd):
     """`kinetic_energy + potential_energy`, J (conserved without damping and input)."""
     asm = assemble(asm)
     return kinetic_energy(asm, Q, Qd) + potential_energy(asm, Q)
-
-
-# ---------------------------------------------------------------------------
-# Equations of motion
-# ---------------------------------------------------------------------------
 
 
 def mass_matrix(asm: AssembledChain | Chain, Q) -> Float[Array, "n n"]:
@@ -821,7 +708,7 @@ def tip_deflections(asm: AssembledChain | Chain, Q):
     lay = asm.layout
     _check_coordinates(lay, Q, "tip_deflections")
     return jnp.stack(
-        [lm.tip_shape @ _modal(lay, Q, i) if lay.modal[i] else jnp.zeros(()) for i, lm in enumerate(asm.links)]
+        [lm.tip_shape @ modal_slice(lay, Q, i) if lay.modal[i] else jnp.zeros(()) for i, lm in enumerate(asm.links)]
     )
 
 
@@ -832,5 +719,8 @@ def root_curvatures(asm: AssembledChain | Chain, Q):
     lay = asm.layout
     _check_coordinates(lay, Q, "root_curvatures")
     return jnp.stack(
-        [lm.root_curvature @ _modal(lay, Q, i) if lay.modal[i] else jnp.zeros(()) for i, lm in enumerate(asm.links)]
+        [
+            lm.root_curvature @ modal_slice(lay, Q, i) if lay.modal[i] else jnp.zeros(())
+            for i, lm in enumerate(asm.links)
+        ]
     )

@@ -418,12 +418,11 @@ def rk4_growth(chain: Chain | AssembledChain, y0, torque0, dt):
     return jnp.max(jnp.abs(R) / jnp.maximum(1.0, jnp.abs(jnp.exp(z))))
 
 
-def modal_configuration(chain):
+def modal_configuration(chain: Chain) -> tuple[np.ndarray, str]:
     """The configuration to analyse the fitted chain about: hanging along gravity (first
     joint angle `atan2(g_y, g_x)`, i.e. -pi/2 for gravity pointing down, the others 0,
-    rotor angles with their links, undeformed) under gravity, else all zero."""
-    import numpy as np
-
+    rotor angles with their links, undeformed) under gravity, else all zero. Returns
+    `(Q0, where)`: the configuration (rad, m) and a phrase naming it."""
     lay = chain.layout
     Q0 = np.zeros(lay.n_dof)
     g = np.asarray(chain.gravity, float) if getattr(chain, "gravity", None) is not None else np.zeros(2)
@@ -438,12 +437,9 @@ def modal_configuration(chain):
     return Q0, where
 
 
-def natural_frequencies(chain):
-    """Undamped natural frequencies (Hz) of `chain` about `modal_configuration(chain)`."""
-    import numpy as np
-
-    import flexdyn as fd
-
+def natural_frequencies(chain: Chain) -> tuple[list[float], str]:
+    """Undamped natural frequencies (Hz) of `chain` about `modal_configuration(chain)`,
+    and the phrase naming that configuration."""
     Q0, where = modal_configuration(chain)
-    modes = fd.modal_analysis(chain, Q0)
+    modes = modal_analysis(chain, Q0)
     return [float(f) for f in np.asarray(modes.natural_frequency)], where

@@ -47,6 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .kinematics import frames_and_rates, modal_slice, rotation_matrix
 from .modes import evaluate_shapes
 
 # Gauss-Legendre nodes/weights on [0, 1] for the drag integral (|v_n|^3 is twice
@@ -89,8 +90,6 @@ def has_nonlinear_forces(chain) -> bool:
 
 def drag_potential(asm, Q, Qd):
     """`D(Q, Q_dot) = sum_i c_i/3 int_0^l_i |v_n(x)|^3 dx`, W (see the module docstring)."""
-    from .chain import _modal, _rot, frames_and_rates
-
     lay, chain = asm.layout, asm.chain
     f, fd = frames_and_rates(asm, Q, Qd)
     D = jnp.zeros(())
@@ -100,10 +99,10 @@ def drag_potential(asm, Q, Qd):
         if c is None:
             continue
         x = xi * lm.length
-        u = _rot(f.angle[i]).T @ fd.origin[i]
+        u = rotation_matrix(f.angle[i]).T @ fd.origin[i]
         vn = u[1] + fd.angle[i] * x
         if lay.modal[i]:
-            vn = vn + evaluate_shapes(lm.lam, lm.coef, xi) @ _modal(lay, Qd, i)
+            vn = vn + evaluate_shapes(lm.lam, lm.coef, xi) @ modal_slice(lay, Qd, i)
         D = D + c / 3.0 * lm.length * (jnp.asarray(DRAG_W) @ jnp.abs(vn) ** 3)
     return D
 

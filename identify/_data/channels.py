@@ -12,7 +12,7 @@
 
 Inputs: `torque{i}`, N m, the torque of joint i.
 
-`phi{i}` is the angle of link i's root frame from the base x axis (`flexdyn.chain.frames`):
+`phi{i}` is the angle of link i's root frame from the base x axis (`flexdyn.kinematics.frames`):
 `phi_1 = theta_1`, `phi_i = phi_{i-1} + v_{i-1}'(l_{i-1}) + theta_i` (the tip slope of a
 flexible link i-1 turns the next joint's frame). Encoders that read each link against
 gravity or the base rather than against the previous link (e.g. the double pendulum of
@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 import flexdyn as fd
-from flexdyn.chain import frames
+from flexdyn.kinematics import frames
 
 from . import units as u
 

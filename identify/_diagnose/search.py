@@ -64,9 +64,7 @@ from .structural import _StructuralFits
 
 def _modal_frequencies(chain: fd.Chain) -> list[float]:
     try:
-        from flexdyn.linear import natural_frequencies
-
-        return natural_frequencies(chain)[0]
+        return fd.natural_frequencies(chain)[0]
     except Exception:  # a rig without a stable equilibrium has no modal table
         return []
 

@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from flexdyn.linear import natural_frequencies
+import flexdyn as fd
 
 from .._report.json import package_versions
 from .._workflow import CLUSTER_MIN_LOGS, validate
@@ -214,7 +214,7 @@ def run_fit(args) -> int:
     outputs = fitted_outputs(result)
     resid = residual_report(result)
     fitted_chain = result.chain
-    freqs, where = natural_frequencies(fitted_chain)
+    freqs, where = fd.natural_frequencies(fitted_chain)
     robust, robust_note = None, None
     if n_fit >= CLUSTER_MIN_LOGS and result.problem.per_log:
         robust_note = (

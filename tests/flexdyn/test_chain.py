@@ -607,7 +607,7 @@ def test_shortened_tip_is_the_same_in_every_kinematic_function():
     assert float(dT) == pytest.approx(0.5 * 0.25 * float(tip_rate @ tip_rate), rel=1e-12)
     dV = fd.potential_energy(a1, Q) - fd.potential_energy(a0, Q)
     assert float(dV) == pytest.approx(-0.25 * float(jnp.array([1.0, -9.0]) @ tip), rel=1e-12)
-    assert np.allclose(fd.chain.frames_and_rates(a0, Q, Qd)[1].end, tip_rate, rtol=1e-13, atol=1e-15)
+    assert np.allclose(fd.kinematics.frames_and_rates(a0, Q, Qd)[1].end, tip_rate, rtol=1e-13, atol=1e-15)
     # the tip moves inwards by 1/2 int v'^2 (here ~1e-3 m), not at all without stiffening
     straight = fd.end_point(fd.assemble(fd.Chain([fd.FlexibleLink(0.5, 0.2, 1.0, n_modes=2)] * 2)), Q)
     assert float(jnp.linalg.norm(tip - straight)) > 1e-4

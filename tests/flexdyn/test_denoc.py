@@ -28,7 +28,8 @@ import pytest
 
 import flexdyn as fd
 from flexdyn import denoc as dn
-from flexdyn.chain import frames, generalised_forces
+from flexdyn.chain import generalised_forces
+from flexdyn.kinematics import frames
 from flexdyn.modes import GAUSS_W, GAUSS_X, evaluate_shapes
 
 RTOL = 1e-10
@@ -287,7 +288,7 @@ def _twists(asm, Q, Qd):
 
 def test_twists_and_bias_match_kinematics(rng):
     """t = N_l N_d Q_dot reproduces (u_i = R(phi_i)^T o_dot_i, phi_dot_i, q_dot_i, rotor rate) and
-    the payload's (R(psi_n)^T o_dot_end, psi_dot_n) from `flexdyn.chain.frames` (AD here);
+    the payload's (R(psi_n)^T o_dot_end, psi_dot_n) from `flexdyn.kinematics.frames` (AD here);
     N_dot Q_dot (hand recursion) = d/dt(N) Q_dot (AD); N_l is block lower-triangular with
     identity diagonal blocks; N_d is block-diagonal."""
     chain = _random_chain([(1, "elastic-spong"), (2, "rigid")], rng)
