@@ -18,8 +18,7 @@ import numpy as np
 
 def as_float_array(value, name: str | None = None):
     """A float64 (when x64 is on) JAX array of `value`; tracers pass through. `name` (e.g.
-    "RigidLink.length") is named when `value` is not numeric (found in review: "could not
-    convert string to float: 'abc'" named no parameter)."""
+    "RigidLink.length") is named in the error when `value` is not numeric."""
     if isinstance(value, jax.Array):
         return value if jnp.issubdtype(value.dtype, jnp.floating) else value.astype(float)
     try:

@@ -52,7 +52,7 @@ def batch_size(batch) -> int:
     """The common leading dimension of the array leaves of `batch`."""
     leaves = jax.tree_util.tree_leaves(batch)
     arrays = [x for x in leaves if eqx.is_array(x)]
-    if not arrays:  # review: a list of floats said "got leading sizes []"
+    if not arrays:  # (a list of floats: say so, not "got leading sizes []")
         shown = repr(batch) if len(repr(batch)) <= 60 else repr(batch)[:57] + "..."
         raise ValueError(
             f"batch: expected arrays with a leading (batch) dimension, got no array at all ({shown}); "
@@ -204,7 +204,7 @@ def sweep(fn: Callable, batch, *shared: Any, devices: Sequence[jax.Device] | Non
         reason = runtime_check_message(e)
         if reason is None:
             raise
-        # (review: inside `fn` under vmap the check cannot say which entry failed)
+        # (inside `fn` under vmap the check cannot say which entry failed)
         raise RuntimeError(
             f"sweep: an entry of the batch failed a check inside fn: {reason}. Under vmap the check cannot "
             "say which entry: build the chains outside fn (chains = jax.vmap(build)(params)) and sweep over "

@@ -409,7 +409,7 @@ def check_batch(chain: Chain, caller: str) -> None:
     """Check a concrete batch of chains (parameters with a leading batch axis) on the host,
     with the rules `checked_chain` applies inside the computation, and raise a `ValueError`
     naming the parameter and the batch entries: under `vmap` the assembly's `eqx.error_if`
-    can say only "payload.mass must be finite and >= 0" (found in review). Parameters
+    can say only "payload.mass must be finite and >= 0". Parameters
     without a batch axis, and traced ones, are left to `checked_chain`."""
     parts = (
         [(f"link{i + 1}", p) for i, p in enumerate(chain.links)]
@@ -448,10 +448,8 @@ def kinetic_energy(asm: AssembledChain | Chain, Q, Qd):
     velocity recursion of `frames_and_rates` inlined) rather than 2-vectors and 2 x 2
     matrices: `M` and the velocity terms are derivatives of this function, and on the CPU
     XLA fuses scalar arithmetic into a few kernels where every tiny `dot` is a library
-    call of its own, and under `vmap` the scalars become contiguous batch vectors.
-    Measured on paper 004's arm (8 coordinates, 2-core CPU, inside a compiled loop), with
-    `potential_energy` written the same way: one right-hand side 5.7 -> 2.5 us, its JVP
-    19 -> 7.7 us, its VJP 24 -> 12 us, vmapped over 256 states 1.6 -> 1.2 us per state."""
+    call of its own, and under `vmap` the scalars become contiguous batch vectors (the
+    measured gain: `docs/performance.md`)."""
     asm = assemble(asm)
     _check_coordinates(asm.layout, Q, "kinetic_energy")
     _check_coordinates(asm.layout, Qd, "kinetic_energy", "Qd")
@@ -563,7 +561,7 @@ def total_energy(asm: AssembledChain | Chain, Q, Qd):
 def mass_matrix(asm: AssembledChain | Chain, Q) -> Float[Array, "n n"]:
     """Generalised mass matrix M(Q) = d^2 T / dQ_dot^2 (T is exactly quadratic in Q_dot)."""
     asm = assemble(asm)
-    _check_coordinates(asm.layout, Q, "mass_matrix")  # (review: a short Q gave a smaller M)
+    _check_coordinates(asm.layout, Q, "mass_matrix")  # (a short Q would give a smaller M)
     zero = jnp.zeros_like(Q)
     return jax.jacfwd(jax.grad(kinetic_energy, argnums=2), argnums=2)(asm, Q, zero)
 
@@ -578,9 +576,9 @@ def velocity_terms(asm: AssembledChain | Chain, Q, Qd) -> Float[Array, " n"]:
 
 
 def mass_and_velocity_terms(asm: AssembledChain | Chain, Q, Qd):
-    """`(M(Q), h(Q, Q_dot))`, see `mass_matrix` and `velocity_terms`. (Measured: three
-    separate AD passes compile to a smaller, faster graph than one vmapped jvp over
-    n + 1 tangents.)"""
+    """`(M(Q), h(Q, Q_dot))`, see `mass_matrix` and `velocity_terms` (three separate AD
+    passes: they compile to a smaller, faster graph than one vmapped jvp over n + 1
+    tangents)."""
     asm = assemble(asm)
     return mass_matrix(asm, Q), velocity_terms(asm, Q, Qd)
 
@@ -631,14 +629,10 @@ def _lagrange_residual(asm: AssembledChain, Q, Qd, Qdd, torque):
 
 # `_solve_forward_dynamics` and `_forward_dynamics_and_tangent` are jitted so that JAX
 # traces each once per structure and shapes and reuses the jaxpr: one trace of `simulate`
-# calls the vector field four times (measured), a fit traces the model in each of its
-# programs, and each trace of the forward dynamics costs ~1.3 s of Python (the energies'
-# derivatives). (Jitting `_assemble_link` too gained nothing measurable: it is traced
-# once per program.) Inside an outer
-# `jit` the nested programs are inlined by XLA, so the compiled code is the same.
-# Measured 2026-12-01 (2-core CPU, slow day): tracing `simulate` of paper 004's arm 4.8 ->
-# 2.7 s; a cold 4-parameter fit (bench_fit_vs_scipy's) 69 -> 56 s; a cold
-# `grad` through `simulate` 48-56 -> 37-39 s; warm run times unchanged within the noise.
+# calls the vector field four times, a fit traces the model in each of its programs, and
+# each trace of the forward dynamics is seconds of Python (the energies' derivatives).
+# Inside an outer `jit` the nested programs are inlined by XLA, so the compiled code is
+# the same (the tracing time saved: `docs/performance.md`).
 @eqx.filter_jit
 def _solve_forward_dynamics(asm: AssembledChain, Q, Qd, torque):
     M, h = mass_and_velocity_terms(asm, Q, Qd)
@@ -661,10 +655,8 @@ def _forward_dynamics_jvp(static, primals, tangents):
     Differentiating the primal instead pushes every tangent through the `n` columns of
     `M = d^2 T / dQ_dot^2` (a third-order derivative of `T`) and through the Cholesky
     factorisation. Here a tangent costs one Jacobian-vector product of the residual
-    (second order in `T`, no `n`-fold work) and one triangular solve pair. Measured on
-    paper 004's arm (8 coordinates, 2-core CPU, in a compiled loop): one right-hand side
-    1.5 us; its JVP 5.3 -> 4.3 us, over 4 tangents 19.2 -> 5.5 us, its VJP (the transpose
-    of this rule) 6.9 -> 4.3 us. Reverse mode transposes the linear map below, so it is
+    (second order in `T`, no `n`-fold work) and one triangular solve pair (measured costs:
+    `docs/performance.md`). Reverse mode transposes the linear map below, so it is
     covered too."""
     return _forward_dynamics_and_tangent(static, primals, tangents)
 

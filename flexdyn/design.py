@@ -25,8 +25,8 @@ the rotors to be at rest at `T`. The robust variant
 without the window angles (at rest without vibration, wherever the payload made the arm
 stop), weighted by `payload_weight` against the nominal ones.
 
-Robust design, measured (`notebooks/trajectory_design*.ipynb`, batch 0 / 50 / 100 g):
-worst-case residual vibration over 0-100 g 5.0x below the nominal design's on paper
+Robust design (`notebooks/trajectory_design*.ipynb`, batch 0 / 50 / 100 g): the
+worst-case residual vibration over 0-100 g is 5.0x below the nominal design's on paper
 002's arm (default weight 1), 4.2x on paper 004's arm (weight 15; there the payload
 halves or doubles the shoulder inertia, and the robust move gives up 6e-2 rad of goal
 accuracy with the nominal payload).
@@ -264,9 +264,8 @@ def _warn_if_not_at_rest(chain: Chain, start, goal, tau_max) -> None:
     """Warn when the start or goal angles are not an equilibrium of the unforced arm
     (gravity's torque on a joint, links undeformed, above `HOLDING_TORQUE_FRACTION` of its
     limit). The designed torque is zero from `T` on (`BSplineTorque`), so under gravity
-    the arm can stay only where gravity exerts no torque: found in review, a move of a
-    vertical pendulum from hanging to 0.5 rad off was designed without a word and ended
-    2 rad from its goal."""
+    the arm can stay only where gravity exerts no torque (a vertical pendulum moved from
+    hanging to 0.5 rad off would end far from its goal)."""
     values = (chain, start, goal, tau_max)
     if not all(_is_concrete(x) for x in jax.tree_util.tree_leaves(values)):
         return
@@ -304,16 +303,14 @@ def move_residuals(control_points, move: RestToRestMove, *, at_goal: bool = True
     stopped. The window angles measured from `theta(T)` are not used instead: for a free
     arm (no torque, no joint damping after `T`) they equal a rate at `T` times the time
     since `T`, so they would repeat the rate residuals with a weight growing over the
-    window, and in the robust design that rigid drift crowded out the tip vibration
-    (paper 002 arm over 0-100 g: worst-case vibration 2.5e-3 m with them, 7.1e-4 m
-    without).
+    window, and in the robust design that rigid drift crowded out the tip vibration.
 
     `adjoint`: how the solve is differentiated (default `diffrax.ForwardMode()`: for
     `jax.jacfwd` / `jax.jvp`, what `design_move`'s Levenberg-Marquardt uses). For
     `jax.grad` of a cost built on the residuals (reverse mode: optax, your own
     optimiser) pass `adjoint=diffrax.RecursiveCheckpointAdjoint()`: forward mode
-    cannot be reversed (found in review: `jax.grad` failed with JAX's "Reverse-mode
-    differentiation does not work for lax.while_loop")."""
+    cannot be reversed (JAX's "Reverse-mode differentiation does not work for
+    lax.while_loop")."""
     torque = move.torque(control_points)
     traj = simulate(
         move.chain,
@@ -368,20 +365,17 @@ class MoveDesign(eqx.Module):
     (`0.5 |r|^2`), the initial cost, the optimistix result code and its stats.
 
     `result` is optimistix's: `max_steps_reached` is usual even after the cost has
-    fallen by many orders (found in review: 5.7e-2 -> 3.6e-11 in 60 steps). Near the
-    optimum the residual is not zero (finitely many control points do not cancel the
-    vibration exactly) and Gauss-Newton converges linearly there: measured on paper 002's
-    nominal move, the cost still fell by ~1 % a step after 55 steps (1.45e-10 -> 1.41e-10),
-    each step moving the residuals by more than optimistix's `atol` (1e-10). Judge a
-    design by `cost` against `initial_cost` and by `move_metrics` (residual vibration,
-    goal error), not by `result` alone.
+    fallen by many orders. Near the optimum the residual is not zero (finitely many
+    control points do not cancel the vibration exactly) and Gauss-Newton converges
+    linearly there, each step moving the residuals by more than optimistix's `atol`.
+    Judge a design by `cost` against `initial_cost` and by `move_metrics` (residual
+    vibration, goal error), not by `result` alone.
 
     `goal_error` (rad): the largest |theta - theta_goal| of the nominal chain over the
     window `[T, T + settle]`, from the residuals at the optimum; `reached_goal`: whether
     it is within `GOAL_TOLERANCE` of the move's largest joint travel. `summary()` says both
-    in words, and what to try when the goal is not reached (found in review: an infeasible
-    move, 3 rad in 0.5 s at 0.05 N m, returned the same `result` as a good design, and
-    ended 2.8 rad from its goal)."""
+    in words, and what to try when the goal is not reached (an infeasible move returns
+    the same `result` as a good design)."""
 
     torque: BSplineTorque
     cost: Array
@@ -426,8 +420,7 @@ GOAL_TOLERANCE = 0.01
 
 def _residuals(control_points, args):
     # A module-level function, not a closure made per call, so that optimistix's compiled
-    # solve is reused by later calls with the same shapes (measured: a repeated nominal
-    # design of the paper 002 arm, 15 steps, 20.5 -> 4.5 s warm).
+    # solve is reused by later calls with the same shapes.
     move, masses, weight = args
     if masses is None:
         return move_residuals(control_points, move)
@@ -442,10 +435,8 @@ Optimization", 2nd ed., Algorithm 4.1, with its constants 1/4 and 3/4): the trus
 grows after every step whose actual reduction is more than 3/4 of the Gauss-Newton
 model's and shrinks (the step rejected) below 1/4. optimistix's default grows it only
 above 0.99, so on a move's residuals, whose model agreement stays between those, the
-damping froze and the cost crept down ~20 % a step. Measured (paper 002's arm, the
-nominal design of `notebooks/trajectory_design.ipynb`, 60 steps): final cost 1.45e-10
-instead of 9.0e-10, residual vibration 8.1e-6 m instead of 2.1e-5 m, angle error at `T`
-5.3e-6 rad instead of 3.9e-5 rad."""
+damping froze and the cost crept down ~20 % a step (the gain on paper 002's arm:
+`docs/performance.md`)."""
 
 
 def _move_solver(rtol: float, atol: float):

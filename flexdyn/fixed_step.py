@@ -2,8 +2,8 @@
 
 `rk4_trajectory(chain, y0, ts, torque, dt=...)` returns the state at every `ts`, like
 `simulate(..., dt=dt)`, and is differentiated in reverse mode by the discrete adjoint of
-RK4 (its own `custom_vjp`, see its docstring), at ~3.8x the cost of its forward solve
-(diffrax's checkpointed gradient through `simulate`: ~6.3x `simulate`'s).
+RK4 (its own `custom_vjp`, see its docstring), at a few times the cost of its forward
+solve (measured: `docs/performance.md`).
 
 `rk4_final(chain, y0, t0, t1, torque, dt=...)` integrates the chain's equations of motion
 with the classical fourth-order Runge-Kutta method and returns the final state only. It
@@ -141,9 +141,8 @@ def rk4_final(
 
     Raises (inside `jit` and `vmap` too) if `dt` is above RK4's stability limit for the
     chain's linearisation about `y0` (`flexdyn.linear.check_rk4_step`, as `simulate` and
-    `rk4_trajectory` check; found in review: it only caught a state gone non-finite, and
-    above the limit a barely excited mode grows from round-off to a finite but wrong
-    result), and if the state becomes non-finite.
+    `rk4_trajectory` check: above the limit a barely excited mode grows from round-off to
+    a finite but wrong result), and if the state becomes non-finite.
     """
     t0, t1, dt = float(t0), float(t1), float(dt)
     if not (dt > 0 and math.isfinite(dt)):
@@ -206,11 +205,10 @@ def _rk4_step(dynamic, static, y, x, record=False):
     """One classical RK4 step of `y_dot = [Q_dot, Q_ddot(Q, Q_dot, tau(t, y))]`.
 
     Accelerations by `flexdyn.chain.accelerations` (its implicit-function derivative rule),
-    the stages in a `lax.scan` (one right-hand side in the compiled loop: on the CPU the
-    forward solve is ~1.25x faster than with four inlined copies). With `record`, by the
-    same solve, also returning each stage's `Q_ddot` and the upper Cholesky factor of its
-    `M` (the residuals of the discrete adjoint), the stages inlined (there the inlined
-    form is ~1.1x faster: measured in `benchmarks/bench_gradient_cost.py`)."""
+    the stages in a `lax.scan` (one right-hand side in the compiled loop, faster on the
+    CPU than four inlined copies). With `record`, by the same solve, also returning each
+    stage's `Q_ddot` and the upper Cholesky factor of its `M` (the residuals of the
+    discrete adjoint), the stages inlined (faster there)."""
     asm, torque = eqx.combine(dynamic, static)
     t, h, last = x
     n = y.shape[0] // 2
@@ -374,9 +372,8 @@ def rk4_trajectory(
       residual `r = M Q_ddot + h - F` at fixed `Q_ddot`, one reverse pass over a scalar.
       Memory: `N (4 n (n + 1) + 2n) + 2n` floats for `N` steps and `n` coordinates: 24 MB
       for 10,000 steps of 8 (XLA reports 27 MiB for the whole gradient program).
-      Cost (`benchmarks/bench_gradient_cost.py`, paper 004's arm, a 10 s log at 1 kHz, 10
-      parameters, 2-core CPU): `value_and_grad` 3.8x this function's forward solve and
-      3.6x `simulate`'s (diffrax's checkpointed gradient: 6.3x). Gradients flow to the
+      Cost: `value_and_grad` ~4x this function's forward solve (paper 004's arm, 10
+      parameters; `benchmarks/bench_gradient_cost.py`, `docs/performance.md`). Gradients flow to the
       chain's parameters, the input's array fields and `y0`. The input's switching times
       (`BangBang.width`, `.start`) lay out the steps when the function is traced, so they
       must be concrete: differentiating them raises (use `tsit5_trajectory`, which gives
@@ -384,8 +381,8 @@ def rk4_trajectory(
       `jax.jacfwd`) is not defined for it: use `adjoint="autodiff"`, or `simulate` with
       `diffrax.ForwardMode()`.
     - `"autodiff"`: no rule; JAX differentiates the `lax.scan` itself. Forward mode works;
-      reverse mode stores every stage's linearisation (on the benchmark above, ~120 MiB and
-      slower than diffrax's checkpointed gradient: `benchmarks/README.md`).
+      reverse mode stores every stage's linearisation (more memory, and slower than
+      diffrax's checkpointed gradient).
 
     **Arguments:** `ts`: increasing output times, s, as concrete numbers (the steps are laid
     out when the function is traced: close over them rather than pass them to `jax.jit`

@@ -25,22 +25,17 @@ computes `vmap(rk4_final)` differently:
     against ~4,400 counted in the generic program. The rigid pendulum has 174.
 
 `backend="xla"` runs the same scalar program as ordinary JAX operations on `(B,)` arrays,
-with one `lax.fori_loop` per piece between jumps. This is the default off a GPU: on
-CPU, paper 004's arm x 256 payloads x 5 s took 6.2 s, against 9.3 s for
-`vmap(rk4_final)`. `backend="pallas", interpret=True` runs the kernel through Pallas's
-interpreter on any device; it is slow, and meant for tests.
+with one `lax.fori_loop` per piece between jumps. This is the default off a GPU, where
+it is faster than `vmap(rk4_final)`. `backend="pallas", interpret=True` runs the kernel
+through Pallas's interpreter on any device; it is slow, and meant for tests.
 
-**Measured on an H200** (2026-12-04, float64, `benchmarks/README.md`, section "GPU"):
-4,096 of paper 004's arms x 5 s at 1 ms in 51 ms warm, one call on chains already
-assembled (the kernel 46 ms: 9.2 us per RK4 step; the host work around it 4.6 ms);
-16,384 arms in the same 46 ms of kernel time. At 4,096 there is about one warp per SM,
-and each warp runs at the latency of its own instruction stream (the arm's right-hand side
-uses all 255 registers of a thread and spills: `benchmarks/ptxas_fused.py`), so larger
-batches are nearly free up to ~4 warps per SM. The rigid pendulum: 36 ms (2026-11-26).
-The call is one dispatch of one jitted program (gather of the varying scalars, padding,
-kernel, finiteness check) after the batch's assembly: on a GPU each eager operation is a
-launch, and before this (61-73 ms of host work) the call took 2.4x the kernel. (The
-per-entry checks below were added after these runs; their GPU cost is not measured.)
+On a GPU the kernel runs one trajectory per thread; each warp runs at the latency of its
+own instruction stream (the arm's right-hand side uses all 255 registers of a thread and
+spills: `benchmarks/ptxas_fused.py`), so larger batches are nearly free up to ~4 warps
+per SM. The call is one dispatch of one jitted program (gather of the varying scalars,
+padding, kernel, finiteness check) after the batch's assembly: on a GPU each eager
+operation is a launch. Measured times (4,096 of paper 004's arms x 5 s at 1 ms in
+~51 ms on an H200): `benchmarks/README.md` and `docs/performance.md`.
 
 Inputs: any whose evaluation is arithmetic on the time and the state, e.g. `BangBang`,
 `PDTracking` (state feedback), `ZeroTorque`, or a `FunctionInput` of such formulas. A
@@ -60,8 +55,7 @@ the values are not known on the host, `eqx.error_if` raises without naming them)
 - every parameter of every entry, before anything is assembled (`chain.check_batch`);
 - `dt` against RK4's stability limit of every entry about its initial state, as
   `simulate` checks one chain (`linear.rk4_growth`: one `2n x 2n` eigenproblem per
-  entry, ~90 ms for 4,096 of paper 004's arms on one CPU core, ~0.2 % of their 5 s
-  sweep there; not yet measured on a GPU). Above the limit a mode grows from round-off
+  entry, a small fraction of the sweep). Above the limit a mode grows from round-off
   and the final state can be finite but wrong;
 - every final state finite.
 """
@@ -137,9 +131,8 @@ class _Plan:
         (or numbers); `like`: an array of the batch shape, given to every carried value.
 
         Each step is a loop over the four stages, one right-hand side in its body: a
-        program a quarter the size of the stages written out. On an H200 its Triton
-        compile took ~15 s instead of ~4.5 min, and it ran 1.2x faster; on a CPU the
-        two run equally fast. Stage `s` evaluates
+        program a quarter the size of the stages written out, which Triton compiles
+        in seconds rather than minutes. Stage `s` evaluates
         `k_s = f(t + c_s h, y + c_s h k_{s-1})` (`c = 0, 1/2, 1/2, 1`) and accumulates
         `b_s h k_s` (`b = 1/6, 1/3, 1/3, 1/6`): classical RK4, whose Butcher tableau
         has one nonzero `a_{s,s-1} = c_s` per row."""
@@ -312,8 +305,8 @@ def _program(plan: _Plan, integrate: Callable, block: int | None) -> Callable:
     from the assembled `flat` (B, K), the batch padded to whole programs of `block`
     (repeating the last entry: a valid input, dropped afterwards), `integrate(P, Y)` on
     the transposed arrays, and the finiteness check. One dispatch per call: on a GPU each
-    eager operation is a launch, and the host work around the kernel used to take longer
-    than the kernel (`benchmarks/README.md`)."""
+    eager operation is a launch, so host work around the kernel would cost more than
+    the kernel."""
     varying = np.array([j for j, (kind, _) in enumerate(plan.columns) if kind == "row"], dtype=int)
 
     @jax.jit
@@ -335,8 +328,7 @@ def _checked_step(flat, growth, dt: float):
     """`flat` if `dt` is within RK4's stability limit of every entry (`linear.rk4_growth`
     about its initial state, with `linear.RK4_MARGIN`, as `simulate` checks one chain).
     Above it a mode grows from round-off and the final state can be finite but wrong
-    (found in review: 1.2 ms on the lightest payload of a sweep, limit 1.01 ms: its hub
-    angle off by 0.8 rad, no error). Concrete: a `ValueError` naming the entries; traced:
+    (no error). Concrete: a `ValueError` naming the entries; traced:
     `eqx.error_if`."""
     message = (
         "rk4_sweep_final: the fixed step dt = {dt:g} s is above RK4's stability limit for the stiffest mode "
@@ -416,11 +408,11 @@ def rk4_sweep_final(
       `"auto"` (pallas on a GPU, else xla).
     - `block`: trajectories per GPU program (a power of 2); `num_warps`: Triton warps per
       program (`None`: Triton's default). The defaults, one warp of 32 threads with one
-      trajectory each, are the configuration measured (module docstring).
+      trajectory each, are the configuration measured (`docs/performance.md`).
     - `solve`: the mass-matrix solve of the scalar program, `"unrolled"`
       (`smallsolve.spd_solve`), `"rsqrt"` (`smallsolve.spd_solve_rsqrt`: no division or
-      square root) or `"auto"` (rsqrt in the Pallas kernel, unrolled on XLA: each the
-      faster where measured, `benchmarks/README.md`).
+      square root) or `"auto"` (rsqrt in the Pallas kernel, unrolled on XLA: on a CPU
+      the divisions are the faster).
 
     Raises `NotImplementedError` naming the operation when the chain's or the input's
     right-hand side uses one that `flexdyn.scalarize` does not write out (e.g. the

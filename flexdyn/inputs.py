@@ -133,9 +133,8 @@ class SampledTorque(AbstractInput):
         other entries (no step lands there), so the array's length is the number of
         samples and it may be traced. A chain at rest under a constant torque gives an
         adaptive solver an error estimate of exactly zero, so its steps grow tenfold each
-        and step over an input that starts later: measured, a flexible link at rest for
-        4 s with a 0.4 s doublet after, `simulate` at rtol 1e-11 returned no motion at all
-        (7 steps). Landing on the ends of the constant stretch puts the change inside the
+        and step over an input that starts later (the solve can return no motion at
+        all). Landing on the ends of the constant stretch puts the change inside the
         next step, whose error estimate sees it. A torque that changes at every sample
         has no stretch: every entry is `inf` and no step is clipped."""
         if self.hold != "linear":
@@ -166,9 +165,9 @@ def probed_step_times(torque, t0, t1, y0, n: int = PROBE_POINTS):
     (`constant_stretch_ends`) on `n` equally spaced probe times of `[t0, t1]`, the state
     held at `y0`. Without them a chain at rest under a torque that is zero until later
     gives the adaptive solver an error estimate of exactly zero, its steps grow tenfold
-    each, and it steps over the input: found in review, a 0.1 s pulse at 1 s written as
-    `lambda t: jnp.where((t >= 1) & (t < 1.1), 0.05, 0)` left the link at rest (5 steps
-    to 3 s). A change shorter than the probe spacing `(t1 - t0) / (n - 1)` can still be
+    each, and it steps over the input (a 0.1 s pulse at 1 s written as
+    `lambda t: jnp.where((t >= 1) & (t < 1.1), 0.05, 0)` would leave the link at rest).
+    A change shorter than the probe spacing `(t1 - t0) / (n - 1)` can still be
     missed: declare it (`FunctionInput(fn, jumps=...)`) or bound the steps (`dtmax`)."""
     tp = jnp.linspace(t0, t1, n)
     values = jax.vmap(lambda t: jnp.atleast_1d(torque(t, y0)))(tp)

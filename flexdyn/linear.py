@@ -96,8 +96,8 @@ class Modes(eqx.Module):
       (omega^2 < 0: the configuration is not a stable equilibrium, e.g. a pendulum
       upright, or a slender link hanging under gravity without
       `geometric_stiffening`): `-sqrt(-omega^2) / (2 pi)`, the mode growing as
-      `exp(2 pi |f| t)` (the convention of finite-element codes). Found in review: such
-      modes were reported as 0 Hz, like a free rotation. `unstable` says whether any is.
+      `exp(2 pi |f| t)` (the convention of finite-element codes), not 0 Hz like a free
+      rotation. `unstable` says whether any is.
     - `shapes`: the corresponding generalised-coordinate vectors (columns),
       mass-normalised (`v^T M v = 1`).
     """
@@ -189,9 +189,8 @@ def _warn_if_not_at_rest(names, force: np.ndarray, K: np.ndarray) -> None:
     """Warn when `Q0` is not (near) an equilibrium at rest: the generalised force there
     `force` (gravity, springs, bending) pushes along a direction without restoring
     stiffness (`force` not in the range of `K`), or the equilibrium its linearisation
-    predicts, `Q0 + K^+ force`, is more than `REST_ANGLE` away in an angle (review: a
-    pendulum under gravity analysed horizontal gave `[0.]`, which reads as a free rotation;
-    the docstring said Q0 "should be an equilibrium", nothing checked it). Modal
+    predicts, `Q0 + K^+ force`, is more than `REST_ANGLE` away in an angle (a pendulum
+    under gravity analysed horizontal would give `[0.]`, which reads as a free rotation). Modal
     coordinates off their rest value leave the linear model's `K` as it is, and a
     simulation's final state, still ringing by a fraction of a millimetre, is no mistake."""
     scale = float(np.max(np.abs(K), initial=0.0))
@@ -267,9 +266,8 @@ def damped_modes(model: LinearModel) -> tuple[np.ndarray, np.ndarray]:
     unstable equilibrium). A rigid-body mode (a free joint: a double zero eigenvalue,
     whose computed pair splits by about `sqrt(eps |A|)`) counts as exactly zero when
     `|lambda| < ZERO_EIGENVALUE * sqrt(eps) max |lambda|`: frequency 0, damping ratio 0,
-    one entry per zero eigenvalue (two per undamped free joint).
-    Found in review: paper 004's free arm showed damping ratios -1 and +1 for its rigid
-    rotation (eigenvalues +-1.1e-5 1/s against 2417 1/s), read as an instability."""
+    one entry per zero eigenvalue (two per undamped free joint), so that a free rigid
+    rotation does not read as damping ratios -1 and +1 (an instability)."""
     ev = np.linalg.eigvals(np.asarray(model.A))
     tol = ZERO_EIGENVALUE * np.sqrt(np.finfo(float).eps) * (np.max(np.abs(ev)) if ev.size else 0.0)
     ev = np.where(np.abs(ev) < tol, 0.0, ev)  # (before the pairs are halved: one entry per zero eigenvalue)
@@ -359,7 +357,7 @@ def stable_step(
 
 #: `check_rk4_step` reports a fixed step above RK4's stability limit by more than this
 #: factor: `rk4_growth`'s limit is within 1 % of `stable_step`'s on the papers' rigs
-#: (measured: paper 004's arm, its damping not proportional, 0.990x; paper 002's, 1.00x).
+#: (paper 004's arm, its damping not proportional, 0.990x; paper 002's, 1.00x).
 RK4_MARGIN = 1.02
 
 
@@ -367,8 +365,8 @@ def check_rk4_step(chain: Chain | AssembledChain, y0, torque0, dt, caller: str):
     """`y0`, with a run-time error (`eqx.error_if`) if the fixed step `dt` is above RK4's
     stability limit for the chain's linearisation about `y0` by more than `RK4_MARGIN`
     (`rk4_growth`). Above it, a mode that the motion barely excites grows from round-off
-    and the run ends finite but wrong (found in review: 16 % above the limit, a hub angle
-    of 6.16 rad where the adaptive solve gives 0.107) or with an error that blames
+    and the run ends finite but wrong (16 % above the limit on paper 004's arm, a hub
+    angle of 6.16 rad where the adaptive solve gives 0.107) or with an error that blames
     `max_steps`."""
     # no derivative flows through the check (design_move's forward-mode Jacobians would
     # push every tangent through its eigendecomposition)

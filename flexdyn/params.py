@@ -100,8 +100,7 @@ def _locate(chain: Chain, name: str):
     if field not in fields:
         raise _unknown(chain, name)
     if getattr(part, field) is None:
-        # (review: a plain KeyError, its message quoted, and the experiment loader said only
-        # "unknown parameter")
+        # (say which term is missing and how to add it, not a plain KeyError)
         raise UnknownParameterError(
             f"parameter {name!r}: {kind} {index} has no {field} term ({type(part).__name__}({field}=None)); "
             f"build it with {type(part).__name__}(..., {field}=0.0), or add it with "
@@ -151,7 +150,7 @@ def with_optional_terms(chain: Chain, names) -> Chain:
 class UnknownParameterError(KeyError, ValueError):
     """A parameter name the chain does not have. A `KeyError` (a lookup by name) and a
     `ValueError` (as `identify.make_problem` raises for the same mistake); its message is
-    shown as written, not quoted as `KeyError`'s is (found in review: escaped quotes)."""
+    shown as written, not quoted as `KeyError`'s is."""
 
     def __str__(self) -> str:
         return str(self.args[0]) if self.args else ""

@@ -225,8 +225,8 @@ class ElasticJoint(eqx.Module):
 
     The input torque acts on the rotor coordinate. `alpha` is the rotor angle
     referred to the link side (motor angle / G), and the input torque is referred to the
-    link side too: G times the motor's torque (review: a logged motor torque must be
-    multiplied by G, a motor-side encoder's angle divided by G).
+    link side too: G times the motor's torque (a logged motor torque must be multiplied
+    by G, a motor-side encoder's angle divided by G).
 
     **Arguments:**
     - `stiffness`: k_s, N m/rad.
@@ -297,8 +297,8 @@ class Hub(eqx.Module):
     carried at the tip of the previous link, e.g. paper 002's centre motor `M_h2`)
     and a rotary inertia turning with the root of the link it drives.
 
-    **Arguments** (keywords only: `Hub(2e-3)` read as a mass of 2 g was a reviewer's
-    mistake): `mass` (kg), `inertia` (kg m^2).
+    **Arguments** (keywords only: `Hub(2e-3)` would read as a mass of 2 g): `mass` (kg),
+    `inertia` (kg m^2).
     """
 
     mass: Scalar

@@ -8,13 +8,11 @@ our module-level jitted functions, the whole process. A Linux process may hold a
 `mmap` in XLA's compiler fails and the process dies: "Segmentation fault" or "Fatal Python
 error: Aborted" inside `backend_compile_and_load`, with no Python exception to catch.
 
-Measured on this project (2026-11-25, jax 0.10.2, XLA:CPU): one diagnosis of the
-simulated pendulum compiles ~160 programs and adds ~3,700 mappings (a fitted 1-DOF model
-and every catalogue candidate); a second diagnosis of the same layout reuses them all
-(0 new mappings, 1 s instead of 32 s). Diagnoses of *different* models (other rigs, other
-numbers of modes, other candidate structures) each add their own: in one pytest process,
-the slow diagnosis grid reached 65,000 mappings after ~16 minutes and aborted in the
-compiler, twice (each failing test passed when run alone).
+One diagnosis of the simulated pendulum compiles ~160 programs and adds ~3,700 mappings
+(a fitted 1-DOF model and every catalogue candidate); a second diagnosis of the same
+layout reuses them all. Diagnoses of *different* models (other rigs, other numbers of
+modes, other candidate structures) each add their own, so a process that diagnoses a
+dozen different models can reach the limit (`docs/performance.md`).
 
 `ensure_mapping_headroom` is called by `identify.fit`, `identify.fit_independent` and
 `identify.diagnose` before each model they compile, and may be called by user code
@@ -71,7 +69,7 @@ def ensure_mapping_headroom(reserve: int = 16384) -> bool:
     **Arguments:**
     - `reserve`: mappings to keep free for the programs compiled before the next check.
       The default (a quarter of Linux's default limit) covers one diagnosis candidate or
-      one fit with a wide margin (measured: a full pendulum diagnosis adds ~3,700).
+      one fit with a wide margin (a full pendulum diagnosis adds ~3,700).
 
     **Returns:** True if the caches were cleared. Never call it inside a function being
     traced by `jax.jit` (it is a host-side check between compilations).

@@ -26,8 +26,7 @@ OCR'd table values we did not take literally (and why):
   instead of 35.0 with 0.60 kg (+31 %); two modes give 77.35 / 35.05 Hz (0.1 %), four
   77.26 / 35.01 (`tests/flexdyn/test_chain.py` holds them against the hub-beam
   frequency equation). The paper's reported 35-37 Hz is the converged value, so
-  `flexible_pendulum` defaults to two modes (found in review: the default of one gave
-  the 26 % high frequency while this docstring quoted the converged one).
+  `flexible_pendulum` defaults to two modes.
 - **Paper 000, rigid link 0.180 kg**: consistent with carbon steel 0.30 x 0.018 x
   0.004 m (0.170 kg) and kept.
 - **Paper 002**: Table I reads cleanly. The payload's rotary inertia is not given;

@@ -25,8 +25,8 @@ ZV makes `V = 0` at the design frequency; ZVD also makes `dV/d omega_n = 0` ther
 (robust to modelling errors in the frequency), at the cost of one more half period.
 Frequencies here are in Hz. `natural_frequency` is the **undamped** one, `omega_n / 2
 pi`: `fd.modal_analysis`'s, or `f_d / sqrt(1 - zeta^2)` from `fd.damped_modes`' damped
-frequency `f_d` and ratio `zeta` (found in review: the notebooks passed `f_d`, which
-applies the damping correction twice: at `zeta` = 0.085 the delay came out 0.36 % long).
+frequency `f_d` and ratio `zeta` (passing `f_d` applies the damping correction twice:
+at `zeta` = 0.085 the delay comes out 0.36 % long).
 """
 
 from __future__ import annotations
@@ -66,10 +66,9 @@ class Shaper(eqx.Module):
 
 
 def _k_and_half_period(natural_frequency, damping_ratio, caller: str):
-    """`K` and the damped half period (s). Concrete arguments are checked (found in review:
-    a NaN or zero frequency gave impulse times of NaN or inf, a negative one a time before
-    0 and a command of the wrong size, a damping ratio of 1.5 NaN amplitudes); traced ones
-    (under jit/vmap/grad) are left as they are."""
+    """`K` and the damped half period (s). Concrete arguments are checked (a NaN, zero or
+    negative frequency, a damping ratio outside [0, 1)); traced ones (under
+    jit/vmap/grad) are left as they are."""
     frequency, zeta = as_float_array(natural_frequency), as_float_array(damping_ratio)
     if _is_concrete(frequency):
         check_parameter(caller, "natural_frequency", frequency, positive=True)

@@ -83,7 +83,7 @@ def check_times(ts, caller: str):
     """`ts` as a float array, checked to be 1-D, of at least 2 finite, strictly increasing
     times: concrete values at once (a `ValueError` naming the first bad entry), traced ones
     at run time (`eqx.error_if`). diffrax would integrate a decreasing grid backwards from
-    `y0` at `ts[0]` without a word (found in review)."""
+    `y0` at `ts[0]` without a word."""
     if not isinstance(ts, jax.core.Tracer):
         ts = np.asarray(ts, dtype=float)  # concrete: checked on the host, even inside jit
     if np.ndim(ts) != 1 or np.shape(ts)[0] < 2:
@@ -147,8 +147,7 @@ class ChainVectorField(eqx.Module):
     `t_last` (s, optional): the input is read at `min(t, t_last)`. The fixed-step solve of
     `simulate` passes `t1^-`, the last float before the span's end, so that a step ending on
     an input jump at `t1` reads the torque before it, as steps ending on interior jumps do
-    (found in review: with a bang-bang ending exactly at `t1`, RK4's last stage read the
-    far side and the final rates were off by `h dtau / (6 J)`)."""
+    (reading the far side would put the final rates off by `h dtau / (6 J)`)."""
 
     model: AssembledChain
     torque: AbstractInput
@@ -223,7 +222,7 @@ def initial_state(
 def floats_as_arrays(tree):
     """Python floats among a pytree's leaves as float arrays. `eqx.filter_jit` holds a
     float leaf static, so each new value (put in by `eqx.tree_at(..., 2.0)`) would compile
-    the program again (found in review: 3.6 s a call instead of 0.01 s)."""
+    the program again."""
     return jax.tree.map(lambda x: jnp.asarray(x, dtype=float) if isinstance(x, float) else x, tree)
 
 
@@ -286,16 +285,14 @@ def _simulate(
     - `adjoint`: diffrax adjoint for reverse-mode gradients (default: recursive
       checkpointing; forward mode `jax.jacfwd` needs `diffrax.ForwardMode()`).
 
-    **Cost of gradients** (`benchmarks/bench_gradient_cost.py`, paper 004's arm, a 10 s log
-    at 1 kHz, RK4 at 1 ms): `jax.grad` with the defaults costs ~8x a forward solve, because
-    the checkpoint schedule is planned for `max_steps` steps; with `max_steps` near the
+    **Cost of gradients** (measured: `docs/performance.md`): `jax.grad` with the defaults
+    pays for a checkpoint schedule planned for `max_steps` steps; with `max_steps` near the
     number of steps taken and `adjoint=diffrax.RecursiveCheckpointAdjoint(checkpoints=
-    max_steps)` (a checkpoint at every step: one solver state per step, 5.6 MiB here) it is
-    ~5.6x. `jax.jacfwd` with `diffrax.ForwardMode()` and 4 parameters is ~4.5x (Tsit5 at
-    rtol 1e-6: ~2.7x). For reverse mode with fixed-step RK4 on output times known when
-    tracing, `flexdyn.rk4_trajectory` takes the same steps and its discrete adjoint costs
-    ~3.8x its forward solve (3.6x this function's); for the adaptive solve,
-    `flexdyn.tsit5_trajectory` is this function's solve with a discrete adjoint (~3.9x).
+    max_steps)` (a checkpoint at every step: one solver state per step) it is cheaper.
+    `jax.jacfwd` needs `diffrax.ForwardMode()`. For reverse mode with fixed-step RK4 on
+    output times known when tracing, `flexdyn.rk4_trajectory` takes the same steps with a
+    discrete adjoint (~4x its forward solve); for the adaptive solve,
+    `flexdyn.tsit5_trajectory` is this function's solve with a discrete adjoint (~4x).
     """
     asm, y0, ts, torque = prepare(chain, y0, ts, torque, "simulate")
     n = asm.layout.n_dof
@@ -417,13 +414,12 @@ def observe(chain: Chain | AssembledChain, traj: Trajectory, torque: AbstractInp
     """Evaluate all `Outputs` along a trajectory (the same `torque` as the simulation:
     the accelerations and the `torque` output depend on it). A trajectory that an input
     drove (`traj.driven`) observed without one is refused: its end-point accelerations
-    would be those of free motion, wrong without a word (found in review).
+    would be those of free motion, wrong without a word.
 
     The links' elastic deformation is modelled for small deflections (Euler-Bernoulli
     beams, assumed modes: the strain is linear in the modal coordinates). Called outside
     `jit`, it warns when a link's tip deflection exceeds `LARGE_DEFLECTION` (20 %) of its
-    length, where that no longer holds (found in review: a 0.60 m deflection of a 0.5 m
-    link came back without a word)."""
+    length, where that no longer holds."""
     out = _observe(chain, traj, torque)
     _warn_if_large_deflection(chain, out.tip_deflection)
     return out

@@ -10,7 +10,7 @@ about n^3/6 + n^2 multiply-adds on scalars, with no call into LAPACK / cuSOLVER.
 `vmap` every one of these is an elementwise operation over the batch, which XLA fuses
 with the rest of the right-hand side into a few kernels; a batched `cho_factor` is a
 library call per right-hand side instead (a loop of tiny LAPACK calls on the CPU, several
-kernel launches on a GPU), which dominated batched sweeps (`benchmarks/README.md`). Above
+kernel launches on a GPU), which dominated batched sweeps (`docs/performance.md`). Above
 `UNROLL_MAX_DOF` the unrolled program grows as n^3 and compiles slowly, so larger systems
 use `jax.scipy.linalg.cho_solve`. No pivoting is needed: `M` is symmetric positive
 definite (it is the Hessian of the kinetic energy in the velocities).
@@ -102,10 +102,8 @@ def spd_solve_rsqrt(M: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Arra
     while `lax.rsqrt` lowers to `rsqrt.approx.f64` (Triton's libdevice `__nv_rsqrt`; in SASS
     one hardware approximation, `MUFU.RSQ64H`, with no refinement), which `flexdyn.scalarize`
     refines there (`refine_rsqrt`). Elsewhere `lax.rsqrt` is accurate as it stands (exact on
-    the CPU; within 1 ulp in XLA on a GPU). Compiled for an H200 offline
-    (`benchmarks/ptxas_fused.py`, paper 004's arm): 4,184 instructions instead of 5,552, 30
-    calls instead of 81. On the CPU the divisions are faster (paper 004's arm, RK4 for 5 s:
-    this form 1.06x the time, `benchmarks/bench_solve_forms.py`, 2026-12-03), so
-    `spd_solve` keeps them. A
-    non-positive-definite `M` gives NaN or inf."""
+    the CPU; within 1 ulp in XLA on a GPU). On the GPU it shortens the kernel
+    (`benchmarks/ptxas_fused.py`); on the CPU the divisions are faster
+    (`benchmarks/bench_solve_forms.py`), so `spd_solve` keeps them (both measured:
+    `docs/performance.md`). A non-positive-definite `M` gives NaN or inf."""
     return _unrolled_solve(M, b, rsqrt=True)

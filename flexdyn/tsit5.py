@@ -42,13 +42,11 @@ Where the loss has a kink this is a one-sided derivative: a jump on an output ti
 derivative for moving the jump earlier), and a jump at `ts[0]` or `ts[-1]` (0: moving it
 out of the interval changes nothing).
 
-Cost (`benchmarks/bench_gradient_cost.py`, paper 004's arm, a 10 s log at 1 kHz, 10
-parameters, rtol 1e-6, 4,693 steps, 2-core CPU, 2026-11-26): `value_and_grad` 0.845 s, 3.87x
-its forward solve (0.218 s, the same solve as `simulate`'s); diffrax's reverse mode through
-`simulate` with a checkpoint at every step 1.080 s (4.95x), with its default schedule 1.39 s.
-The backward pass costs ~130 us per step: seven right-hand sides with their factors and
-seven stage transposes. Memory: the step record, `max_steps x (2n + 1)` floats (28.8 MiB
-for the whole program at the default `max_steps`). Forward mode (`jax.jvp`,
+Cost: `value_and_grad` about 4x its forward solve (the same solve as `simulate`'s), less
+than diffrax's reverse mode through `simulate` (`benchmarks/bench_gradient_cost.py`,
+`docs/performance.md`). The backward pass is, per step, seven right-hand sides with their
+factors and seven stage transposes. Memory: the step record, `max_steps x (2n + 1)`
+floats. Forward mode (`jax.jvp`,
 `jax.jacfwd`) is not defined for this function (it has its own `custom_vjp`): use
 `simulate` with `adjoint=diffrax.ForwardMode()`.
 """

@@ -23,15 +23,12 @@
 
 from ._data import measurement as measurement, noise_floor as noise_floor
 from ._data.channels import check_channel as check_channel, state_names as state_names
-from ._data.experiment import (
-    Experiment as Experiment,
-    ExperimentError as ExperimentError,
-    FreeParameter as FreeParameter,
-    LogSpec as LogSpec,
-    load_experiment as load_experiment,
-)
-from ._data.logs import Log as Log, LogError as LogError, load_log as load_log, write_log as write_log
+from ._data.columns import LogError as LogError
+from ._data.experiment import Experiment as Experiment, FreeParameter as FreeParameter, LogSpec as LogSpec
+from ._data.experiment_file import load_experiment as load_experiment
+from ._data.logs import Log as Log, load_log as load_log, write_log as write_log
 from ._data.measurement import Measurement as Measurement, Sensor as Sensor
+from ._data.toml_reader import ExperimentError as ExperimentError
 from ._diagnose import catalogue as catalogue, evidence as evidence
 from ._diagnose.diagnosis import Diagnosis as Diagnosis
 from ._diagnose.scores import Cause as Cause, Score as Score

@@ -3,18 +3,26 @@
 
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+
 import numpy as np
 
+import flexdyn as fd
+
+from ._data import channels as ch
 from ._data.experiment import Experiment, LogSpec
-from ._diagnose import residual_tests as diagnostics
+from ._diagnose import evidence, residual_tests as diagnostics
 from ._diagnose.diagnosis import Diagnosis
 from ._diagnose.search import diagnose_logs
 from ._diagnose.split import split_logs
 from ._fit.fit import fit
 from ._fit.fit_independent import fit_independent
 from ._fit.result import FitResult, fitted_outputs
+from ._fit.uncertainty import BetweenLogs, ClusteredUncertainty, between_logs, clustered_uncertainty
 from ._model.parameters import Parameter
-from ._model.problem import LogData, Problem, make_problem
+from ._model.problem import LogData, Problem, make_problem, parameter_unit
+from ._report.json import package_versions
 
 
 def log_data(spec: LogSpec, n_joints: int) -> LogData:
@@ -151,9 +159,6 @@ def validate(exp, result, progress=None):
     parameters fixed, each log's own initial-state entries and offsets re-estimated).
     Returns `(outputs, report, nuisances)` in the layout of `identify.fitted_outputs`,
     `identify.residual_report` and `FitResult.initial_states/offsets`."""
-    from ._fit.result import fitted_outputs
-    from ._workflow import evaluate_held_out, residual_report
-
     held = evaluate_held_out(result, exp, progress=progress)
     nuisances = {
         name: {
@@ -170,3 +175,130 @@ def validate(exp, result, progress=None):
 #: `identify fit` adds cluster-robust intervals (`identify.clustered_uncertainty`) from this
 #: many fit logs on (fewer clusters give an interval too uncertain to be useful).
 CLUSTER_MIN_LOGS = 5
+
+
+@dataclasses.dataclass
+class FitReport:
+    """Everything `identify fit` prints and writes about one joint fit: the fit, its
+    outputs and residual tests on the fit and validation logs, the fitted model's natural
+    frequencies (Hz) about `modal_configuration`, model checks, and the optional
+    cluster-robust intervals and per-log agreement (each `None` with a note saying why)."""
+
+    experiment: Experiment
+    result: FitResult
+    outputs: dict
+    residuals: dict
+    natural_frequencies: list
+    modal_configuration: str
+    model_checks: list
+    robust: ClusteredUncertainty | None = None
+    robust_note: str | None = None
+    agreement: BetweenLogs | None = None
+    agreement_note: str | None = None
+    validation_outputs: dict = dataclasses.field(default_factory=dict)
+    validation_residuals: dict = dataclasses.field(default_factory=dict)
+    validation_nuisances: dict = dataclasses.field(default_factory=dict)
+
+    def to_dict(self, *, options: dict, command: list) -> dict:
+        """`result.json`'s content (FORMAT.md): the fit's `to_dict` with the experiment,
+        residuals, validation, modal and uncertainty sections, `options`, `command` and
+        the package versions."""
+        result, val = self.result, self.validation_nuisances
+        doc = result.to_dict()
+        doc["experiment"] = experiment_document(self.experiment)
+        doc["residuals"] = self.residuals
+        doc["validation"] = {
+            name: {
+                "residuals": self.validation_residuals[name],
+                "initial_states": {
+                    e: {"value": v, "unit": ch.state_unit(e)} for e, v in val[name]["initial_states"].items()
+                },
+                "offsets": {c: {"value": v, "unit": ch.channel_unit(c)} for c, v in val[name]["offsets"].items()},
+                "parameters": {
+                    p: {"value": v, "unit": parameter_unit(result.problem, p)}
+                    for p, v in val[name]["parameters"].items()
+                },
+            }
+            for name in self.validation_outputs
+        }
+        doc["natural_frequencies_hz"] = self.natural_frequencies
+        doc["model_checks"] = self.model_checks
+        doc["clustered_uncertainty"] = None if self.robust is None else self.robust.to_dict()
+        doc["per_log_agreement"] = None if self.agreement is None else self.agreement.to_dict()
+        doc["modal_configuration"] = self.modal_configuration
+        doc["options"] = options
+        doc["command"] = command
+        doc["versions"] = package_versions()
+        return doc
+
+
+def experiment_document(exp: Experiment) -> dict:
+    """The experiment's part of result.json: name, description, path, logs."""
+    return {
+        "name": exp.name,
+        "description": exp.description,
+        "path": str(Path(exp.path).resolve()),
+        "logs": [
+            {"name": s.name, "file": str(Path(s.file).resolve()), "role": s.role, "samples": len(s.log), "set": s.set}
+            for s in exp.logs
+        ],
+    }
+
+
+def _robust_intervals(exp: Experiment, result: FitResult, say) -> tuple[ClusteredUncertainty | None, str | None]:
+    """Cluster-robust intervals, each fit log a cluster, where there are enough logs
+    (`CLUSTER_MIN_LOGS`) and they apply; else `None` and why not (or no note)."""
+    n_fit = len(exp.fit_logs)
+    if n_fit < CLUSTER_MIN_LOGS:
+        return None, None
+    if result.problem.per_log:
+        return None, (
+            "cluster-robust intervals not computed: a per-log parameter is informed by one log (cluster) only, "
+            "so they do not apply"
+        )
+    if n_fit <= len(result.names):
+        return None, (
+            f"cluster-robust intervals not computed: {n_fit} fit logs for {len(result.names)} free parameters "
+            "(they need more logs than parameters)"
+        )
+    say(f"cluster-robust intervals ({n_fit} fit logs as clusters) ...")
+    return clustered_uncertainty(result), None
+
+
+def fit_report(exp: Experiment, result: FitResult, *, progress=None, say=print) -> FitReport:
+    """The follow-ups of a joint fit that `identify fit` reports: outputs and residual
+    tests, natural frequencies, model checks, cluster-robust intervals, the validation
+    logs (`validate`) and, for per-log parameters, their agreement (`between_logs`).
+    `say` prints what is being computed; `progress` goes to the validation fits."""
+    outputs = fitted_outputs(result)
+    residuals = residual_report(result)
+    freqs, where = fd.natural_frequencies(result.chain)
+    robust, robust_note = _robust_intervals(exp, result, say)
+    val_outputs, val_residuals, val_nuisances = {}, {}, {}
+    if exp.validation_logs:
+        own = "".join(f", {p.name}" for p in exp.free if p.per_log)
+        say(f"checking the fit on the validation log(s) (their initial state, offsets{own} re-estimated) ...")
+        val_outputs, val_residuals, val_nuisances = validate(exp, result, progress)
+    checks = evidence.stiffening_checks_of(result.chain, {**outputs, **val_outputs}, key="simulated")
+    agreement, agreement_note = None, None
+    if result.problem.per_log and result.converged and len(exp.fit_logs) >= 2:
+        try:  # do the per-log values differ beyond their intervals?
+            agreement = between_logs(result)
+        except ValueError as e:  # (a per-log value some log does not determine)
+            agreement_note = f"per-log values not compared: {e}"
+    return FitReport(
+        exp,
+        result,
+        outputs,
+        residuals,
+        freqs,
+        where,
+        checks,
+        robust,
+        robust_note,
+        agreement,
+        agreement_note,
+        val_outputs,
+        val_residuals,
+        val_nuisances,
+    )

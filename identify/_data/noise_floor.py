@@ -23,19 +23,14 @@ Soc. B 60, 751-764). A smooth signal leaks in through its `ORDER`-th derivative:
 amplitude `A` and frequency `f` sampled every `dt` adds
 `A (2 sin(pi f dt))^k / sqrt(2 C(2k, k))` in quadrature (order `k`, uniform grid), so the
 floor is an upper bound of the white noise, close to it for signals sampled well above
-their frequencies. Why order 4 and not Gasser's 2: the real pendulum of
-`identify/examples/real_single_pendulum` (swings of up to 3.2 rad peak to peak at about 1.3 Hz, sampled every 5 ms,
-encoder noise 4e-5 rad) has a floor of 5e-4 rad at order 2 (the swing's curvature), 4.4e-5
-at order 3 and 4.2e-5 at orders 4 and 6. Noise that is not white (a sensor's low-pass
+their frequencies. Order 4 rather than Gasser's 2, whose floor a swinging pendulum's
+curvature dominates (docs/performance.md). Noise that is not white (a sensor's low-pass
 filter correlating neighbouring samples) makes the floor smaller than the noise: a
 first-order filter at a tenth of the sampling rate by a factor 0.59, at a twentieth by
 0.42 (order 4; `tests/identify/test_noise_floor.py` has the closed form). The trace alone
-cannot tell such noise from white noise plus signal leakage, so no correction is made: the
-lag-1 correlation of the normalised 4th differences is -0.8 for white noise and moves only
-to -0.75 for first-order filtered noise of any bandwidth (AR(1) coefficient 0 to 0.95,
-closed form as in the test), while a smooth signal leaking 5 % of the noise's variance
-moves it to -0.71; differences at a wider spacing decorrelate the noise but multiply the
-leakage by the spacing to the 4th power. A fit's `poor_fit` warning says so.
+cannot tell such noise from white noise plus signal leakage (the differences' lag-1
+correlation hardly separates them: docs/performance.md), so no correction is made; a
+fit's `poor_fit` warning says so.
 
 **Ratio**: for each channel, the RMS of the fit's residuals over the floor (both pooled
 over the logs, each log's floor from its own samples). A model that explains the data to
@@ -170,9 +165,9 @@ def declared_noise_warnings(declared: dict, quality: dict) -> list[str]:
     """Warnings for channels whose declared noise (`declared`: channel -> standard
     deviation, SI, or None when estimated) is more than `NOISE_MISMATCH` times its floor
     (`quality`: `goodness`' dict, e.g. `FitResult.fit_quality`), or less than 1 /
-    `NOISE_MISMATCH` of it. Found in review: `"0.03"` meant as degrees and read as
-    0.03 rad (57 times the floor) widened every interval 7x in silence; a declared noise
-    in the wrong unit is the usual cause."""
+    `NOISE_MISMATCH` of it. A declared noise in the wrong unit is the usual cause (`"0.03"`
+    meant as degrees and read as 0.03 rad is 57 times too large and widens every interval
+    about 7x)."""
     from .units import display_unit
 
     out = []

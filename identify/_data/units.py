@@ -197,8 +197,8 @@ def channel_dimension(channel: str) -> str | None:
 def near_channel(name: str) -> str | None:
     """The channel a column name spells differently, ignoring case, spaces, `_` and `-`
     (`'Tip_1'` -> `'tip1'`, `'THETA 1'` -> `'theta1'`), or None (also for a channel name
-    itself). Found in review: a header `tip_1 [mm]` was ignored as an unused column and
-    the log's tip gauge dropped in silence."""
+    itself). `load_log` refuses a near miss such as `tip_1 [mm]` rather than drop it in
+    silence as an unused column."""
     folded = re.sub(r"[\s_\-]", "", name).lower()
     for plain in (*_PLAIN, "time"):
         if folded == plain.replace("_", ""):
@@ -232,8 +232,8 @@ _QUANTITY = re.compile(r"^\s*(?P<value>[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)\s*
 def parse_quantity(text: str, dimension: str) -> float:
     """`'0.5 deg'` -> 0.008726... (SI) for a quantity of the given dimension. Raises
     `ValueError` saying what was expected. A string must carry its unit: `'0.03'` is
-    refused (found in review: meant as degrees, it was read as 0.03 rad, 57 times the
-    intended noise, in silence); a number in SI units is written as a number."""
+    refused rather than read as SI in silence (meant as degrees, 0.03 rad would be 57 times
+    the intended noise); a number in SI units is written as a number."""
     m = _QUANTITY.match(text)
     if m is None:
         raise ValueError(f"expected a number with a unit, e.g. '0.5 {_example_unit(dimension)}', got {text!r}")

@@ -84,14 +84,12 @@ REPEATABLE = ("missing_mode",)
 # against the effect). `missing_mode` and `geometric_stiffening` have no such limit: the
 # extra mode, or the axial-load stiffness, cannot be switched off by a parameter.
 #
-# Measured on the null arm of `tests/diagnose_cases.py` (a rigid joint): the elastic joint's
-# soft starts (joint mode near 2x the link's) end far above the rigid model (seed 101: dBIC
-# +3230, stiffness 52 N m/rad). One more start with the joint mode at the logs' Nyquist
-# frequency ends at the limit (dBIC +10.6, the 2 ln N of its two parameters), but its fine
-# integration grid made the whole diagnosis 3x slower (91 s against 30 s warm; one A/B run
-# in one process on 2 cores, seed 101 with and without the start), for a
-# candidate rejected either way. So the fit keeps its soft starts, and `diagnose` notes a
-# fit that ends above the limit (`diagnose._stuck_above_nested`).
+# On a rigid joint the elastic joint's soft starts (joint mode near 2x the link's) can end
+# far above the rigid model. One more start with the joint mode at the logs' Nyquist
+# frequency would reach the limit, but its fine integration grid makes the whole diagnosis
+# about 3x slower, for a candidate rejected either way (docs/performance.md). So the fit
+# keeps its soft starts, and `diagnose` notes a fit that ends above the limit
+# (`diagnose._stuck_above_nested`).
 NESTED_LIMIT = {
     "joint_elasticity": "an infinitely stiff spring, the rotor's inertia added to the hub's",
 }

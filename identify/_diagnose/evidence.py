@@ -106,8 +106,8 @@ def spectrum_peaks(t, residual, modal_frequencies_hz, n_peaks: int = 3) -> list[
     PEAK_FALSE_ALARM`, in 0.7-1.3 % of records of 300 to 10,000 samples, and in 0-1 % of
     AR(1) noise of coefficient 0.9 or 0.99, whose spectrum falls steeply; 300 records
     each). A peak of fewer than `PEAK_MIN_PERIODS` periods in the log is a trend, not a
-    line: its `significant` is None (with 5, AR(1) noise of 300 samples showed a
-    significant peak in 9 % of records)."""
+    line: its `significant` is None (a lower limit lets coloured noise pass for a line:
+    docs/performance.md)."""
     f, p = periodogram(t, residual)
     if len(p) < 5:
         return []
@@ -164,13 +164,13 @@ def swing_amplitudes(t, y, noise: float = 0.0):
 
     Half a swing does not depend on the level the oscillation is centred on: a log's
     sensor offset, or an equilibrium a log does not settle at within its span (the
-    amplitudes of the extrema about a mean level alternate between two sequences then:
-    seen on the real pendulum, R^2 0.49 for every decay law). A turning point counts when
+    amplitudes of the extrema about a mean level alternate between two sequences then,
+    which no decay law fits, as on the real pendulum). A turning point counts when
     `y` has moved back from it by more than `max(10 noise, 2 quantum, 1e-3 range)`
     (`quantum`: the smallest change between samples, an encoder's step; a peak-detector's
     hysteresis: near a turning point, where the signal is flat for tens of samples, the
-    running extremes of white noise reach +-2.5 standard deviations, so 3 of them made
-    false turning points; one turning point per plateau of a quantised encoder). The
+    running extremes of white noise reach +-2.5 standard deviations, so 3 of them would
+    make false turning points; one turning point per plateau of a quantised encoder). The
     decay laws hold for half swings as for amplitudes: a constant loss per half period
     (dry friction) stays linear, a constant ratio (viscous) stays exponential.
 
@@ -423,9 +423,9 @@ def link_root_accelerations(chain, traces: dict, key: str = "baseline", window: 
     `window`: link name -> seconds, a moving average of the axial acceleration over that
     span first (`stiffening_checks_of`: the link's first clamped-mass period). Stiffening is
     a quasi-static effect: an axial load that alternates faster than the mode averages out
-    (review: on a two-link arm with elastic joints the peak of the raw second derivative,
-    149 m/s^2 from 45-78 Hz joint ringing, was counted as a 64 % stiffening of a 4.7 Hz
-    mode; the ringing's rectified centripetal part, its mean, is what remains)."""
+    (unaveraged, the 45-78 Hz joint ringing of a two-link arm with elastic joints would read
+    as a 64 % stiffening of its 4.7 Hz mode; the ringing's rectified centripetal part, its
+    mean, is what remains)."""
 
     def acceleration(t, angles, i):
         if i == 0:
@@ -503,9 +503,9 @@ def stiffening_checks(
         worst = max(spin or 0.0, grav)
         flagged = worst > threshold
         w1 = e.frequency
-        # (review, two-link arm: "0.67 of its first clamped frequency (3.67 rad/s)" could not
-        # be related to the arm's modes, 3-31 Hz: the clamped-mass mode carries link 2 as a
-        # rigid body at the tip; it is the ratio of stiffnesses that matters)
+        # the clamped-mass mode is not a mode of the whole arm (it carries the links outboard
+        # as a rigid body at the tip), so the text says what it is; it is the ratio of
+        # stiffnesses that matters
         mode = (
             f"its first clamped-mass mode, {w1:.3g} rad/s = {w1 / (2 * np.pi):.3g} Hz: the link alone, root "
             "clamped, all outboard of it rigid at its tip, not a mode of the whole arm"
@@ -540,8 +540,8 @@ def stiffening_checks(
         typical = max(spin_typical, grav) if spin_typical is not None else None
         bias_typical = 1.0 / (1.0 - typical) if typical is not None and typical < 1.0 else None
         if flagged:
-            # (review: on logs simulated without stiffening the fit was at the noise and EI
-            # exact, and the warning read as contradicting it; it is about a real link)
+            # said even for a fit at the noise: the warning is about a real link, whose
+            # stiffening a fitted EI absorbs (only logs simulated without it leave EI exact)
             if bias is None:
                 size = "the linear model is far off"
             elif bias_typical is not None:

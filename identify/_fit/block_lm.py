@@ -9,9 +9,9 @@ nuisance block. Each Levenberg-Marquardt step solves the damped least-squares pr
 
 which optimistix's `LevenbergMarquardt` does by a dense QR of `[J; sqrt(lambda) I]`:
 `O(L n (P + L k)^2)` operations and an `L n x (P + L k)` matrix, cubic in the number of
-logs (measured: 10 % of a step's time at 64 logs; at 128 the factorisation costs more than
-the Jacobian). `BlockLevenbergMarquardt` is the same algorithm (optimistix's Gauss-Newton
-loop and classical trust region, only the descent differs) with the step solved by
+logs: with many logs the factorisation costs more than the Jacobian (docs/performance.md).
+`BlockLevenbergMarquardt` is the same algorithm (optimistix's Gauss-Newton loop and
+classical trust region, only the descent differs) with the step solved by
 eliminating each log's nuisances first (a Schur complement, done with orthogonal
 factorisations, not normal equations, so that the conditioning is QR's):
 

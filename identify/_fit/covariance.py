@@ -328,8 +328,8 @@ def interval_text(lo: float, hi: float, std_error: float | None = None) -> str:
     """`[lo, hi]` with the digits that tell its ends apart (`digits` of each end against
     the width): `[11.995, 12.001]`, not `[12, 12]`. An infinite end is "not determined"
     when the standard error is infinite or not given; with a finite `std_error` (a
-    parameter fitted in log space whose interval overflowed) it reads `[lo, inf)`: found
-    in review, "not determined" beside a finite standard error read as a contradiction."""
+    parameter fitted in log space whose interval overflowed) it reads `[lo, inf)`, since
+    "not determined" beside a finite standard error would read as a contradiction."""
     if np.isinf(lo) or np.isinf(hi):
         if std_error is not None and np.isfinite(std_error) and np.isfinite(lo):
             return f"[{lo:.3g}, inf)"

@@ -1,90 +1,37 @@
 """Frequency-domain initial guesses of flexural stiffness (`link<i>.EI`) before a fit.
 
 A 2x error in EI puts a simulated oscillation out of phase after a few periods, and the
-time-domain loss has a local minimum per period slip (`identify.fit`); the amplitude
-spectrum of a recorded flexural channel (tip deflection or root curvature) carries no
-phase, so matching it is a nearly convex one-dimensional problem in EI.
+time-domain loss has a local minimum per period slip; the amplitude spectrum of a recorded
+flexural channel (tip deflection or root curvature) carries no phase, so matching it is a
+nearly convex one-dimensional problem in EI.
 
-**Matched spectra, not peak picking.** For each free `link<i>.EI` whose link has modes and
-whose `tip<i>` or `curvature<i>` channel is recorded, the model is simulated with the
-logs' own inputs and initial states at the guesses, with EI scaled by each factor of
-`FACTORS` (1/16 to 16: the flexural frequency from 1/4 to 4 times the guess's), and the
-factor is chosen whose simulated channel's amplitude spectrum, with the channel's noise
-floor, matches the measured one best in shape and in level (then refined by a
-golden-section search between its neighbours, `REFINE_EVALS` simulations),
+**Matched spectra.** For each free `link<i>.EI` whose link has modes and whose `tip<i>` or
+`curvature<i>` channel is recorded, the model is simulated with the logs' own inputs and
+initial states at the guesses, with EI scaled by each factor of `FACTORS` (1/16 to 16),
+and the factor is kept whose simulated amplitude spectrum, with the channel's noise floor,
+matches the measured one best (then refined by a golden-section search between its
+neighbours, `REFINE_EVALS` simulations):
 
     match(s) = 2 <A_meas, A_model(s)> / (|A_meas|^2 + |A_model(s)|^2),
     A_meas = |FFT(w (y - mean y))|,   A_model(s) = sqrt(|FFT(w (y_sim(s) - mean))|^2 + sigma^2 sum w^2)
 
-(`w` the Hann window, `sigma` the channel's noise level) of each log from its onset
-(`identify.log_onset`), the inner products summed over the logs. `match` is the cosine
-similarity of the two spectra (their shape) times `2r / (1 + r^2)`, `r = |A_model| /
-|A_meas|` (their level); it is 1 only when both agree. When the channel's sensor gain is a
-free parameter (`sensor.<channel>.gain`), the gain absorbs the level, and the shape alone
-(the cosine) is compared. The spectra are compared over
-the band from 1/4 to 4 times the model's flexural frequency at the guess (the modal
-analysis about the resting pose), the inner products summed over the logs. A parabola
-through the best factor and its neighbours (in log EI) refined it with one more
-simulation until 2026-12-05; a lightly damped mode's peak is narrower than that: on a
-flexible link whose root curvature is dominated by a 29 Hz mode at damping ratio 0.01,
-the parabola's vertex put EI 6 % low with a shape similarity of 0.83 (and a warning that
-no EI matches), the golden-section search puts it 0.1 % off at 0.999.
+(`w` the Hann window, `sigma` the channel's noise level), each log from its onset, the
+inner products summed over the logs, over the band from 1/4 to 4 times the model's
+flexural frequency at the guess. `match` is the cosine similarity (shape) times
+`2r / (1 + r^2)`, `r = |A_model| / |A_meas|` (level): the level tells EI when the drive is
+well below the flexural mode (quasi-static deflection ~ load / EI). When the channel's
+sensor gain is free (`sensor.<channel>.gain`), the shape alone is compared. Both spectra
+see the same input, window and record length, so the drive's lines and leakage are in
+both (picking the largest measured peak instead mistakes a drive line for the mode). At
+most `PERIODS` flexural periods are compared and simulated.
 
-Both spectra see the same input, window and record length, so whatever the input puts
-into the spectrum (a driving sine's line, a square wave's harmonics, the leakage of a
-short record) is in both. At most `PERIODS` (60) flexural periods of the model at the
-guess are compared from each log's onset, and simulated: a long log costs no more than
-one of that length.
-
-Picking the largest peak of the measured spectrum and scaling EI by the squared ratio of
-its frequency to the model's natural frequency (what `identify.fit` did before) assumed
-that the peak is the free flexural vibration. Measured on the 4-parameter flexible arm
-(`tests/identify/test_frequency_init.py`, flexural mode 4.2 Hz, guesses EI x0.5 or x2,
-the other three parameters 20 % off): a 1.5 Hz sine drive put EI at 0.14 of the truth, a
-7 Hz drive at 3.0, a 1 Hz square wave at 0.05, a record that ends 0.2 s after its
-doublet at 0.52, and the default fit from the sine-driven logs ended in a wrong basin
-(damping on its bound, payload +46 %) where the fit without the initialisation
-converged. Matched spectra put EI at the truth within the factor grid's resolution in
-every one of those cases.
-
-`identify.fit_independent` does this for every log on its own (each log its own EI), the
-simulations of all logs batched: one vmapped call per factor.
-
-**Shape and level.** The shape alone (the cosine similarity, which this module compared
-until 2026-12-02) cannot tell EI when the response is forced well below the flexural
-mode: the spectrum is the drive's lines at every EI, and only their height, the
-quasi-static deflection ~ load / EI, depends on it. Measured on paper 004's two-link arm
-(`fd.rigs.flexible_link_joint_arm`) driven by 1.0 and 1.7 Hz sines for 2 s, guesses (EI1,
-EI2) at (0.5, 2), (2, 0.5), (1.4, 1.4) of the truth: with the shape alone EI1 went to
-0.85, 1.34, 0.88 and EI2 hardly moved (2.0, 0.58, 1.4: its tip's spectrum had a cosine of
-0.99-1.00 at every factor tried); with the level as well, (0.91, 1.04), (1.00, 1.00),
-(0.99, 0.99) (`tests/identify/test_frequency_init.py`). The single-link cases above are
-found either way. The level is what the fit's own time-domain loss sees: a tip channel
-recorded twice too large with its gain fixed puts EI at 0.78 of the truth here (a softer
-link deflects more), where the fit would go too; with the gain free, at the truth.
-
-The spectrum cannot always tell: when the best match is less than `MIN_GAIN` above
-the guess's (a record with no flexural motion, a drive whose response hardly depends on
-EI), the guess is kept. Nor when the gain is within what noise alone gives
-(`spurious_gain`: a parametric bootstrap, `ROUNDS` logs simulated from the model at the
-guess plus white noise at the channel's noise level or its model-free floor, whichever
-is larger, each matched against every EI tried). Measured on the doublet log with its
-tip noise 3x the deflection's RMS and EI guessed 3.5 % off: some factor always beats the
-guess by chance (x2.25, match 0.864 against 0.842), noise alone gives up to 0.028, and
-the guess is kept (before the bootstrap, EI went to 2.3x the truth). When the model's
-flexural frequency at the guess is over 4x the logs' Nyquist frequency, no bin of the
-band is recorded and nothing is simulated. The links are initialised one at a time, each
-with the others' current values.
-
-A tip channel that records only noise (1 % of the true deflection's RMS) matched a 4 to
-16 times stiffer link than the guess (8 trials, shape alone): the flattest simulated
-spectra; the data then say that the link hardly deflects, as the fit itself would. The
-progress line warns when no EI tried reaches `POOR_MATCH` times the shape similarity that
-model would reach on its own output plus the channel's noise (`spectral_match`'s
-`ceiling`: noise makes each bin's amplitude random, so a band where noise dominates
-tops out near `sqrt(pi) / 2 = 0.886` even with the true model, where a fixed bar of 0.9
-would warn "no EI matches"; a review's warning at 0.899 with EI 3.5 % off the truth was
-more likely a narrow peak the grid missed: see the golden-section search above).
+The guess is kept when the best match beats it by less than `MIN_GAIN`, or by no more than
+noise alone does (`spurious_gain`, a parametric bootstrap of `ROUNDS` noisy copies of the
+model's output at the guess), or when the mode lies over 4x the Nyquist frequency. A
+progress line warns when no EI reaches `POOR_MATCH` times the shape similarity the model
+would reach on its own output plus noise (`spectral_match`'s `ceiling`). Links are
+initialised one at a time; `identify.fit_independent` does every log on its own, batched.
+The measurements behind these choices are in `docs/identification.md`.
 """
 
 from __future__ import annotations
@@ -117,9 +64,8 @@ GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 MIN_GAIN = 1e-3
 #: below this fraction of the model's own expected shape similarity (`spectral_match`'s
 #: `ceiling`) at the best shape of any EI tried, the progress line warns that no EI matches
-#: the spectrum well (measured: >= 0.99 of it on every synthetic log the model generated;
-#: 0.75-0.86 for a tip channel of noise only; 0.79 on the spinning-link example, whose
-#: model lacks geometric stiffening: these two with ceilings near 1)
+#: the spectrum well (a model on its own output reaches ~1 of it; a noise-only channel
+#: or a model missing an effect falls below: docs/identification.md)
 POOR_MATCH = 0.9
 #: noise realisations of `spurious_gain`'s parametric bootstrap (the largest of 16: a
 #: spurious move from a right guess in ~1 in 17 logs where noise alone decides)
@@ -307,8 +253,6 @@ def initialise_stiffness(
     thetas = np.array(thetas, float).reshape(len(problems), -1)
     lower, upper = (np.asarray(b, float) for b in limits)
     first = problems[0]
-    n_items, n_factors = len(problems), len(FACTORS)
-    unit = int(np.flatnonzero(FACTORS == 1.0)[0])
     for k, name in enumerate(first.names):
         m = STIFFNESS.fullmatch(name)
         if m is None:
@@ -317,149 +261,202 @@ def initialise_stiffness(
         channel = next((c for c in (f"tip{i + 1}", f"curvature{i + 1}") if c in first.channels), None)
         if channel is None or not first.chain.layout.modal[i]:
             continue
-        j = first.channels.index(channel)
-        f_model = _flexural_frequencies(problems, thetas, i)
-        bands = [None if f is None else (BAND[0] * f, BAND[1] * f) for f in f_model]
-        # a mode over 4x the Nyquist frequency leaves no bin of the band in the spectrum
-        nyquist = [_nyquist(p, j) for p in problems]
-        unresolved = [b is not None and b[0] >= f for b, f in zip(bands, nyquist)]
-        if any(unresolved):
-            b = unresolved.index(True)
-            say(
-                f"  frequency initialisation: the model's flexural frequency at the guess of {name} "
-                f"({f_model[b]:.3g} Hz) is over 4x the Nyquist frequency of {channel} ({nyquist[b]:.3g} Hz)"
-                + (f" in {sum(unresolved)} of {n_items} logs" if n_items > 1 else "")
-                + f": the spectrum cannot tell {name}; guess kept"
-            )
-            if all(unresolved):
-                continue
-            bands = [None if u else b for b, u in zip(bands, unresolved)]
-            f_model = [None if u else f for f, u in zip(f_model, unresolved)]
-        known = [f for f in f_model if f is not None]
-        span = PERIODS / min(known) if known else np.inf
-        guess = thetas[:, k].copy()
-        # the spectrum's scale tells EI too (a drive below the flexural mode deflects the
-        # link by ~ load / EI), unless a free gain of the channel's sensor absorbs it
-        level = f"sensor.{channel}.gain" not in first.names
+        _initialise_link(problems, thetas, (lower[k], upper[k]), simulate, say, k, i, channel)
+    return thetas
 
-        spectra = [None if band is None else _Spectra(p, j, band, span) for p, band in zip(problems, bands)]
-        signals = [[] for _ in range(n_items)]  # per problem: each tried EI's simulated spectra
-        at_unit = [None] * n_items  # per problem: the guess's simulated channel (L, T)
 
-        def scores_at(factors, k=k, j=j, guess=guess, level=level, spectra=spectra, signals=signals):
-            """`(score, shape, ceiling, f_top)` `(B,)` each of every problem with EI at
-            `guess * factors`: `spectral_match`'s level (shape alone when `level` is False),
-            shape, ceiling and top frequency (score and shape -inf where outside the limits,
-            where its simulation failed or there is no band)."""
-            value = guess * factors
-            inside = (value >= lower[k]) & (value <= upper[k])
-            out = np.full((4, n_items), -np.inf)
-            if not inside.any():
-                return out
-            trial = thetas.copy()
-            trial[:, k] = np.clip(value, lower[k], upper[k])
-            outputs, ok = simulate(trial, span)
-            for b in range(n_items):
-                if inside[b] and ok[b] and spectra[b] is not None:
-                    series = np.asarray(outputs[b])[:, :, j]
-                    if factors[b] == 1.0:
-                        at_unit[b] = series
-                    signals[b].append(spectra[b].amplitudes(series))
-                    m = spectra[b].match(spectra[b].measured, signals[b][-1])
-                    out[:, b] = (m.level if level else m.shape, m.shape, m.ceiling, m.f_top)
+def _initialise_link(problems, thetas, limits, simulate, say, k: int, link: int, channel: str) -> None:
+    """Replace column `k` of `thetas` (`link + 1`'s EI, in place) by the factor of the guess
+    whose simulated `channel` spectrum matches the measured one best (grid, then
+    golden-section refinement), where it beats the guess by more than noise does."""
+    name, n_items = problems[0].names[k], len(problems)
+    j = problems[0].channels.index(channel)
+    f_model = _flexural_frequencies(problems, thetas, link)
+    bands = [None if f is None else (BAND[0] * f, BAND[1] * f) for f in f_model]
+    # a mode over 4x the Nyquist frequency leaves no bin of the band in the spectrum
+    nyquist = [_nyquist(p, j) for p in problems]
+    unresolved = [b is not None and b[0] >= f for b, f in zip(bands, nyquist)]
+    if any(unresolved):
+        b = unresolved.index(True)
+        say(
+            f"  frequency initialisation: the model's flexural frequency at the guess of {name} "
+            f"({f_model[b]:.3g} Hz) is over 4x the Nyquist frequency of {channel} ({nyquist[b]:.3g} Hz)"
+            + (f" in {sum(unresolved)} of {n_items} logs" if n_items > 1 else "")
+            + f": the spectrum cannot tell {name}; guess kept"
+        )
+        if all(unresolved):
+            return
+        bands = [None if u else b for b, u in zip(bands, unresolved)]
+        f_model = [None if u else f for f, u in zip(f_model, unresolved)]
+    known = [f for f in f_model if f is not None]
+    span = PERIODS / min(known) if known else np.inf
+    # the spectrum's scale tells EI too (a drive below the flexural mode deflects the
+    # link by ~ load / EI), unless a free gain of the channel's sensor absorbs it
+    level = f"sensor.{channel}.gain" not in problems[0].names
+    spectra = [None if band is None else _Spectra(p, j, band, span) for p, band in zip(problems, bands)]
+    trials = _Trials(thetas, k, j, thetas[:, k].copy(), limits, level, span, spectra, simulate)
+    best = trials.grid_and_refine()
+    unit = int(np.flatnonzero(FACTORS == 1.0)[0])
+    at_guess = trials.grid_scores[:, unit]
+    moved = np.isfinite(best.similarity) & (best.factor != 1.0) & (best.similarity >= at_guess + MIN_GAIN)
+    # a gain over the guess that noise alone gives does not move it (spurious_gain)
+    noise_gain = np.zeros(n_items)
+    for b in np.flatnonzero(moved):
+        if trials.at_unit[b] is None:
+            continue
+        sigma = max(float(problems[b].sigma[j]), _floor(problems[b], j))
+        guess_index = int(np.sum(np.isfinite(trials.grid_scores[b, :unit])))  # tried factors before the guess
+        noise_gain[b] = spurious_gain(
+            spectra[b], trials.signals[b], guess_index, trials.at_unit[b], sigma, level, np.random.default_rng(b)
+        )
+    noisy = moved & (best.similarity - at_guess <= noise_gain)
+    moved &= ~noisy
+    thetas[:, k] = np.where(moved, trials.guess * best.factor, trials.guess)
+    poor = np.isfinite(best.best_shape) & (best.best_shape < POOR_MATCH * best.ceiling)
+    if n_items == 1:
+        band = None if bands[0] is None else (bands[0][0], min(bands[0][1], best.f_top[0]))
+        one = (best.factor[0], best.similarity[0], at_guess[0], moved[0], best.best_shape[0], best.ceiling[0])
+        _say_one(say, name, channel, band, *one, poor[0], level, noise_gain[0] if noisy[0] else None)
+    else:
+        _say_many(say, name, channel, best, moved, noisy, poor)
+
+
+class _Best(NamedTuple):
+    """Per problem `(B,)`: the best factor of EI found and its match (`similarity`), the
+    best shape of any EI tried with the model's own `ceiling` there, the top frequency."""
+
+    factor: np.ndarray
+    similarity: np.ndarray
+    best_shape: np.ndarray
+    ceiling: np.ndarray
+    f_top: np.ndarray
+
+
+class _Trials:
+    """The simulations of one link's EI at factors of its guess, every problem at once,
+    with each problem's simulated spectra kept (`signals`, for the noise bootstrap) and its
+    simulated channel at the guess (`at_unit`)."""
+
+    def __init__(self, thetas, k, j, guess, limits, level, span, spectra, simulate):
+        self.thetas, self.k, self.j, self.guess, self.limits = thetas, k, j, guess, limits
+        self.level, self.span, self.spectra, self.simulate = level, span, spectra, simulate
+        n_items = len(spectra)
+        self.signals = [[] for _ in range(n_items)]  # per problem: each tried EI's simulated spectra
+        self.at_unit = [None] * n_items  # per problem: the guess's simulated channel (L, T)
+        self.grid_scores = None
+
+    def scores(self, factors):
+        """`(score, shape, ceiling, f_top)` `(B,)` each of every problem with EI at
+        `guess * factors`: `spectral_match`'s level (shape alone when `level` is False),
+        shape, ceiling and top frequency (score and shape -inf where outside the limits,
+        where its simulation failed or there is no band)."""
+        value = self.guess * factors
+        lower, upper = self.limits
+        inside = (value >= lower) & (value <= upper)
+        out = np.full((4, len(self.spectra)), -np.inf)
+        if not inside.any():
             return out
+        trial = self.thetas.copy()
+        trial[:, self.k] = np.clip(value, lower, upper)
+        outputs, ok = self.simulate(trial, self.span)
+        for b, spectra in enumerate(self.spectra):
+            if inside[b] and ok[b] and spectra is not None:
+                series = np.asarray(outputs[b])[:, :, self.j]
+                if factors[b] == 1.0:
+                    self.at_unit[b] = series
+                self.signals[b].append(spectra.amplitudes(series))
+                m = spectra.match(spectra.measured, self.signals[b][-1])
+                out[:, b] = (m.level if self.level else m.shape, m.shape, m.ceiling, m.f_top)
+        return out
 
-        tried = np.stack([scores_at(np.full(n_items, f)) for f in FACTORS], axis=2)  # (4, B, F)
+    def grid_and_refine(self) -> _Best:
+        """The best of `FACTORS` for each problem, refined by a golden-section search of
+        log EI between its neighbours (a lightly damped mode's peak is narrower than the
+        grid's 9 % steps in frequency)."""
+        n_items, n_factors = len(self.spectra), len(FACTORS)
+        tried = np.stack([self.scores(np.full(n_items, f)) for f in FACTORS], axis=2)  # (4, B, F)
         scores, shapes, ceilings = tried[0], tried[1], tried[2]
-        f_top = np.max(tried[3], axis=1)
+        self.grid_scores = scores
         best = np.argmax(scores, axis=1)
-        factor = FACTORS[best].astype(float)
-        similarity = scores[np.arange(n_items), best]
+        rows = np.arange(n_items)
         # the warning's measure: the best shape of any EI tried (a channel whose scale is
         # off matches its best shape at another EI than its best level), against the shape
         # that EI's model would reach on its own output plus the channel's noise
         at_best_shape = np.argmax(shapes, axis=1)
-        best_shape = shapes[np.arange(n_items), at_best_shape]
-        ceiling = ceilings[np.arange(n_items), at_best_shape]
-        # golden-section search of log EI between the best factor's neighbours: a lightly
-        # damped mode's peak is narrower than the grid's 9 % steps in frequency (review: a
-        # 29 Hz mode at damping ratio 0.01 matched in shape 0.83 at the grid's best)
-        refine = np.asarray([0 < best[b] < n_factors - 1 and np.isfinite(similarity[b]) for b in range(n_items)])
-        if refine.any():
-            lo = np.log(FACTORS[np.clip(best - 1, 0, n_factors - 1)])
-            hi = np.log(FACTORS[np.clip(best + 1, 0, n_factors - 1)])
-            inner = [hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo)]
-            value = [None, None]
+        found = _Best(
+            FACTORS[best].astype(float),
+            scores[rows, best],
+            shapes[rows, at_best_shape],
+            ceilings[rows, at_best_shape],
+            np.max(tried[3], axis=1),
+        )
+        refine = np.asarray([0 < best[b] < n_factors - 1 and np.isfinite(found.similarity[b]) for b in rows])
+        if not refine.any():
+            return found
+        lo = np.log(FACTORS[np.clip(best - 1, 0, n_factors - 1)])
+        hi = np.log(FACTORS[np.clip(best + 1, 0, n_factors - 1)])
+        return self._golden(found, refine, lo, hi)
 
-            def evaluate(log_factor):
-                """Scores at `exp(log_factor)` (problems not refined: their best again);
-                keeps the best level and the best shape seen."""
-                nonlocal factor, similarity, best_shape, ceiling
-                trial = np.where(refine, np.exp(log_factor), factor)
-                score, shape, ceil, _ = scores_at(trial)
-                better = refine & (score > similarity)
-                factor = np.where(better, trial, factor)
-                similarity = np.where(better, score, similarity)
-                shape_better = refine & (shape > best_shape)
-                best_shape = np.where(shape_better, shape, best_shape)
-                ceiling = np.where(shape_better, ceil, ceiling)
-                return np.where(np.isfinite(score), score, -np.inf)
+    def _golden(self, found: _Best, refine, lo, hi) -> _Best:
+        """Golden-section search of log EI in `[lo, hi]` where `refine`, `REFINE_EVALS`
+        simulations, keeping the best level and the best shape seen."""
+        state = [found]
 
-            value[0], value[1] = evaluate(inner[0]), evaluate(inner[1])
-            for _ in range(REFINE_EVALS - 2):
-                left = value[0] >= value[1]  # the maximum lies in [lo, inner[1]]
-                hi = np.where(left, inner[1], hi)
-                lo = np.where(left, lo, inner[0])
-                new = np.where(left, hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo))
-                score = evaluate(new)
-                inner = [np.where(left, new, inner[1]), np.where(left, inner[0], new)]
-                value = [np.where(left, score, value[1]), np.where(left, value[0], score)]
-        at_guess = scores[:, unit]
-        moved = np.isfinite(similarity) & (factor != 1.0) & (similarity >= at_guess + MIN_GAIN)
-        # a gain over the guess that noise alone gives does not move it (spurious_gain)
-        noise_gain = np.zeros(n_items)
-        for b in np.flatnonzero(moved):
-            if at_unit[b] is None:
-                continue
-            sigma = max(float(problems[b].sigma[j]), _floor(problems[b], j))
-            guess_index = int(np.sum(np.isfinite(scores[b, :unit])))  # tried factors before the guess
-            rng = np.random.default_rng(b)
-            noise_gain[b] = spurious_gain(spectra[b], signals[b], guess_index, at_unit[b], sigma, level, rng)
-        noisy = moved & (similarity - at_guess <= noise_gain)
-        moved &= ~noisy
-        thetas[:, k] = np.where(moved, guess * factor, guess)
-        poor = np.isfinite(best_shape) & (best_shape < POOR_MATCH * ceiling)
-        if n_items == 1:
-            band = None if bands[0] is None else (bands[0][0], min(bands[0][1], f_top[0]))
-            one = (factor[0], similarity[0], at_guess[0], moved[0], best_shape[0], ceiling[0], poor[0])
-            _say_one(say, name, channel, band, *one, level, noise_gain[0] if noisy[0] else None)
-        else:
-            moved_by = factor[moved]
-            say(
-                f"  frequency initialisation of {name} from {channel}'s spectrum, {n_items} logs: "
-                + (
-                    f"moved in {int(moved.sum())} (x{moved_by.min():.3g} to x{moved_by.max():.3g}, "
-                    f"median x{np.median(moved_by):.3g}), "
-                    if moved.any()
-                    else ""
-                )
-                + f"guess kept in {int((~moved).sum())}"
-                + (
-                    f" ({int(noisy.sum())} where the best match beat the guess's by no more than noise does)"
-                    if noisy.any()
-                    else ""
-                )
+        def evaluate(log_factor):
+            f = state[0]
+            trial = np.where(refine, np.exp(log_factor), f.factor)
+            score, shape, ceil, _ = self.scores(trial)
+            better = refine & (score > f.similarity)
+            shape_better = refine & (shape > f.best_shape)
+            state[0] = f._replace(
+                factor=np.where(better, trial, f.factor),
+                similarity=np.where(better, score, f.similarity),
+                best_shape=np.where(shape_better, shape, f.best_shape),
+                ceiling=np.where(shape_better, ceil, f.ceiling),
             )
-            if poor.any():
-                worst = int(np.argmin(np.where(poor, best_shape / ceiling, np.inf)))
-                say(
-                    f"  frequency initialisation: WARNING: in {int(poor.sum())} log(s) no {name} tried makes the "
-                    f"model's {channel} spectrum match the shape of the log's well (at worst shape similarity "
-                    f"{best_shape[worst]:.3f}, where the model with the channel's noise would reach "
-                    f"{ceiling[worst]:.3f}): little flexural motion recorded, noise above the channel's, or the "
-                    "model misses what shapes it"
-                )
-    return thetas
+            return np.where(np.isfinite(score), score, -np.inf)
+
+        inner = [hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo)]
+        value = [evaluate(inner[0]), evaluate(inner[1])]
+        for _ in range(REFINE_EVALS - 2):
+            left = value[0] >= value[1]  # the maximum lies in [lo, inner[1]]
+            hi = np.where(left, inner[1], hi)
+            lo = np.where(left, lo, inner[0])
+            new = np.where(left, hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo))
+            score = evaluate(new)
+            inner = [np.where(left, new, inner[1]), np.where(left, inner[0], new)]
+            value = [np.where(left, score, value[1]), np.where(left, value[0], score)]
+        return state[0]
+
+
+def _say_many(say, name, channel, best: _Best, moved, noisy, poor) -> None:
+    """The progress lines of one link's initialisation over many logs."""
+    n_items = len(moved)
+    moved_by = best.factor[moved]
+    say(
+        f"  frequency initialisation of {name} from {channel}'s spectrum, {n_items} logs: "
+        + (
+            f"moved in {int(moved.sum())} (x{moved_by.min():.3g} to x{moved_by.max():.3g}, "
+            f"median x{np.median(moved_by):.3g}), "
+            if moved.any()
+            else ""
+        )
+        + f"guess kept in {int((~moved).sum())}"
+        + (
+            f" ({int(noisy.sum())} where the best match beat the guess's by no more than noise does)"
+            if noisy.any()
+            else ""
+        )
+    )
+    if poor.any():
+        worst = int(np.argmin(np.where(poor, best.best_shape / best.ceiling, np.inf)))
+        say(
+            f"  frequency initialisation: WARNING: in {int(poor.sum())} log(s) no {name} tried makes the "
+            f"model's {channel} spectrum match the shape of the log's well (at worst shape similarity "
+            f"{best.best_shape[worst]:.3f}, where the model with the channel's noise would reach "
+            f"{best.ceiling[worst]:.3f}): little flexural motion recorded, noise above the channel's, or the "
+            "model misses what shapes it"
+        )
 
 
 def _floor(problem, j: int) -> float:

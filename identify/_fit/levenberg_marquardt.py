@@ -35,8 +35,8 @@ class _BudgetedLM(optx.AbstractLeastSquaresSolver):
     integer, with the result `nonlinear_max_steps_reached` (what optimistix reports at
     its own static `max_steps`). The stages of a fit have different iteration budgets;
     as a traced value the budget does not recompile the fit's Levenberg-Marquardt
-    program (a static one did: about 12 s of XLA compilation per distinct budget on 2
-    cores, `benchmarks/bench_fit_vs_scipy.py`)."""
+    program (a static one would, at seconds of XLA compilation per distinct budget:
+    docs/performance.md)."""
 
     inner: optx.AbstractGaussNewton
     budget: jax.Array
@@ -68,9 +68,8 @@ class _BudgetedLM(optx.AbstractLeastSquaresSolver):
 
 
 # From this many logs with nuisances on, a Levenberg-Marquardt step is solved block by block
-# (`identify.block_lm`). Measured (benchmarks/bench_fit_many_logs.py, 3 nuisances per log,
-# same iterates): 2 logs 1.21 s vs 1.13 s with optimistix's dense QR (and ~3.5 s more to
-# compile), 16 logs 4.0 vs 5.1 s, 64 logs 15.7 vs 18.8 s, 128 logs 33.4 vs 54.9 s.
+# (`identify.block_lm`): from there on it is faster than optimistix's dense QR, below it
+# slower and longer to compile (docs/performance.md, "Joint fits of many logs").
 BLOCK_SOLVE_MIN_LOGS = 8
 
 
@@ -104,9 +103,9 @@ def _solve(problem: Problem, z0, sigma, horizon, step, budget, tau, max_steps: i
     # Returns the solution, optimistix's result, the number of steps, the cost and the
     # linearisation at the solution, `(r, S, U)` (`identify.block_lm.read_blocks`, w.r.t.
     # `z`): optimistix keeps the residuals and the linear map of the last accepted point,
-    # which is the solution, so the standard errors need no second Jacobian program (its
-    # compilation was ~10 s of a cold 4-parameter fit's 45 s on 2 cores, and the final
-    # residual evaluation another diffrax solve in this one). Needs >= 1 step (the first
+    # which is the solution, so the standard errors need no second Jacobian program (a
+    # sizeable part of a cold fit's compilation: docs/performance.md) and no final residual
+    # evaluation (another diffrax solve). Needs >= 1 step (the first
     # is always accepted); `fit` checks its budgets.
     solver = _BudgetedLM(_levenberg_marquardt(problem, rtol, atol, tau), budget)
     args = (problem, sigma, horizon, step)

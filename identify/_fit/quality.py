@@ -17,9 +17,8 @@ from .._model.residuals import (
 )
 
 #: `FitResult.summary`: a residual this many times its noise floor is more likely a set-up
-#: error than a missing effect (seen: a log in degrees read as radians, 2.5e4x; gravity
-#: pointing the wrong way for the logs' angle zero, 3.5e4x; the real pendulum's unmodelled
-#: drag and dry friction, 46x)
+#: error (a log in degrees read as radians, gravity pointing the wrong way for the logs'
+#: angle zero: ~1e4x) than a missing effect (tens of times; docs/performance.md)
 GROSS_MISFIT = 300.0
 
 
@@ -36,9 +35,9 @@ SAME_SCORE = 0.1
 def _same_misfit(bounded: bool, score: float, earlier) -> bool:
     """Whether an attempt of `fit`'s growing horizon (on a bound or not, its score) ends
     with the misfit of an earlier one (`earlier`: `(bounded, score)` pairs): both on a
-    bound or both off, scores within `SAME_SCORE`. Among attempts on a bound too (found in
-    review: an encoder's sign opposite to the torque put every parameter on a bound, and
-    two restarts ended at the same cost, 431 s for nothing)."""
+    bound or both off, scores within `SAME_SCORE`. Among attempts on a bound too: a misfit
+    that puts every parameter on a bound (an encoder counting against the torque) ends
+    every restart at the same cost, so a restart is not worth its time."""
     return any(b == bounded and abs(score - s) <= SAME_SCORE * s for b, s in earlier)
 
 
@@ -82,10 +81,9 @@ def _reversed_channels(problem: Problem, z, sigma, step, channels) -> dict:
     onset and pooled over the logs; named below `REVERSED_CORRELATION`. Any model with
     positive inertias first moves the way the torque pushes, whatever its parameters, so
     a measured channel that moves the other way has its sign (or the torque's) reversed.
-    Found in review: an encoder counting the other way put every parameter on a bound,
-    residual 861x the floor, with only generic advice; the fitted simulation then barely
-    moves (a payload of 4 kg), so the whole traces do not correlate and the first push
-    is what tells. One simulation, only on a poor fit."""
+    Such a fit ends with parameters on their bounds and a simulation that barely moves (a
+    payload of kilograms), so the whole traces do not correlate and the first push is what
+    tells. One simulation, only on a poor fit."""
     theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
     r, _ = _residuals_from(problem, theta, z["y0"], z["offset"], sigma, None, step)
     meas_ = np.asarray(problem.measured)
@@ -101,9 +99,9 @@ def _reversed_channels(problem: Problem, z, sigma, step, channels) -> dict:
         j = int(np.argmax(np.max(np.abs(tau[l][idx]), axis=0)))
         drive = tau[l][idx, j]
         # the push: from the first sample above PUSH_LEVEL of the drive's peak to where it
-        # falls below that level or reverses (review: a logged torque with 1 % noise made
-        # the first nonzero sample the noise's, a push of 2 samples of encoder noise, and a
-        # correct encoder was called reversed)
+        # falls below that level or reverses; not from the first nonzero sample, which in a
+        # logged torque is the noise's (a push of a few samples of encoder noise, that could
+        # call a correct encoder reversed)
         level = PUSH_LEVEL * float(np.max(np.abs(drive)))
         first = int(np.flatnonzero(np.abs(drive) > level)[0])
         ends = np.flatnonzero(drive[first:] * np.sign(drive[first]) <= level)
@@ -142,9 +140,8 @@ def _initial_far(problem: Problem, init: dict, offs: dict, sigma) -> dict:
     a coordinate whose name is a channel), more than `INITIAL_FAR` times the channel's
     noise from the log's first sample (fitted value plus the log's fitted offset of that
     channel, if any): log -> {entry: (fitted + offset, first sample, noise)}. A fit that
-    cannot explain a log moves its start to absorb what it can (review: fitted initial
-    angles 5-15 deg from encoders reading 12.3 deg at rest, on a model without the rig's dry
-    friction), and said nothing of it."""
+    cannot explain a log moves its start to absorb what it can (a model without the rig's
+    dry friction can start degrees away from encoders at rest); this names it."""
     measured, valid = np.asarray(problem.measured), np.asarray(problem.valid)
     sig = np.asarray(sigma, float)
     # (a channel with a sensor model, gain, high-pass, delay, does not read the state itself)
@@ -178,11 +175,11 @@ FLOOR_ABOVE_RESIDUAL = 0.7
 
 def _floor_above_residual_notes(quality: dict) -> list[str]:
     """Notes for the channels whose residual is well below their model-free noise floor
-    (`FLOOR_ABOVE_RESIDUAL`). Review (a two-link arm with elastic joints, 500 Hz): the
-    motor encoders read 0.46-0.51 of their floor with a residual equal to the true noise,
-    which looked like a fit "better than the noise". The floor counts fast motion as noise:
-    a component of amplitude `A` at frequency `f` adds `A (2 sin(pi f dt))^4 / sqrt(140)` in
-    quadrature (`identify.noise_floor`), large for a mode near the Nyquist frequency."""
+    (`FLOOR_ABOVE_RESIDUAL`): a right fit whose residual is the true noise can read well
+    below 1 (docs/performance.md), which looks like a fit "better than the noise". The
+    floor counts fast motion as noise: a component of amplitude `A` at frequency `f` adds
+    `A (2 sin(pi f dt))^4 / sqrt(140)` in quadrature (`identify.noise_floor`), large for a
+    mode near the Nyquist frequency."""
     return [
         f"note: the residual of {c} is {q['ratio']:.2g} of its noise floor: the floor (from the samples' 4th "
         "differences) counts the channel's fast motion as noise (a mode near the Nyquist frequency), so it reads "
@@ -194,8 +191,7 @@ def _floor_above_residual_notes(quality: dict) -> list[str]:
 
 def _noise_text(channels, sigma, estimated) -> str:
     """`theta1 0.03 deg (declared), tip1 0.0497 mm (estimated)`: the noise weights in
-    display units, each said to be declared or re-estimated from the residuals (review:
-    `theta1=0.000524` printed a declared 0.03 deg in rad, as if estimated)."""
+    display units, each said to be declared or re-estimated from the residuals."""
     parts = []
     for c, s in zip(channels, np.asarray(sigma)):
         scale, unit = display_unit(c)

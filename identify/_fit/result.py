@@ -137,13 +137,12 @@ class FitResult:
     def _weight_hint(self, c: str, q: dict) -> str:
         """For a poorly fitted channel of a fit with several channels whose weight (the
         noise level it assumed) is over `WEIGHT_MISMATCH` times off its noise floor: the
-        weights as a cause (review: `fit_independent` on make_problem's default weights, 1 %
-        of each channel's RMS, left every log 5-9x its floor and blamed the model; with the
-        noise declared, all at the floor). A weight the fit re-estimated itself is named as
-        such (review: on a rig missing its dry friction, the strain gauge's re-estimated
-        noise grew to 42x its floor over the rounds, the declared encoder kept its weight,
-        the fit traded the gauge away and EI came out 2.8x low; the old hint advised
-        re-estimating, which it had done)."""
+        weights as a cause, not only the model (make_problem's default weights, 1 % of each
+        channel's RMS, can leave every log several times its floor where the declared noise
+        puts it at the floor). A weight the fit re-estimated itself is named as such: on a
+        model missing an effect, a re-estimated noise can grow far above its floor over the
+        rounds while a declared channel keeps its weight, and the fit trades the first
+        channel away; re-estimating again does not help."""
         used, floor = self.sigma.get(c), q["noise_floor"]
         if len(self.sigma) < 2 or not used or not floor > 0:
             return ""
@@ -306,8 +305,8 @@ class FitResult:
             if self.problem is not None
             else {},
             "correlation": self.correlation.tolist(),
-            "correlation_names": list(self.names),  # the rows' and columns' order (review: only implied)
-            # per log: {entry: {value, std_error, unit}} (review: bare [value, SE] pairs)
+            "correlation_names": list(self.names),  # the rows' and columns' order
+            # per log: {entry: {value, std_error, unit}}, named fields rather than bare pairs
             "initial_states": {
                 k: {e: _valued(v, se, ch.state_unit(e)) for e, (v, se) in d.items()}
                 for k, d in self.initial_states.items()

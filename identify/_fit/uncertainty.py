@@ -64,8 +64,8 @@ class ClusteredUncertainty:
         ratio of them): the delta method on `ln fn`, `fn exp(+-q SE(ln fn))`, an interval
         that stays positive and, for a single positive parameter, is the one `summary()`
         gives. Without it the interval is symmetric in `fn` and can reach below zero when
-        the data determine the combination poorly (found in review: a joint damping's
-        interval [-3.7e-6, 2.5e-5] N m s/rad beside the summary's [2.8e-6, 4.1e-5])."""
+        the data determine the combination poorly (where `summary()`'s interval of a
+        positive parameter, `log=True`'s, does not)."""
         is_log = np.asarray(self.log_scale)
         x0 = np.where(is_log, np.log(self.values), self.values)
 
@@ -140,8 +140,8 @@ def clustered_uncertainty(result: FitResult, level: float = 0.95) -> ClusteredUn
     n_params = len(result.names)
     if n_logs <= n_params:
         # the per-log scores sum to zero at the optimum: their outer products span at most
-        # n_logs - 1 directions, and the others would get a variance of 0 (found in review:
-        # 3 logs, 3 parameters, an interval 60x too narrow that missed the truth)
+        # n_logs - 1 directions, and the others would get a variance of 0: intervals far too
+        # narrow (tens of times, for as many logs as parameters)
         raise ValueError(
             f"clustered_uncertainty: {n_logs} log{'s' if n_logs != 1 else ''} (clusters) for {n_params} free "
             "parameters; the cluster-robust "

@@ -78,10 +78,10 @@ LOG_CLIP = 700.0
 def exp_natural(x):
     """A log-scale parameter from its natural coordinate: `exp(x)`, with `x` clipped to
     `+-LOG_CLIP` (the same value and derivative inside). A Levenberg-Marquardt trial
-    point of an unbounded parameter far out overflowed to inf or underflowed to 0, which
-    the model's parameter checks refuse with an error that stopped the fit (found in
-    review: diagnose's joint-elasticity candidate on a pendulum, "joint1.rotor_inertia
-    must be finite and > 0"); clipped, the trial point is merely a bad one, rejected."""
+    point of an unbounded parameter far out would overflow to inf or underflow to 0, which
+    the model's parameter checks refuse with an error that stops the fit (e.g.
+    "joint1.rotor_inertia must be finite and > 0"); clipped, the trial point is merely a
+    bad one, rejected."""
     return jnp.exp(jnp.clip(x, -LOG_CLIP, LOG_CLIP))
 
 

@@ -13,8 +13,8 @@ small block per log for its own nuisances, zero elsewhere.
 **Why it matters.** Forward-mode differentiation of the whole residual vector (`jax.jacfwd`)
 pushes every column's tangent through every log's ODE solve: with `L` logs of `k`
 nuisances each, each solve carries `P + L k` tangents, and a Jacobian costs `L (P + L k)`
-tangent solves, quadratic in the number of logs (measured, flexible pendulum with
-4 parameters and 3 nuisances per log: 3x a residual evaluation for one log, 32x for 32).
+tangent solves, quadratic in the number of logs (measurements in docs/performance.md,
+"Joint fits of many logs").
 `log_jacobian` differentiates each log's residuals w.r.t. the shared parameters and that
 log's own initial-state entries only (`P + k_y0` tangents per solve, `vmap` over logs),
 and the offsets in closed form (`dr/do_lc = 1/sigma_c` where the sample is used): linear
@@ -103,9 +103,9 @@ def _admissible(problem, theta, y0):
     state entry), and whether none was. A Levenberg-Marquardt trial point far out (an unbounded
     log-scale stiffness whose exp overflowed to inf, a NaN from a singular step) must be a
     rejected step, as a failed solve is (`FAILED_RESIDUAL`), not stop the fit: the model's
-    parameter checks (`eqx.error_if` at assembly) raise on it. Found on the spinning-link
-    example: diagnose's joint-elasticity candidate (its new stiffness unbounded) failed
-    with "joint1.stiffness must be finite and > 0" and was dropped from the report."""
+    parameter checks (`eqx.error_if` at assembly) raise on it, and a diagnosis candidate
+    with a new unbounded stiffness (joint elasticity) would fail with "joint1.stiffness
+    must be finite and > 0" and drop out of the report."""
     theta = jnp.asarray(theta)
     # (finiteness only: a log-scale parameter at exactly 0 is legitimate where the model
     # allows >= 0, e.g. diagnose's candidates at their neutral values)
@@ -126,12 +126,11 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     log shows the rig at rest (`identify.log_onset`), so a model at rest there is what
     the full solve would give with the right parameters; the early stages only have to
     land the fit in the right basin, and integrating seconds of rest at the motion's step
-    in each of them made a fit several times slower (measured: a 4-parameter flexible arm
-    at rest for 3 s before 1.2 s of doublets, 8 seeds, two fits at a time on 2 cores:
-    19-94 s warm per fit, 5-17 s with the rest skipped, the same optima to 1e-12). The
-    last stage simulates the whole log. Parameters or an initial state the model would
-    refuse (`_admissible`) count as a failed solve. `log_values`: the log's row of
-    `Problem.log_set`; `log_index`: its index (for per-log parameters, `Problem.per_log`)."""
+    in each of them makes a fit several times slower for the same optimum (see
+    docs/performance.md). The last stage simulates the whole log. Parameters or an
+    initial state the model would refuse (`_admissible`) count as a failed solve.
+    `log_values`: the log's row of `Problem.log_set`; `log_index`: its index (for per-log
+    parameters, `Problem.per_log`)."""
     theta, y0, admissible = _admissible(problem, theta, y0)
     asm = fd.assemble(chain_at(problem, theta, log_values, log_index))
     sensors = _measurement(problem, theta, log_values, log_index)

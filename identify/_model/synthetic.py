@@ -59,7 +59,7 @@ def simulate_log(
     for c in channels:
         ch.check_channel(chain, c)
     for c in sorted(set(noise or {}) - set(channels)):
-        # review: a typo was dropped in silence; a channel of the chain that this log does
+        # a typo is refused rather than dropped; a channel of the chain that this log does
         # not record is fine (one noise dict for logs of different channels)
         try:
             ch.check_channel(chain, c)

@@ -162,9 +162,19 @@ def plot_scores(diag, folder: Path) -> Path:
 
 
 def markdown(diag, title: str = "") -> str:
+    """`report.md`: causes, held-out gains, the extended model, evidence, candidates round by
+    round, notes and detection limits, the baseline fit and the plots."""
     lines = [f"# Diagnosis{': ' + title if title else ''}", ""]
     lines.append(f"**Held-out data:** {diag.split}.")
     lines.append("")
+    for section in (_causes, _held_out_gain, _extended_model, _evidence, _candidates, _closing):
+        lines.extend(section(diag))
+    return "\n".join(lines)
+
+
+def _causes(diag) -> list[str]:
+    """The causes named (with their values and warnings), or why none is."""
+    lines = []
     if diag.causes:
         lines.append("## Causes found")
         lines.append("")
@@ -197,6 +207,12 @@ def markdown(diag, title: str = "") -> str:
             "a held-out RMS gain of at least 1.1x). The evidence below shows what the residual looks like."
         )
     lines.append("")
+    return lines
+
+
+def _held_out_gain(diag) -> list[str]:
+    """The held-out RMS per channel, baseline and extended, against the noise floor."""
+    lines = []
     lines.append("## Gain on held-out data")
     lines.append("")
     floor = diag.held_out.get("noise_floor", {})
@@ -224,6 +240,12 @@ def markdown(diag, title: str = "") -> str:
         f"{diag.fraction_explained:.3f}, of its excess over the noise {diag.excess_explained_text}."
     )
     lines.append("")
+    return lines
+
+
+def _extended_model(diag) -> list[str]:
+    """The extended model's intervals, per-log values and the baseline's model checks."""
+    lines = []
     if diag.causes and diag.extended_intervals:
         lines.append("## Extended model")
         lines.append("")
@@ -264,10 +286,22 @@ def markdown(diag, title: str = "") -> str:
         for check in diag.model_checks:
             lines.append(f"- {'**flagged**: ' if check['flagged'] else ''}{check['message']}")
         lines.append("")
+    return lines
+
+
+def _evidence(diag) -> list[str]:
+    """The residual evidence of the baseline fit."""
+    lines = []
     lines.append("## Evidence (baseline fit)")
     lines.append("")
     lines.extend(ev.summary_lines(diag.evidence))
     lines.append("")
+    return lines
+
+
+def _candidates(diag) -> list[str]:
+    """Each round's candidates with their scores and verdicts."""
+    lines = []
     lines.append("## Candidates")
     for r, scores in enumerate(diag.rounds, start=1):
         lines.append("")
@@ -292,6 +326,12 @@ def markdown(diag, title: str = "") -> str:
                 "(exact Jacobian) screens the candidates and only the most promising are fitted in full. "
                 "`diagnose_logs(..., n_fit=None)` (`identify diagnose --fit-all`) fits them all."
             )
+    return lines
+
+
+def _closing(diag) -> list[str]:
+    """Notes, detection limits, what was not tried, the baseline fit and the plots."""
+    lines = []
     if diag.notes:
         lines.append("")
         lines.extend(f"- {note_text(n)[:1].upper()}{note_text(n)[1:]}" for n in diag.notes)
@@ -319,7 +359,7 @@ def markdown(diag, title: str = "") -> str:
     for name in PLOT_FILES:
         lines.append(f"![{name}]({name})")
         lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def write_report(diag, folder, title: str = "", extra: dict | None = None) -> list[Path]:

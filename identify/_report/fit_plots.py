@@ -53,7 +53,7 @@ def _figure(rows, cols, title, width=5.0, height=2.8):
 
 def wrapped_title(title: str, width_in: float) -> str:
     """`title` broken into lines that fit a figure `width_in` inches wide at the default
-    title size (~9 characters per inch): a long experiment name was clipped at both ends."""
+    title size (~9 characters per inch), so that a long experiment name is not clipped."""
     import textwrap
 
     return textwrap.fill(title, width=max(20, int(9 * width_in)))
@@ -133,8 +133,8 @@ def residual_spectrum(t, r) -> tuple[np.ndarray, np.ndarray]:
     """Welch power spectral density of a residual (mean removed), sampled at the median
     interval of `t`: (frequency [Hz], PSD [unit^2/Hz]). Segments of a quarter of the log
     (at least 256 samples; ~7 averaged with Welch's half overlap), so the resolution is
-    ~4 / (the log's duration): a fixed 256 samples gave 0.78 Hz at 200 Hz sampling, too
-    coarse to show a residual at a pendulum's 1.27 Hz swing (found in review)."""
+    ~4 / (the log's duration): a fixed 256 samples would give 0.78 Hz at 200 Hz sampling,
+    too coarse to show a residual at a pendulum's 1.27 Hz swing."""
     from scipy import signal
 
     t = np.asarray(t, float)

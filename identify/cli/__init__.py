@@ -15,7 +15,7 @@ model extensions (`identify.catalogue`), names the cause(s) whose gain is signif
 writes `diagnosis.json`, `report.md` and plots (default folder
 `./<experiment file stem>-diagnosis/`; see `identify.diagnose`).
 
-loads the experiment (see `identify/FORMAT.md`), fits its free parameters to its fit
+`fit` loads the experiment (see `identify/FORMAT.md`), fits its free parameters to its fit
 logs, checks the fit on its validation logs, prints the parameter table, the
 identifiability warnings and a residual summary, and writes into the output folder
 (default `./<experiment file stem>-fit/`):
@@ -185,8 +185,7 @@ def main(argv=None) -> int:
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
     """A warning as the commands print it: `WARNING: message` on stderr, without Python's
-    source location and line of code (found in review: a user of the command line read
-    `.../identify/run.py:36: UserWarning:` and the library's source line)."""
+    source location and line of code, which mean nothing to a user of the command line."""
     print(f"WARNING: {message}", file=sys.stderr if file is None else file, flush=True)
 
 

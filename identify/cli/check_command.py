@@ -28,8 +28,8 @@ def _set_up_checks(exp) -> list[str]:
 def run_check(args) -> int:
     """`identify check`: load the experiment with every check a fit makes before it
     compiles anything (the file, the logs, the problem `make_problem` builds: its logs at
-    rest, its sampling) and print what a fit would start from (review: the only way to
-    validate a file was to start a fit and wait for its compilation)."""
+    rest, its sampling) and print what a fit would start from: a file is validated without
+    waiting for a fit's compilation."""
     try:
         exp = _load_experiment(args)
     except _Refused as e:
@@ -46,8 +46,8 @@ def run_check(args) -> int:
     except ValueError as e:
         print(f"identify check: {e}", file=sys.stderr, flush=True)
         return 2
-    # the declared noise against the model-free floor of the fit logs (review: "0.05 m"
-    # for a 0.05 mm strain gauge passed the check and was only flagged after the fit)
+    # the declared noise against the model-free floor of the fit logs, so that a noise in
+    # the wrong unit ("0.05 m" for a 0.05 mm strain gauge) is flagged before any fit
     import numpy as np
 
     from .._data.noise_floor import declared_noise_warnings, pooled

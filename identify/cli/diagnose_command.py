@@ -105,7 +105,7 @@ def run_diagnose(args) -> int:
     print(f"total {time.perf_counter() - start:.1f} s. Report: {out / 'report.md'} (open it; plots beside it)")
     for p in [*written, log_path]:
         print(f"  {p}")
-    if not diag.baseline_converged:  # found in review: exit 0, and nothing said
+    if not diag.baseline_converged:  # on stderr and in the exit status, not only in the report
         print(
             f"identify diagnose: exit status {NOT_CONVERGED}: the baseline fit did not converge "
             f"({diag.baseline.stages[-1]['result']}); the diagnosis is written, but its scores are measured "

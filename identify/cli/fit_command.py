@@ -8,10 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-import flexdyn as fd
-
 from .._report.json import package_versions
-from .._workflow import CLUSTER_MIN_LOGS, validate
 from .check_command import _set_up_checks
 from .output import (
     MARKER,
@@ -113,12 +110,8 @@ def _failure_text(e: Exception) -> str:
 
 def _compile_estimate(exp) -> float:
     """A rough guess of the first fit's time (s), compilation included, on a 2-core
-    machine, growing with the number of coordinates and channels. Measured 2026-12-03 (2-core
-    Intel Xeon): 10.6 s for `examples/pendulum_drops` (1 coordinate, 1 channel), 49.5 s for
-    a flexible link on an elastic joint (4 coordinates, 3 channels, frequency
-    initialisation included); the guess is ~1.15x those. Doubled where the process may use
-    one core only (review, a two-link arm under `taskset -c 0`: ~96 s guessed, 198 s to the
-    end of the first stage)."""
+    machine, growing with the number of coordinates and channels: ~1.15x the measured times
+    (docs/performance.md). Doubled where the process may use one core only."""
     n = exp.chain.n_dof
     guess = 12.0 * (1.0 + 0.8 * (n - 1)) * (1.0 + 0.2 * (len(exp.output_channels) - 1))
     return guess * (2.0 if _cores() < 2 else 1.0)
@@ -135,11 +128,12 @@ def _cores() -> int:
 
 
 def run_fit(args) -> int:
+    """`identify fit EXPERIMENT`: fit, print the results, write `result.json` and plots.
+    Exit status 0, 1 (the fit failed), 2 (bad arguments or folder), `NOT_CONVERGED`."""
     start = time.perf_counter()
-    quiet = args.quiet
 
     def say(msg=""):
-        if not quiet:
+        if not args.quiet:
             print(msg, flush=True)
 
     def error(msg: str) -> int:
@@ -150,43 +144,14 @@ def run_fit(args) -> int:
         return error(f"--stages expects an integer >= 1, got {args.stages}")
     if args.max_restarts < 0:
         return error(f"--max-restarts expects an integer >= 0, got {args.max_restarts}")
-
     try:
         exp, inputs, out = _experiment_and_folder(args, "fit")
     except _Refused as e:
         return error(str(e))
 
-    import jax
-    import numpy as np
+    from .._workflow import fit_experiment, fit_report
 
-    from .._data import channels as ch
-    from .._data.noise_floor import declared_noise_warnings
-    from .._diagnose import evidence
-    from .._fit.result import fitted_outputs
-    from .._fit.uncertainty import between_logs, clustered_uncertainty
-    from .._model.problem import parameter_unit
-    from .._report import fit_plots as plots
-    from .._workflow import fit_experiment, residual_report
-
-    roles = {spec.name: spec.role for spec in exp.logs}
-    n_fit = len(exp.fit_logs)
-    n_samples = sum(len(spec.log) for spec in exp.fit_logs)
-    say(f"identify fit: experiment {exp.name!r} ({exp.path})")
-    say(
-        f"  rig: {exp.chain.n_links} link(s), coordinates {', '.join(exp.chain.coordinate_names())}; "
-        f"free: {', '.join(p.name + (' (per log)' if p.per_log else '') for p in exp.free)}"
-    )
-    for line in _set_up_checks(exp):
-        say(f"  {line}")
-    say(
-        f"  {n_fit} fit log(s) ({n_samples} samples), {len(exp.validation_logs)} validation log(s); "
-        f"{args.stages} horizon stage(s); JAX on {jax.default_backend()}"
-    )
-    say(
-        f"compiling the simulation and Levenberg-Marquardt (first call, ~{_compile_estimate(exp):.0f} s in all on "
-        f"{_cores()} core(s): the frequency initialisation's and the first stage's times include it) ..."
-    )
-
+    _say_set_up(exp, args, say)
     last = [time.perf_counter()]
 
     def progress(msg: str):
@@ -209,34 +174,68 @@ def run_fit(args) -> int:
         print(f"identify fit: the fit failed: {_failure_text(e)}", file=sys.stderr, flush=True)
         return 1
     say(f"[{time.perf_counter() - start:6.1f} s] fit done ({result.wall_time:.1f} s incl. compilation and covariance)")
-
     t0 = time.perf_counter()
-    outputs = fitted_outputs(result)
-    resid = residual_report(result)
-    fitted_chain = result.chain
-    freqs, where = fd.natural_frequencies(fitted_chain)
-    robust, robust_note = None, None
-    if n_fit >= CLUSTER_MIN_LOGS and result.problem.per_log:
-        robust_note = (
-            "cluster-robust intervals not computed: a per-log parameter is informed by one log (cluster) only, "
-            "so they do not apply"
-        )
-    elif n_fit >= CLUSTER_MIN_LOGS and n_fit <= len(result.names):
-        robust_note = (
-            f"cluster-robust intervals not computed: {n_fit} fit logs for {len(result.names)} free parameters "
-            "(they need more logs than parameters)"
-        )
-    elif n_fit >= CLUSTER_MIN_LOGS:
-        say(f"cluster-robust intervals ({n_fit} fit logs as clusters) ...")
-        robust = clustered_uncertainty(result)
-    val_outputs, val_report, val_nuisances = {}, {}, {}
-    if exp.validation_logs:
-        own = "".join(f", {p.name}" for p in exp.free if p.per_log)
-        say(f"checking the fit on the validation log(s) (their initial state, offsets{own} re-estimated) ...")
-        val_outputs, val_report, val_nuisances = validate(exp, result, progress)
+    report = fit_report(exp, result, progress=progress, say=say)
     t_post = time.perf_counter() - t0
+    _print_results(report)
+    t0 = time.perf_counter()
+    try:
+        check_output_folder(out, inputs, args.force)  # again: the fit took a while
+    except _Refused as e:
+        return error(str(e))
+    written = _write_files(report, out, args)
+    t_files = time.perf_counter() - t0
+    print()
+    say(
+        f"timings: fit {result.wall_time:.1f} s (compilation included), residual tests, modal analysis and "
+        f"validation {t_post:.1f} s, files {t_files:.1f} s; total {time.perf_counter() - start:.1f} s"
+    )
+    print(f"Results written to {out}/:")
+    for p in written:
+        if p.name != MARKER:
+            print(f"  {p}")
+    if not result.converged:  # a script must not read this as success
+        print(
+            f"identify fit: exit status {NOT_CONVERGED}: the fit did not converge"
+            + (f" ({', '.join(result.at_bounds)} on a bound)" if result.at_bounds else "")
+            + "; the results above are written but are not an optimum of the model",
+            file=sys.stderr,
+        )
+        return NOT_CONVERGED
+    return 0
 
-    # ---- results -------------------------------------------------------------
+
+def _say_set_up(exp, args, say) -> None:
+    """The experiment, its rig, logs and set-up checks, and the compile-time guess."""
+    import jax
+
+    n_fit = len(exp.fit_logs)
+    n_samples = sum(len(spec.log) for spec in exp.fit_logs)
+    say(f"identify fit: experiment {exp.name!r} ({exp.path})")
+    say(
+        f"  rig: {exp.chain.n_links} link(s), coordinates {', '.join(exp.chain.coordinate_names())}; "
+        f"free: {', '.join(p.name + (' (per log)' if p.per_log else '') for p in exp.free)}"
+    )
+    for line in _set_up_checks(exp):
+        say(f"  {line}")
+    say(
+        f"  {n_fit} fit log(s) ({n_samples} samples), {len(exp.validation_logs)} validation log(s); "
+        f"{args.stages} horizon stage(s); JAX on {jax.default_backend()}"
+    )
+    say(
+        f"compiling the simulation and Levenberg-Marquardt (first call, ~{_compile_estimate(exp):.0f} s in all on "
+        f"{_cores()} core(s): the frequency initialisation's and the first stage's times include it) ..."
+    )
+
+
+def _print_results(report) -> None:
+    """The fitted parameters, warnings, intervals, nuisances, natural frequencies, model
+    checks and the residual table."""
+    import numpy as np
+
+    from .._data.noise_floor import declared_noise_warnings
+
+    exp, result = report.experiment, report.result
     print()
     print(f"Fitted parameters ({exp.name}):")
     print(result.summary())
@@ -255,35 +254,37 @@ def run_fit(args) -> int:
                 f"WARNING: the fit ended with {', '.join(result.at_bounds)} on a bound, so it is not an optimum of "
                 "the model: widen the bounds, or check the model (gravity, units: see the warnings above)"
             )
-    if robust_note is not None:
+    if report.robust_note is not None:
         print()
-        print(robust_note)
-    agreement = None
-    if result.problem.per_log and result.converged and n_fit >= 2:
+        print(report.robust_note)
+    if report.agreement is not None or report.agreement_note is not None:
         print()
-        try:  # do the per-log values differ beyond their intervals?
-            agreement = between_logs(result)
-            print(agreement.summary())
-        except ValueError as e:  # (a per-log value some log does not determine)
-            print(f"per-log values not compared: {e}")
-    if robust is not None:
+        print(report.agreement.summary() if report.agreement is not None else report.agreement_note)
+    if report.robust is not None:
         print()
-        print(robust.summary())
+        print(report.robust.summary())
         print(
             "(the intervals above assume white residuals; these assume only that the logs are independent: "
             "read these when the residual tests below fail, as on real rigs)"
         )
-    nuisance = _nuisance_lines(result, val_nuisances)
+    _print_model(report)
+
+
+def _print_model(report) -> None:
+    """Per-log nuisances, natural frequencies, model checks and the residual table."""
+    result = report.result
+    nuisance = _nuisance_lines(result, report.validation_nuisances)
     if nuisance:
         print()
         own = " (validation logs: also their own per-log parameters)" if result.problem.per_log else ""
         print(f"Per-log nuisances{own}:")
         print("\n".join(nuisance))
     print()
+    freqs = report.natural_frequencies
     nf = ", ".join(f"{f:.4g}" for f in freqs if f > 0) or "none (rigid-body modes only)"
     kept = ", ".join(n for n, _ in result.problem.per_log)
     kept = f"; {kept} at the rig's value, not a log's" if kept else ""
-    print(f"Natural frequencies of the fitted model ({where}{kept}): {nf} Hz")
+    print(f"Natural frequencies of the fitted model ({report.modal_configuration}{kept}): {nf} Hz")
     unstable = [f for f in freqs if f < 0]
     if unstable:  # (`fd.Modes`: a negative frequency is an unstable mode)
         print(
@@ -291,94 +292,38 @@ def run_fit(args) -> int:
             f"(growth rate {', '.join(f'{-2 * math.pi * f:.4g}' for f in unstable)} 1/s); a slender link hanging "
             "under gravity needs `geometric_stiffening = true`"
         )
-    all_outputs = {**outputs, **val_outputs}
-    model_checks = evidence.stiffening_checks_of(fitted_chain, all_outputs, key="simulated")
-    for check in model_checks:
+    for check in report.model_checks:
         print(f"{'WARNING: ' if check['flagged'] else ''}model check: {check['message']}")
     print()
     print("Residuals (fitted - measured; [val] = validation log, not used by the fit):")
-    combined_report = {**resid, **val_report}
-    print("\n".join(_residual_lines(combined_report, all_outputs, roles)))
+    roles = {spec.name: spec.role for spec in report.experiment.logs}
+    combined = {**report.residuals, **report.validation_residuals}
+    print("\n".join(_residual_lines(combined, {**report.outputs, **report.validation_outputs}, roles)))
 
-    # ---- files ---------------------------------------------------------------
-    t0 = time.perf_counter()
-    try:
-        check_output_folder(out, inputs, args.force)  # again: the fit took a while
-    except _Refused as e:
-        return error(str(e))
+
+def _write_files(report, out: Path, args) -> list[Path]:
+    """`result.json` and the plots into `out`, with the folder's marker; the paths written."""
+    from .._report import fit_plots as plots
+    from .._report.json import jsonable
+
+    result, exp = report.result, report.experiment
     _write_marker(out)
-    doc = result.to_dict()
-    doc["experiment"] = _experiment_doc(exp)
-    doc["residuals"] = resid
-    doc["validation"] = {
-        name: {
-            "residuals": val_report[name],
-            "initial_states": {
-                e: {"value": v, "unit": ch.state_unit(e)} for e, v in val_nuisances[name]["initial_states"].items()
-            },
-            "offsets": {c: {"value": v, "unit": ch.channel_unit(c)} for c, v in val_nuisances[name]["offsets"].items()},
-            "parameters": {
-                p: {"value": v, "unit": parameter_unit(result.problem, p)}
-                for p, v in val_nuisances[name]["parameters"].items()
-            },
-        }
-        for name in val_outputs
-    }
-    doc["natural_frequencies_hz"] = freqs
-    doc["model_checks"] = model_checks
-    doc["clustered_uncertainty"] = None if robust is None else robust.to_dict()
-    doc["per_log_agreement"] = None if agreement is None else agreement.to_dict()
-    doc["modal_configuration"] = where
-    doc["options"] = {"stages": args.stages}
-    doc["command"] = ["identify", "fit", *map(str, _argv_tail(args))]
-    doc["versions"] = package_versions()
-    (out / RESULT_FILE).write_text(json.dumps(plots.jsonable(doc), indent=1) + "\n")
+    doc = report.to_dict(options={"stages": args.stages}, command=["identify", "fit", *map(str, _argv_tail(args))])
+    (out / RESULT_FILE).write_text(json.dumps(jsonable(doc), indent=1) + "\n")
     written = [out / MARKER, out / RESULT_FILE]
     written += plots.write_plots(
         result,
-        {**outputs, **val_outputs},
-        combined_report,
+        {**report.outputs, **report.validation_outputs},
+        {**report.residuals, **report.validation_residuals},
         out,
-        natural_frequencies=freqs,
-        where=where,
-        roles=roles,
+        natural_frequencies=report.natural_frequencies,
+        where=report.modal_configuration,
+        roles={spec.name: spec.role for spec in exp.logs},
         title=exp.name,
     )
     if result.problem.per_log:  # each log's own values, and their common value when compared
-        written += plots.plot_per_log(result, agreement, out)
-    t_files = time.perf_counter() - t0
-
-    print()
-    say(
-        f"timings: fit {result.wall_time:.1f} s (compilation included), residual tests, modal analysis and "
-        f"validation {t_post:.1f} s, files {t_files:.1f} s; total {time.perf_counter() - start:.1f} s"
-    )
-    print(f"Results written to {out}/:")
-    for p in written:
-        if p.name != MARKER:
-            print(f"  {p}")
-    if not result.converged:  # a script must not read this as success (found in review: exit 0)
-        print(
-            f"identify fit: exit status {NOT_CONVERGED}: the fit did not converge"
-            + (f" ({', '.join(result.at_bounds)} on a bound)" if result.at_bounds else "")
-            + "; the results above are written but are not an optimum of the model",
-            file=sys.stderr,
-        )
-        return NOT_CONVERGED
-    return 0
-
-
-def _experiment_doc(exp) -> dict:
-    """The experiment's part of result.json: name, description, path, logs."""
-    return {
-        "name": exp.name,
-        "description": exp.description,
-        "path": str(Path(exp.path).resolve()),
-        "logs": [
-            {"name": s.name, "file": str(Path(s.file).resolve()), "role": s.role, "samples": len(s.log), "set": s.set}
-            for s in exp.logs
-        ],
-    }
+        written += plots.plot_per_log(result, report.agreement, out)
+    return written
 
 
 def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
@@ -386,7 +331,8 @@ def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
     from .._fit.result import fitted_outputs
     from .._fit.uncertainty import between_logs
     from .._report import fit_plots as plots
-    from .._workflow import fit_experiment_independent, residual_report
+    from .._report.json import jsonable
+    from .._workflow import experiment_document, fit_experiment_independent, residual_report
 
     if len(exp.fit_logs) < 2:
         print("identify fit: --independent needs at least 2 fit logs; this experiment has 1", file=sys.stderr)
@@ -429,7 +375,7 @@ def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
         reports.update(residual_report(r))
     doc = {
         "mode": "independent",
-        "experiment": _experiment_doc(exp),
+        "experiment": experiment_document(exp),
         "logs": {", ".join(r.problem.log_names): r.to_dict() for r in results},
         "between_logs": None if between is None else between.to_dict(),
         "residuals": reports,
@@ -437,7 +383,7 @@ def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
         "command": ["identify", "fit", *map(str, _argv_tail(args))],
         "versions": package_versions(),
     }
-    (out / RESULT_FILE).write_text(json.dumps(plots.jsonable(doc), indent=1) + "\n")
+    (out / RESULT_FILE).write_text(json.dumps(jsonable(doc), indent=1) + "\n")
     roles = {name: "fit" for name in outputs}
     written = [out / RESULT_FILE]
     written += plots.plot_fit(outputs, out, title=f"{exp.name}: each log fitted on its own", roles=roles)

@@ -9,8 +9,8 @@ from pathlib import Path
 MARKER = ".identify-output"
 
 
-#: `identify diagnose` writes every progress line here as it goes (review: a diagnosis
-#: stopped after 20 minutes left nothing on disk)
+#: `identify diagnose` writes every progress line here as it goes, so that a diagnosis
+#: stopped part-way leaves its progress on disk
 PROGRESS_FILE = "progress.log"
 
 
@@ -90,8 +90,9 @@ def _experiment_and_folder(args, suffix: str):
 def _load_experiment(args):
     """The experiment of `args.experiment`, its logs' sampling rates checked (`--any-rate`);
     raises `_Refused` with the message for the user."""
-    from .._data.experiment import ExperimentError, load_experiment
-    from .._data.logs import LogError
+    from .._data.columns import LogError
+    from .._data.experiment_file import load_experiment
+    from .._data.toml_reader import ExperimentError
 
     try:
         exp = load_experiment(args.experiment)

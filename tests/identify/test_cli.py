@@ -149,9 +149,7 @@ def test_cluster_robust_intervals_printed_and_written(fitted, monkeypatch, capsy
     # From CLUSTER_MIN_LOGS fit logs on, the cluster-robust intervals are added (lowered to
     # 2 here; the estimator's tests are in test_uncertainty.py), if there are more fit logs
     # than free parameters (review: with 2 logs for 2 parameters the covariance is singular).
-    import identify.cli.fit_command
-
-    monkeypatch.setattr(identify.cli.fit_command, "CLUSTER_MIN_LOGS", 2)
+    monkeypatch.setattr(_workflow_module, "CLUSTER_MIN_LOGS", 2)
     out = fitted["work"] / "robust-2"
     assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 0
     printed = capsys.readouterr().out

@@ -10,8 +10,9 @@ import pytest
 import scipy.io
 
 import flexdyn as fd
-from identify._data.experiment import ExperimentError, load_experiment
-from identify._data.logs import LogError
+from identify._data.columns import LogError
+from identify._data.experiment_file import load_experiment
+from identify._data.toml_reader import ExperimentError
 
 
 def msg(*parts: str) -> str:

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import scipy.io
 
-from identify._data.logs import Calibration, LogError, load_log
+from identify._data.columns import Calibration, LogError
+from identify._data.logs import load_log
 
 
 def msg(*parts: str) -> str:

@@ -20,7 +20,7 @@ from diagnose_cases import LOG_NAMES, PENDULUM_NOISE, pendulum, pendulum_logs
 from per_log_case import EI, MASSES, write_per_log_experiment
 
 from identify._data import measurement as meas
-from identify._data.experiment import load_experiment
+from identify._data.experiment_file import load_experiment
 from identify._fit.result import fitted_outputs
 from identify._workflow import evaluate_held_out, fit_experiment, problem_from_experiment
 

@@ -1,0 +1,113 @@
+"""`load_experiment`: an experiment file (TOML, `docs/experiment-format.md`) and its logs."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+from .columns import MIN_SAMPLES
+from .experiment import Experiment
+from .experiment_sections import _build_rig, _free_parameters, _log_entry, _measurement, _noise, _starts
+from .toml_reader import ExperimentError, _Reader, _show
+
+_TOP_KEYS = ("experiment", "rig", "parameters", "starts", "noise", "logs", "sensors", "actuators")
+
+
+_EXPERIMENT_KEYS = ("name", "description", "strict", "min_samples")
+
+
+_RIG_KEYS = ("base", "options", "set", "gravity", "links", "joints", "hubs", "payload")
+
+
+_LOG_KEYS = ("file", "name", "role", "columns", "calibration", "initial", "fit_initial", "offsets", "strict", "set")
+
+
+def load_experiment(path) -> Experiment:
+    """Read an experiment file (TOML) and everything it refers to; see `identify/FORMAT.md`.
+
+    Raises `ExperimentError` for a problem in the experiment file and `LogError` for one
+    in a log file (both `ValueError`); nothing is written.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ExperimentError(f"{path.resolve()}: experiment file does not exist")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ExperimentError(f"{path}: expected a UTF-8 text file ({e})") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ExperimentError(f"{path}: not valid TOML: {e}") from None
+    r = _Reader(path, text)
+    r.table(doc, (), _TOP_KEYS)
+
+    meta = r.table(doc.get("experiment", {}), ("experiment",), _EXPERIMENT_KEYS)
+    name = r.string(meta.get("name", path.stem), ("experiment", "name"))
+    description = r.string(meta.get("description", ""), ("experiment", "description"))
+    strict = meta.get("strict", False)
+    if not isinstance(strict, bool):
+        raise r.error(("experiment", "strict"), f"expected true or false, got {_show(strict)}")
+    min_samples = meta.get("min_samples", MIN_SAMPLES)
+    if isinstance(min_samples, bool) or not isinstance(min_samples, int) or min_samples < 2:
+        raise r.error(("experiment", "min_samples"), f"expected an integer >= 2, got {_show(min_samples)}")
+
+    if "rig" not in doc:
+        raise r.error((), 'missing [rig]: expected base = "<named rig>" or an explicit chain ([[rig.links]], ...)')
+    chain = _build_rig(r, r.table(doc["rig"], ("rig",), _RIG_KEYS))
+
+    if "logs" not in doc:
+        raise r.error((), 'no [[logs]]; expected at least one [[logs]] table with file = "..."')
+    if not isinstance(doc["logs"], list) or not doc["logs"]:
+        raise r.error(("logs",), "expected one or more [[logs]] tables")
+    logs = []
+    for k, spec in enumerate(doc["logs"], start=1):
+        logs.append(_log_entry(r, chain, r.table(spec, ("logs", k), _LOG_KEYS), k, strict, min_samples))
+    seen: dict[str, int] = {}
+    for k, entry in enumerate(logs, start=1):
+        if entry.name in seen:
+            raise r.error(
+                ("logs", k, "name"),
+                f"log name {entry.name!r} is also used by logs[{seen[entry.name]}]; give each log a unique name",
+            )
+        seen[entry.name] = k
+    same: dict[tuple, int] = {}
+    for k, entry in enumerate(logs, start=1):
+        read = (entry.file, tuple(sorted(entry.columns.items())))
+        if read in same:
+            raise r.error(
+                ("logs", k, "file"),
+                f"logs[{same[read]}] already reads {entry.file.name} with the same columns: the same samples "
+                "would count twice (and the intervals come out too narrow); list each log once",
+            )
+        same[read] = k
+    if not any(entry.role == "fit" for entry in logs):
+        raise r.error(("logs",), 'every log has role = "validation"; expected at least one with role = "fit"')
+
+    noise = _noise(r, logs, r.table(doc.get("noise", {}), ("noise",)))
+    measurement = _measurement(r, chain, logs, doc)
+    free, measurement, chain = _free_parameters(
+        r, chain, measurement, logs, r.table(doc.get("parameters", {}), ("parameters",))
+    )
+    free_names = {p.name for p in free}
+    for k, entry in enumerate(logs, start=1):
+        for pname in entry.set:
+            if pname in free_names:
+                raise r.error(
+                    ("logs", k, "set", pname),
+                    f"{pname} is also a free parameter in [parameters]; a known value per log and a fitted one "
+                    "exclude each other (to fit a value per log: per_log = true under [parameters]; every "
+                    "parameter in each log on its own: identify fit --independent)",
+                )
+    starts = _starts(r, free, doc.get("starts", []))
+    return Experiment(
+        path=path,
+        name=name,
+        description=description,
+        chain=chain,
+        free=tuple(free),
+        noise=noise,
+        logs=tuple(logs),
+        measurement=measurement,
+        starts=starts,
+    )
