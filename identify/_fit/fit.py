@@ -7,7 +7,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -15,7 +16,7 @@ import numpy as np
 import flexdyn as fd
 
 from .._data import noise_floor as nf
-from .._model.parameters import Parameter, names_at_bounds, x_from_theta, x_from_z, z_from_x
+from .._model.parameters import Parameter, names_at_bounds, x_from_theta, x_from_z
 from .._model.problem import Problem, check_same_parameters, guesses_of
 from .jacobian import _covariance_at
 from .levenberg_marquardt import _check_budgets, _check_damping, _result_name, _solve
@@ -30,7 +31,7 @@ from .quality import (
     noise_floors,
 )
 from .result import FitResult, _finish
-from .starts import _distinct, _extra_starts, _frequency_initialise, _starts
+from .starts import _extra_starts, _frequency_initialise, initial_variables, multi_start
 from .steps import GRID_ERROR, GRID_RECHECK, _default_horizons, _Grid, _say_onsets, _stage_step, _step_error
 
 
@@ -65,36 +66,27 @@ def fit(
       `log_onset`; the log's start for a log that moves from its first sample) of each
       stage; default `n_stages` horizons doubling up to the full length (`n_stages=1`:
       plain single shooting). A stage that ends before a log does simulates that log
-      from its onset, from its initial state (the rest before it skipped:
-      `identify.residuals._simulate_log`); the last stage simulates every log whole.
+      from its onset, from its initial state; the last stage simulates every log whole.
     - `estimate_noise`: re-estimate the noise level of these channels (True: all; None,
       the default: those `make_problem` was given no noise for) from the residuals after
       the first pass and refit with the new weights, again until the residuals' RMS agrees
-      with the weights within `NOISE_AGREEMENT` (at most `NOISE_ROUNDS` passes). Review:
-      from make_problem's default weights (1 % of each channel's RMS) one refit left the
-      angle's weight at 0.259 deg while its residual was 0.050 deg (the noise), and the
-      intervals 3.5x too wide. (Until 2026-12-05 the default re-estimated declared levels
-      too, which make_problem's docstring said it would not: review.)
+      with the weights within `NOISE_AGREEMENT` (at most `NOISE_ROUNDS` passes): with
+      make_problem's default weights the intervals would be several times too wide.
     - `max_steps`, `rtol`, `atol`: Levenberg-Marquardt settings per stage (termination on
       the RMS change of the residuals and parameters, see `_solve`).
     - `grid_safety`: each stage integrates with a constant step, `grid_safety` times the
-      mean step of the adaptive solver at the stage's starting parameters. An adaptive
-      solver inside the fit makes the loss a noisy function of the parameters (its
-      accept/reject decisions flip under tiny parameter changes: measured 1e-7 relative
-      at rtol 1e-10), which stalls Levenberg-Marquardt; a grid that is frozen during
-      a stage makes the loss smooth.
+      mean step of the adaptive solver at the stage's starting parameters: an adaptive
+      solver's accept/reject decisions make the loss a noisy function of the parameters,
+      which stalls Levenberg-Marquardt; a grid frozen during a stage keeps it smooth.
     - `grid_error`: the stage's step is then coarsened (by up to `GRID_COARSEN`) while the
       outputs it simulates stay within `grid_error` noise levels of the adaptive solution
       at the stage's start; after the last stage the step is checked again at the optimum
       and, over `GRID_RECHECK` times that, the stage is solved again at the tight step.
-      None: the tight step (as before 2026-12-05). Measured on a 2-mode flexible link
-      (two 2 s logs at 500 Hz, 3 parameters): the warm fit 14.0 -> 6.3 s, the same values
-      to 8 digits (`benchmarks/README.md`: the fit benchmark side by side).
+      None: the tight step.
     - `n_starts`, `start_spread`: the first (shortest) stage is solved from `n_starts`
       points (the guess and a deterministic design within a factor `start_spread` of it,
-      see `_starts`), and the best continues. Measured on the
-      4-parameter flexible-arm benchmark: from guesses -50 %/+100 % off, single-start
-      growing horizon converged in 20 of 24 trials, all failures starting at 2x EI.
+      see `_starts`), and the best continues (`multi_start`): a single start from far-off
+      guesses can land in a wrong basin.
     - `extra_starts`: more points for the multi-start stage, each a dict of parameter
       values (SI, by name; the others at their guesses), after the `n_starts` of the
       design: points a caller knows matter (a vendor's value, an earlier rig's fit, the
@@ -105,8 +97,8 @@ def fit(
       noise floor estimated from the data alone (both signs of a wrong basin), the growing
       horizon is run again from up to this many next-best distinct optima of the
       multi-start stage (`_distinct`: starts that ended at the same short-horizon cost
-      count once; none with `n_starts=1`). The result is the attempt off the bounds with the lowest
-      `identify.noise_floor.score`; a restart that ends with the same score (within
+      count once; none with `n_starts=1`). The result is the attempt off the bounds with
+      the lowest `identify.noise_floor.score`; a restart that ends with the same score (within
       `SAME_SCORE`, 10 %) as an earlier one, both on a bound or both off, stops the
       restarts: the same misfit from two starts is the model's (a missing effect:
       `identify diagnose`) or the data's (a sign, a unit), not the start's.
@@ -118,20 +110,14 @@ def fit(
     - `frequency_init`: before fitting, replace the guess of every free `link<i>.EI` whose
       link's tip deflection or root curvature is recorded by the factor (1/16 to 16) of it
       whose simulated channel's amplitude spectrum, under the logs' own inputs, is most
-      similar to the measured one (`identify.frequency_init`): a frequency-domain
-      initialisation, blind to phase, that puts the first stage in the right basin when EI
-      is far off. 25 simulations of the logs per EI (17 on a grid, 8 refining; measured
-      with the 18 before the refinement grew: ~1 s for the 1.2 s test log, ~6 s for a 3 s
-      one, ~11 s for the spinning-link example's two 4 s logs, on 2 cores).
+      similar to the measured one (`identify.frequency_init`; 25 simulations of the logs
+      per EI): it puts the first stage in the right basin when EI is far off.
     - `first_damping`: `tau` of the Levenberg-Marquardt solve that starts from the guess when
       there is one start (`n_starts=1`, or no free physical parameter): its first damping
       is `tau * max diag(J^T J)` at the guess (`identify.trust_region`; 0 keeps
       optimistix's damping 1, an undamped Gauss-Newton step at our residuals' scale).
-      Measured (`benchmarks/bench_fit_convergence.py`, 16 guesses -50 %/+100 % off): a
-      growing horizon from one start converged in 16 of 16 fits instead of 12, single
-      shooting from the benchmark's guess took 10 steps instead of 22. The multi-start
-      stage and the stages that continue from an optimum keep optimistix's start (there,
-      `tau` made the default fit slower for the same convergence).
+      The multi-start stage and the stages that continue from an optimum keep
+      optimistix's start (there, `tau` made the fit slower for the same convergence).
     - `progress`: callable taking a message string (e.g. `print`), or None.
     """
     _check_damping(first_damping)
@@ -145,98 +131,120 @@ def fit(
     x0 = x_from_theta(problem, guesses_of(problem, parameters))
     if frequency_init:
         x0 = _frequency_initialise(problem, x0, say, grid_safety)
-    z = {
-        "phys": jnp.asarray(z_from_x(problem, x0)),
-        "y0": jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float),
-        "offset": jnp.zeros(len(problem.offset_free)),
-    }
-    sigma = problem.sigma
+    z = initial_variables(problem, x0)
     horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
     _say_onsets(problem, horizons, say)
-    stages = []
     estimate_noise = _noise_to_estimate(problem, estimate_noise)
-    rounds = NOISE_ROUNDS if estimate_noise else 1
-    candidates = [z]
-    # one compiled Levenberg-Marquardt program for every stage and start: the iteration
-    # budget is traced (`_BudgetedLM`), the loop bound `cap` static
-    cap = max(max_steps, early_max_steps)
-    if (n_starts > 1 or len(extra)) and problem.names:
-        # Multi-start on the shortest horizon: a few cheap short fits from a design around
-        # the guess, one after another with the stages' compiled program (a vmapped call
-        # would be a second program, ~18 s more compilation on 2 cores, and on the CPU it
-        # is not faster); the best ones seed the growing horizon.
-        h = horizons[0]
-        step = _stage_step(problem, z, h, _Grid(grid_safety, grid_error), sigma)
-        xs = list(_starts(problem, x0, n_starts, start_spread)) + extra
-        runs = [
-            _solve(
-                problem,
-                {"phys": jnp.asarray(z_from_x(problem, x)), "y0": z["y0"], "offset": z["offset"]},
-                sigma,
-                jnp.asarray(h),
-                step,
-                jnp.asarray(early_max_steps),  # an array: traced, not a static argument
-                jnp.asarray(0.0, dtype=float),  # optimistix's start: see `first_damping`
-                cap,
-                rtol,
-                atol,
-            )
-            for x in xs
-        ]
-        costs = np.asarray([float(r[3]) for r in runs])
-        order = np.argsort(np.where(np.isfinite(costs), costs, np.inf))
-        candidates = _distinct([runs[int(i)][0] for i in order], costs[order])[: max_restarts + 1]
-        best = int(order[0])
-        stages.append(
-            {
-                "horizon_s": float(h),
-                "iterations": max(int(r[2]) for r in runs),
-                "cost": float(costs[best]),
-                "result": _result_name(runs[best][1]),
-                "starts": len(xs),
-                "start_costs": [float(c) for c in costs],
-            }
+    schedule = _Schedule(
+        rounds=NOISE_ROUNDS if estimate_noise else 1,
+        estimate_noise=estimate_noise,
+        grid=_Grid(grid_safety, grid_error),
+        max_steps=max_steps,
+        early_max_steps=early_max_steps,
+        cap=max(max_steps, early_max_steps),
+        rtol=rtol,
+        atol=atol,
+    )
+    stages, candidates = [], [z]
+    several = n_starts > 1 or len(extra)
+    if several and problem.names:
+        candidates, stage = multi_start(
+            problem,
+            z,
+            x0,
+            extra,
+            horizons[0],
+            schedule.grid,
+            problem.sigma,
+            n_starts=n_starts,
+            spread=start_spread,
+            max_steps=early_max_steps,
+            cap=schedule.cap,
+            rtol=rtol,
+            atol=atol,
+            keep=max_restarts + 1,
+            say=say,
         )
-        n_design = len(xs) - len(extra)
-        which = f"start {best + 1}" if best < n_design else f"extra start {best - n_design + 1}"
-        say(
-            f"  horizon {h:8.3f} s: {len(xs)} starts, best cost {float(costs[best]):.6g} from {which} "
-            f"(costs in order, the guess first: {', '.join(f'{float(c):.4g}' for c in costs)})"
-        )
-    # Grow the horizon from the best start; if that ends on a bound of a parameter or with
-    # a residual far above the model-free noise floor (a wrong basin: `restart_poor_fit`),
-    # try the next-best starts, and keep the one off the bounds that explains the data
-    # best (`identify.noise_floor.score`: unlike the cost, it does not depend on the noise
-    # weights each attempt re-estimated).
+        stages.append(stage)
+    attempts = _attempts(
+        problem,
+        candidates,
+        horizons,
+        schedule,
+        tau_first=0.0 if n_starts > 1 and problem.names else first_damping,
+        restart_poor_fit=restart_poor_fit,
+        no_other_start=not several,
+        max_restarts=max_restarts,
+        say=say,
+    )
+    kept = _best_attempt(attempts, say)
+    stages.extend(kept.stages)
+    say("  computing standard errors (exact Jacobian at the optimum) ...")
+    z, sigma, step, lin = kept.z, kept.sigma, kept.step, kept.lin
+    x = x_from_z(problem, z["phys"])
+    cov, blocks = _covariance_at(problem, x, z, sigma, step, *lin)
+    result = _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, kept.ms, blocks)
+    return dataclasses.replace(result, sigma_estimated=tuple(estimate_noise))
+
+
+class _Schedule(NamedTuple):
+    """The growing horizon's settings, the same for every attempt (`fit`'s arguments)."""
+
+    rounds: int  # passes of the noise re-estimation (`NOISE_ROUNDS`, or 1)
+    estimate_noise: tuple  # the channels whose noise is re-estimated
+    grid: _Grid
+    max_steps: int  # the last stage's iteration budget
+    early_max_steps: int  # the budget of the stages before it
+    # one compiled Levenberg-Marquardt program serves every stage and start: the budget is
+    # traced (`_BudgetedLM`), the loop bound `cap` static
+    cap: int
+    rtol: float
+    atol: float
+
+
+class _Attempt(NamedTuple):
+    """One growing horizon (`_grow`) from one start, and how well it explains the data."""
+
+    bounded: bool  # a parameter ended on a bound
+    score: float  # `identify.noise_floor.score` of its residuals
+    z: dict
+    sigma: object  # the noise levels it ended with
+    step: object
+    lin: tuple  # the linearisation and horizon (`_grow`)
+    stages: list  # its stages' records
+    ms: object  # `_residual_ms`
+
+
+def _attempts(
+    problem: Problem,
+    candidates: list,
+    horizons: list,
+    schedule: _Schedule,
+    *,
+    tau_first: float,
+    restart_poor_fit: bool,
+    no_other_start: bool,
+    max_restarts: int,
+    say: Callable,
+) -> list[_Attempt]:
+    """Grow the horizon from the best start (`candidates[0]`); while that ends on a bound of
+    a parameter or (`restart_poor_fit`) with a residual far above the model-free noise
+    floor (a wrong basin), from the next-best ones, until an attempt ends the same
+    misfit as an earlier one (`_same_misfit`). Returns the attempts made, in order."""
     floors = noise_floors(problem)
-    outcomes, why = [], ""
+    attempts, why = [], ""
     for attempt, z in enumerate(candidates):
         if attempt:
             say(f"  {why}: growing the horizon again from the first stage's optimum #{attempt + 1}")
-        z, sigma_a, step, lin, tried = _grow(
-            problem,
-            z,
-            sigma,
-            horizons,
-            rounds,
-            estimate_noise,
-            _Grid(grid_safety, grid_error),
-            max_steps,
-            early_max_steps,
-            cap,
-            rtol,
-            atol,
-            say,
-            0.0 if n_starts > 1 and problem.names else first_damping,
-        )
+        z, sigma, step, lin, stages = _grow(problem, z, problem.sigma, horizons, schedule, say, tau_first)
         x = x_from_z(problem, z["phys"])
         bounded = bool(names_at_bounds(problem, np.asarray(x)))
-        ms = _residual_ms(problem, z, sigma_a, step, lin)
+        ms = _residual_ms(problem, z, sigma, step, lin)
         quality = nf.goodness(problem.channels, ms, *floors)
         poor = [c for c, q in quality.items() if q["poor"]]
         score = nf.score(ms, *floors)
-        same = _same_misfit(bounded, score, [(o[0], o[1]) for o in outcomes])
-        outcomes.append((bounded, score, z, sigma_a, step, lin, tried, ms))
+        same = _same_misfit(bounded, score, [(a.bounded, a.score) for a in attempts])
+        attempts.append(_Attempt(bounded, score, z, sigma, step, lin, stages, ms))
         if not bounded and not (restart_poor_fit and poor):
             break
         if same:  # the same misfit again: the model (or the data), not the start, is the cause
@@ -253,110 +261,104 @@ def fit(
             + ", ".join(f"{c} is {quality[c]['ratio']:.3g}" for c in poor)
             + " times the noise floor"
         )
-        if attempt + 1 == len(candidates):
-            # (review: 8 starts at the same cost, a poor fit, and no trace of whether the
-            # documented restart had run)
+        if attempt + 1 == len(candidates):  # say so: whether the restarts ran is not visible otherwise
             say(
                 f"  {'this attempt: ' if attempt else ''}{why}; not restarted: "
                 + (
                     "no other start (n_starts=1 and no extra starts)"
-                    if len(candidates) == 1 and not (n_starts > 1 or len(extra))
+                    if len(candidates) == 1 and no_other_start
                     else f"the {len(candidates)} distinct optima of the multi-start stage kept for restarts "
                     f"(max_restarts={max_restarts}) have all been grown"
                 )
                 + ": the misfit is more likely the model's or the data's than the start's"
             )
-    kept = min(range(len(outcomes)), key=lambda k: (outcomes[k][0], outcomes[k][1]))
-    if len(outcomes) > 1:
-        # (review: "a parameter ended on its bound" was read as said of the result, which
-        # was the first attempt, off the bounds)
+    return attempts
+
+
+def _best_attempt(attempts: list[_Attempt], say: Callable) -> _Attempt:
+    """The attempt off the bounds that explains the data best (`identify.noise_floor.score`:
+    unlike the cost, it does not depend on the noise weights each attempt re-estimated)."""
+    kept = min(range(len(attempts)), key=lambda k: (attempts[k].bounded, attempts[k].score))
+    if len(attempts) > 1:  # (which attempt the result is: the reasons said above were each attempt's)
         say(
-            f"  keeping attempt {kept + 1} of {len(outcomes)}"
-            + (" (on a bound)" if outcomes[kept][0] else ", off the bounds")
+            f"  keeping attempt {kept + 1} of {len(attempts)}"
+            + (" (on a bound)" if attempts[kept].bounded else ", off the bounds")
             + ", the one that explains the data best (residual RMS against the noise floor)"
         )
-    _, _, z, sigma, step, lin, tried, ms = outcomes[kept]
-    stages.extend(tried)
-    say("  computing standard errors (exact Jacobian at the optimum) ...")
-    x = x_from_z(problem, z["phys"])
-    cov, blocks = _covariance_at(problem, x, z, sigma, step, *lin)
-    result = _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, ms, blocks)
-    return dataclasses.replace(result, sigma_estimated=tuple(estimate_noise))
+    return attempts[kept]
 
 
-def _grow(
-    problem,
-    z,
-    sigma,
-    horizons,
-    rounds,
-    estimate_noise,
-    grid,
-    max_steps,
-    early_max_steps,
-    cap,
-    rtol,
-    atol,
-    say,
-    tau_first,
-):
-    """The growing-horizon stages (and a noise re-estimation round) from `z`; returns the
-    last stage's `z`, noise levels, step, linearisation (`_solve`) and horizon, and the
-    stages' records."""
+def _stage_record(horizon, steps, cost, result) -> dict:
+    """A stage's entry of `FitResult.stages`."""
+    return {"horizon_s": float(horizon), "iterations": int(steps), "cost": float(cost), "result": _result_name(result)}
+
+
+def _grow(problem, z, sigma, horizons, schedule: _Schedule, say, tau_first):
+    """The growing-horizon stages (and the noise re-estimation rounds) from `z` with noise
+    levels `sigma`; returns the last stage's `z`, noise levels, step, linearisation
+    (`_solve`) and horizon, and the stages' records."""
     stages = []
     step = lin = None
-    for rnd in range(rounds):
+    for rnd in range(schedule.rounds):
         # The horizon grows in the first round only; later rounds (new noise weights) start
         # at the optimum, where the full horizon is safe.
         for k, h in enumerate(horizons if rnd == 0 else horizons[-1:]):
             last = rnd > 0 or k == len(horizons) - 1
-            step = _stage_step(problem, z, h, grid, sigma)
-            budget = jnp.asarray(max_steps if last else early_max_steps)  # traced: no recompilation
+            step = _stage_step(problem, z, h, schedule.grid, sigma)
+            budget = jnp.asarray(schedule.max_steps if last else schedule.early_max_steps)  # traced
             tau = jnp.asarray(tau_first if (rnd == 0 and k == 0) else 0.0, dtype=float)
-            z, result, steps, cost, lin = _solve(problem, z, sigma, jnp.asarray(h), step, budget, tau, cap, rtol, atol)
-            stages.append(
-                {"horizon_s": float(h), "iterations": int(steps), "cost": float(cost), "result": _result_name(result)}
+            z, result, steps, cost, lin = _solve(
+                problem, z, sigma, jnp.asarray(h), step, budget, tau, schedule.cap, schedule.rtol, schedule.atol
             )
+            stages.append(_stage_record(h, steps, cost, result))
             say(
                 f"  horizon {h:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1]['result']}"
                 + (
-                    f": an early stage's budget, early_max_steps={early_max_steps}; the next stage goes on from here)"
+                    f": an early stage's budget, early_max_steps={schedule.early_max_steps}; the next stage goes "
+                    "on from here)"
                     if not last and stages[-1]["result"] == "max_steps_reached"
                     else ")"
                 )
             )
-        if rnd + 1 < rounds:
-            new = _reestimate_sigma(problem, z, sigma, estimate_noise, step)
+        if rnd + 1 < schedule.rounds:
+            new = _reestimate_sigma(problem, z, sigma, schedule.estimate_noise, step)
             change = float(np.max(np.abs(np.log(np.asarray(new) / np.asarray(sigma)))))
             if rnd > 0 and change < math.log1p(NOISE_AGREEMENT):
                 say(f"  noise re-estimated again: within {100 * NOISE_AGREEMENT:g} % of the weights used: done")
                 break
             sigma = new
-            say("  noise re-estimated: " + _noise_text(problem.channels, sigma, estimate_noise))
-    if grid.error and step is not None:
-        tight, error = _step_error(problem, z, h, grid, jnp.asarray(sigma), step)
-        if float(step) > float(tight) * (1 + 1e-9):
-            if not error <= GRID_RECHECK * grid.error:
-                # the optimum moved the modes up (or made the step unstable): the last stage
-                # again, at the tight step
-                say(
-                    f"  integration step {float(step) * 1e3:.3g} ms is {error:.3g} noise levels off at the optimum: "
-                    f"solving again at {float(tight) * 1e3:.3g} ms"
-                )
-                step = tight
-                budget = jnp.asarray(max_steps)
-                z, result, steps, cost, lin = _solve(
-                    problem, z, sigma, jnp.asarray(h), step, budget, jnp.asarray(0.0, dtype=float), cap, rtol, atol
-                )
-                stages.append(
-                    {
-                        "horizon_s": float(h),
-                        "iterations": int(steps),
-                        "cost": float(cost),
-                        "result": _result_name(result),
-                    }
-                )
-                say(
-                    f"  horizon {h:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1]['result']})"
-                )
+            say("  noise re-estimated: " + _noise_text(problem.channels, sigma, schedule.estimate_noise))
+    if schedule.grid.error and step is not None:
+        z, step, lin = _recheck_step(problem, z, sigma, h, step, lin, schedule, stages, say)
     return z, sigma, step, (lin, h), stages
+
+
+def _recheck_step(problem, z, sigma, horizon, step, lin, schedule: _Schedule, stages: list, say):
+    """The last stage's constant `step` checked at its optimum `z`: over `GRID_RECHECK`
+    `grid_error`s off the adaptive solution there (the optimum moved the modes up, or made
+    the step unstable), the last stage is solved again at the tight step and its record
+    appended to `stages`. Returns `z`, the step and the linearisation."""
+    grid = schedule.grid
+    tight, error = _step_error(problem, z, horizon, grid, jnp.asarray(sigma), step)
+    if not float(step) > float(tight) * (1 + 1e-9) or error <= GRID_RECHECK * grid.error:
+        return z, step, lin
+    say(
+        f"  integration step {float(step) * 1e3:.3g} ms is {error:.3g} noise levels off at the optimum: "
+        f"solving again at {float(tight) * 1e3:.3g} ms"
+    )
+    budget = jnp.asarray(schedule.max_steps)
+    z, result, steps, cost, lin = _solve(
+        problem,
+        z,
+        sigma,
+        jnp.asarray(horizon),
+        tight,
+        budget,
+        jnp.asarray(0.0, dtype=float),
+        schedule.cap,
+        schedule.rtol,
+        schedule.atol,
+    )
+    stages.append(_stage_record(horizon, steps, cost, result))
+    say(f"  horizon {horizon:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1]['result']})")
+    return z, tight, lin

@@ -5,7 +5,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -13,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import flexdyn as fd
+from flexdyn import batch as fbatch
 
 from .._data import noise_floor as nf
 from .._data.channels import state_names
@@ -32,17 +34,21 @@ from .quality import (
 from .result import FitResult, _finish
 from .starts import _frequency_initialise_independent
 from .steps import (
-    GRID_COARSEN,
     GRID_ERROR,
     GRID_RECHECK,
-    _coarser_steps,
+    BatchGrid,
     _default_horizons,
-    _grid_errors,
-    _grid_step,
-    _padded_steps,
     _say_onsets,
-    aligned_step,
+    batch_grid,
+    batch_stage_steps,
+    batch_steps_off,
 )
+
+#: `_solve` over the batch: the problem, variables, noise levels and steps per log. The
+#: Levenberg-Marquardt program stays a vmapped call on the sharded batch (not
+#: `flexdyn.batch.sharded_vmap`): lineax's linear solve fails its structure check inside
+#: `shard_map` (lineax issue #185).
+_solve_batch = eqx.filter_vmap(_solve, in_axes=(0, 0, 0, None, 0, None, None, None, None, None))
 
 
 def _split(problem: Problem) -> tuple[Problem, list[Problem]]:
@@ -106,9 +112,7 @@ def fit_independent(
     for), but each log's own noise levels of these channels are re-estimated from its
     residuals and refitted, the whole batch at the full horizon, until every log's agree
     within `NOISE_AGREEMENT` (at most `NOISE_ROUNDS` passes); the other channels keep
-    `problem`'s levels. Each result's `sigma` is its
-    log's. Review: with make_problem's default weights (1 % of each channel's RMS) and the
-    weights not re-estimated (as before), every log was fitted 5-9x above its noise floor.
+    `problem`'s levels. Each result's `sigma` is its log's.
     `frequency_init`: each log's free `link<i>.EI` guess from its own flexural spectrum,
     as in `fit` (`identify.frequency_init`), all logs' simulations batched.
     `restart_poor_fit`: when some logs end with a channel above
@@ -135,233 +139,263 @@ def fit_independent(
     stacked, singles = _split(problem)
     L = len(singles)
     x0 = x_from_theta(problem, guesses_of(problem, parameters))
-    z1 = {
-        "phys": jnp.asarray(z_from_x(problem, x0)),
-        "y0": None,
-        "offset": jnp.zeros(len(singles[0].offset_free)),
-    }
-    z = {
-        "phys": jnp.tile(z1["phys"], (L, 1)),
-        "y0": jnp.stack([jnp.asarray([q.y0_known[0, s] for _, s in q.y0_free], dtype=float) for q in singles]),
-        "offset": jnp.tile(z1["offset"], (L, 1)),
-    }
+    z = _initial_batch(problem, singles, x0)
     # Spread the logs over all devices (`flexdyn.batch`): the batch is padded to a multiple
     # of the device count (repeating the last log) and placed with a NamedSharding over a
     # 1-D mesh of `jax.devices()`, so each vmapped stage is split across the devices. On
     # one device nothing is padded and this is the plain vmapped call. Only the first L
     # entries of each result are read.
-    from flexdyn import batch as fbatch
-
     mesh = fbatch.batch_mesh()
     sigma0 = jnp.tile(jnp.asarray(problem.sigma), (L, 1))  # each log its own noise levels
     (stacked, z, sigma0), _ = fbatch.shard_batch((stacked, z, sigma0), mesh)
     estimate_noise = _noise_to_estimate(problem, estimate_noise)
     estimated = [j for j, c in enumerate(problem.channels) if c in estimate_noise]
-    rounds = NOISE_ROUNDS if estimated else 1
     horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
     _say_onsets(problem, horizons, say)
-    # The stage-step simulations run each device's share on its own
-    # (`flexdyn.batch.sharded_vmap`): XLA's partitioning of the vmapped program replicated
-    # a division in it (6 "[SPMD] Involuntary full rematerialization ... _grid_step/div"
-    # warnings, 3 flexible-pendulum logs on 4 CPU devices; none since, same results). The
-    # Levenberg-Marquardt program stays a vmapped call on the sharded batch (6 such
-    # warnings of its own remain): lineax's linear solve fails its structure check inside
-    # `shard_map` (jax 0.10; lineax issue #185, "pytree does not match out_structure").
-    grid = fbatch.sharded_vmap(_grid_step, (0, 0, None, None), mesh)
-    errors_of = fbatch.sharded_vmap(_grid_errors, (0, 0, None, 0, 0, 0, None), mesh)
-
-    def stage_steps(z, sigma, h, k_stage, coarsen=True):
-        """Each log's constant step for a stage at horizon `h` (`_stage_step`, per log:
-        aligned with its torque samples, coarsened within `grid_error`); padding entries
-        repeat the last log. Also each log's tight step and the adaptive outputs."""
-        adaptive, ok, reference = grid(stacked, z, jnp.asarray(h), grid_safety)
-        if not bool(jnp.all(ok)):
-            failed = [singles[k].log_names[0] for k in range(L) if not bool(ok[k])]
-            raise RuntimeError(
-                f"fit_independent: the simulation of log(s) {failed} at their current parameters failed "
-                f"(stage {k_stage + 1}, horizon {float(h):g} s)"
-            )
-        n = adaptive.shape[0]
-        tight = [float(aligned_step(singles[min(k, L - 1)], adaptive[k])) for k in range(n)]
-        chosen = list(tight)
-        tried = [_coarser_steps(singles[min(k, L - 1)], adaptive[k], tight[k]) for k in range(n)]
-        if grid_error and coarsen and any(tried):
-            # (a log with nothing to try pads with its coarsest factor, unaligned: not read)
-            padded = jnp.stack(
-                [_padded_steps(tried[k], tried[k][0] if tried[k] else tight[k] * GRID_COARSEN[0]) for k in range(n)]
-            )
-            errors = np.asarray(
-                errors_of(stacked, z, jnp.asarray(h), padded, reference, sigma, jnp.asarray(grid_error, dtype=float))
-            )
-            for k in range(n):
-                passing = [step for step, e in zip(tried[k], errors[k]) if e <= grid_error]
-                chosen[k] = passing[0] if passing else tight[k]
-        return jnp.asarray(chosen, dtype=adaptive.dtype), jnp.asarray(tight, dtype=adaptive.dtype), reference
-
-    solve = eqx.filter_vmap(_solve, in_axes=(0, 0, 0, None, 0, None, None, None, None, None))
+    batch = _Batch(
+        problem=problem,
+        singles=singles,
+        grid=batch_grid(stacked, singles, mesh, grid_safety, grid_error),
+        horizons=horizons,
+        rounds=NOISE_ROUNDS if estimated else 1,
+        estimated=estimated,
+        max_steps=max_steps,
+        rtol=rtol,
+        atol=atol,
+        first_damping=first_damping,
+        say=say,
+    )
     if frequency_init:
-        z = _frequency_initialise_independent(problem, singles, stacked, z, x0, grid, grid_safety, say)
-
-    def grow(z, sigma, label=""):
-        """The growing horizon for the whole batch from `z` with noise levels `sigma`
-        `(L', C)`, then the noise re-estimation rounds at the full horizon: the last
-        stage's `z`, noise levels, steps, linearisation (on the host) and every log's stage
-        records."""
-        stages = [[] for _ in range(L)]
-        for rnd in range(rounds):
-            for k_stage, h in enumerate(horizons if rnd == 0 else horizons[-1:]):
-                step, _, _ = stage_steps(z, sigma, h, k_stage)
-                tau = jnp.asarray(first_damping if rnd == 0 and k_stage == 0 else 0.0, dtype=float)
-                z, lin = stage(z, sigma, h, step, tau, stages, label)
-            if grid_error:  # the steps checked again at the optimum (`GRID_RECHECK`, as in `fit`)
-                _, tight, reference = stage_steps(z, sigma, h, len(horizons), coarsen=False)
-                padded = jnp.tile(step[:, None], (1, len(GRID_COARSEN)))
-                errors = np.asarray(
-                    errors_of(stacked, z, jnp.asarray(h), padded, reference, sigma, jnp.asarray(jnp.inf, dtype=float))
-                )[:, 0]
-                off = [
-                    k
-                    for k in range(L)
-                    if float(step[k]) > float(tight[k]) * (1 + 1e-9) and not errors[k] <= GRID_RECHECK * grid_error
-                ]
-                if off:
-                    say(
-                        f"  {label}integration steps of log(s) {[singles[k].log_names[0] for k in off]} are over "
-                        f"{GRID_RECHECK * grid_error:g} noise levels off at their optimum: the last stage again at "
-                        "their tight steps"
-                    )
-                    step = jnp.where(jnp.isin(jnp.arange(step.shape[0]), jnp.asarray(off)), tight, step)
-                    z, lin = stage(z, sigma, h, step, jnp.asarray(0.0, dtype=float), stages, label)
-            lin = [np.asarray(a) for a in lin]  # one host transfer, not one per log
-            if rnd + 1 < rounds:
-                new = _reestimate_sigma_per_log(quality(z, sigma, step, lin), sigma, estimated)
-                change = float(np.max(np.abs(np.log(new[:L] / np.asarray(sigma)[:L]))))
-                if rnd > 0 and change < math.log1p(NOISE_AGREEMENT):
-                    say(
-                        f"  {label}noise re-estimated again: every log's within {100 * NOISE_AGREEMENT:g} % "
-                        "of its weights"
-                    )
-                    break
-                sigma = jax.device_put(jnp.asarray(new), sigma.sharding)
-                say(f"  {label}noise re-estimated per log: " + _noise_range_text(problem.channels, new[:L], estimated))
-        return z, sigma, step, lin, stages
-
-    def stage(z, sigma, h, step, tau, stages, label):
-        """One stage of the whole batch at horizon `h` with the logs' steps `step`; each
-        log's record is appended to `stages`."""
-        z, result, steps, cost, lin = solve(
-            stacked, z, sigma, jnp.asarray(h), step, max_steps, tau, max_steps, rtol, atol
-        )
-        for k in range(L):
-            stages[k].append(
-                {
-                    "horizon_s": float(h),
-                    "iterations": int(steps[k]),
-                    "cost": float(cost[k]),
-                    "result": _result_name(jax.tree_util.tree_map(lambda a: a[k], result)),
-                }
-            )
-        say(f"  {label}horizon {h:8.3f} s: {int(jnp.max(steps)):3d} iterations (slowest of {L} logs)")
-        return z, lin
-
-    def quality(z, sigma, step, lin):
-        """Each log's `_residual_ms` at `z` (every sample: the last stage's horizon)."""
-        return [
-            _residual_ms(
-                singles[k],
-                {key: v[k] for key, v in z.items()},
-                sigma[k],
-                step[k],
-                (tuple(a[k] for a in lin), horizons[-1]),
-            )
-            for k in range(L)
-        ]
-
-    z_start = z
-    z, sigma, step, lin, stages = grow(z, sigma0)
-    ms = quality(z, sigma, step, lin)
-    floors = [noise_floors(q) for q in singles]
-    scores = np.asarray([nf.score(ms[k], *floors[k]) for k in range(L)])
-    poor = [k for k in range(L) if any(q["poor"] for q in nf.goodness(problem.channels, ms[k], *floors[k]).values())]
-    good = [k for k in range(L) if k not in poor]
-    if restart_poor_fit and poor and good:
-        # A log left far above its noise floor while others fit theirs: grow its horizon
-        # again from the good logs' median parameters (a wrong basin is that log's alone;
-        # a model that misses an effect leaves every log poor, and nothing is retried).
-        # The same compiled programs: the batch keeps its size, the good logs restart
-        # where they were and keep their first results.
-        say(
-            f"  log(s) {', '.join(problem.log_names[k] for k in poor)} left far above the noise floor: "
-            f"growing the horizon again from the median of the other {len(good)} log(s)' parameters"
-        )
-        phys = np.asarray(z["phys"]).copy()
-        phys[poor] = np.median(phys[good], axis=0)
-        y0 = np.asarray(z["y0"]).copy()
-        y0[poor] = np.asarray(z_start["y0"])[poor]
-        off = np.asarray(z["offset"]).copy()
-        off[poor] = np.asarray(z_start["offset"])[poor]
-        z2 = {key: jax.device_put(v, z[key].sharding) for key, v in (("phys", phys), ("y0", y0), ("offset", off))}
-        # the poor logs start again from the problem's noise levels too (their re-estimated
-        # ones are their poor residuals')
-        redo = np.zeros(sigma.shape[0], bool)
-        redo[poor] = True
-        sigma_start = jax.device_put(jnp.where(jnp.asarray(redo)[:, None], sigma0, sigma), sigma.sharding)
-        z2, sigma2, step2, lin2, stages2 = grow(z2, sigma_start, "again: ")
-        ms2 = quality(z2, sigma2, step2, lin2)
-        better = [k for k in poor if nf.score(ms2[k], *floors[k]) < scores[k]]
-        say(f"  kept the new fit of {len(better)} of {len(poor)} log(s)")
-        if better:
-            pick = np.zeros(z["phys"].shape[0], bool)
-            pick[better] = True
-            z = {
-                key: jax.device_put(
-                    np.where(pick.reshape(-1, *[1] * (np.ndim(v) - 1)), np.asarray(z2[key]), np.asarray(v)), v.sharding
-                )
-                for key, v in z.items()
-            }
-            step = jnp.where(jnp.asarray(pick), step2, step)
-            sigma = jnp.where(jnp.asarray(pick)[:, None], sigma2, sigma)
-            lin = [np.where(pick.reshape(-1, *[1] * (a.ndim - 1)), a2, a) for a, a2 in zip(lin, lin2)]
-            for k in better:
-                stages[k], ms[k] = stages[k] + stages2[k], ms2[k]
+        z = _frequency_initialise_independent(problem, singles, stacked, z, x0, batch.grid.grid_step, grid_safety, say)
+    fitted = _grow_batch(batch, z, sigma0)
+    ms = _residual_ms_per_log(batch, fitted)
+    fitted, ms = _restart_poor_logs(batch, fitted, ms, z, sigma0, restart_poor_fit)
     say("  computing standard errors (exact Jacobians at the optima) ...")
-    x = jnp.stack([x_from_z(singles[k], z["phys"][k]) for k in range(L)])
-    cov_blocks, failed = [], []
-    for k in range(L):
-        try:
-            cov_blocks.append(
-                _covariance_at(
-                    singles[k],
-                    x[k],
-                    {key: v[k] for key, v in z.items()},
-                    sigma[k],
-                    step[k],
-                    tuple(a[k] for a in lin),
-                    horizons[-1],
-                )
-            )
-        except _SimulationFailed:
-            failed.append(problem.log_names[k])
-    if failed:
-        raise RuntimeError(
-            f"fit_independent: the simulation of log(s) {failed} at the fitted parameters failed; "
-            "check bounds and solver settings"
-        )
+    x, covariances = _covariances(batch, fitted)
     wall = (time.perf_counter() - start) / L
     results = [
         _finish(
             singles[k],
             parameters,
-            {key: v[k] for key, v in z.items()},
+            {key: v[k] for key, v in fitted.z.items()},
             x[k],
-            sigma[k],
-            step[k],
-            cov_blocks[k][0],
-            stages[k],
+            fitted.sigma[k],
+            fitted.step[k],
+            covariances[k][0],
+            fitted.stages[k],
             wall,
             ms[k],
-            cov_blocks[k][1],
+            covariances[k][1],
         )
         for k in range(L)
     ]
     return [dataclasses.replace(r, batch_size=L, sigma_estimated=tuple(estimate_noise)) for r in results]
+
+
+def _initial_batch(problem: Problem, singles: list[Problem], x0) -> dict:
+    """The batch's variables `z` at the common guess `x0` (natural coordinates), one row per
+    log: each log's free initial-state entries at its known values, its offsets 0."""
+    L = len(singles)
+    return {
+        "phys": jnp.tile(jnp.asarray(z_from_x(problem, x0)), (L, 1)),
+        "y0": jnp.stack([jnp.asarray([q.y0_known[0, s] for _, s in q.y0_free], dtype=float) for q in singles]),
+        "offset": jnp.tile(jnp.zeros(len(singles[0].offset_free)), (L, 1)),
+    }
+
+
+@dataclasses.dataclass(frozen=True)
+class _Batch:
+    """The logs of one `fit_independent` call and the settings its stages share."""
+
+    problem: Problem
+    singles: list[Problem]  # `_split`
+    grid: BatchGrid  # each log's constant step (`steps.batch_stage_steps`), on the sharded batch
+    horizons: list[float]
+    rounds: int  # passes of the noise re-estimation (`NOISE_ROUNDS`, or 1)
+    estimated: list[int]  # the channels (indices) whose noise levels are re-estimated per log
+    max_steps: int
+    rtol: float
+    atol: float
+    first_damping: float
+    say: Callable
+
+
+class _BatchFit(NamedTuple):
+    """Where a growing horizon of the whole batch ended: the variables `z`, noise levels
+    `(B, C)`, constant steps `(B,)` and linearisation (on the host, `_solve`) of the last
+    stage, and each log's stage records (`FitResult.stages`). `B`: the logs, padded."""
+
+    z: dict
+    sigma: jax.Array
+    step: jax.Array
+    lin: list
+    stages: list[list[dict]]
+
+
+def _grow_batch(batch: _Batch, z, sigma, label: str = "") -> _BatchFit:
+    """The growing horizon for the whole batch from `z` with noise levels `sigma` `(B, C)`,
+    then the noise re-estimation rounds at the full horizon. `label` prefixes the progress
+    messages."""
+    L, horizons, grid, say = len(batch.singles), batch.horizons, batch.grid, batch.say
+    stages = [[] for _ in range(L)]
+    for rnd in range(batch.rounds):
+        for k_stage, h in enumerate(horizons if rnd == 0 else horizons[-1:]):
+            step, _, _ = batch_stage_steps(grid, z, sigma, h, k_stage)
+            tau = jnp.asarray(batch.first_damping if rnd == 0 and k_stage == 0 else 0.0, dtype=float)
+            z, lin = _stage_batch(batch, z, sigma, h, step, tau, stages, label)
+        if grid.error:  # the steps checked again at the optimum (`GRID_RECHECK`, as in `fit`)
+            off, tight = batch_steps_off(grid, z, sigma, h, step, len(horizons))
+            if off:
+                say(
+                    f"  {label}integration steps of log(s) {[batch.singles[k].log_names[0] for k in off]} are over "
+                    f"{GRID_RECHECK * grid.error:g} noise levels off at their optimum: the last stage again at "
+                    "their tight steps"
+                )
+                step = jnp.where(jnp.isin(jnp.arange(step.shape[0]), jnp.asarray(off)), tight, step)
+                z, lin = _stage_batch(batch, z, sigma, h, step, jnp.asarray(0.0, dtype=float), stages, label)
+        lin = [np.asarray(a) for a in lin]  # one host transfer, not one per log
+        if rnd + 1 < batch.rounds:
+            ms = _residual_ms_per_log(batch, _BatchFit(z, sigma, step, lin, stages))
+            new = _reestimate_sigma_per_log(ms, sigma, batch.estimated)
+            change = float(np.max(np.abs(np.log(new[:L] / np.asarray(sigma)[:L]))))
+            if rnd > 0 and change < math.log1p(NOISE_AGREEMENT):
+                say(f"  {label}noise re-estimated again: every log's within {100 * NOISE_AGREEMENT:g} % of its weights")
+                break
+            sigma = jax.device_put(jnp.asarray(new), sigma.sharding)
+            say(
+                f"  {label}noise re-estimated per log: "
+                + _noise_range_text(batch.problem.channels, new[:L], batch.estimated)
+            )
+    return _BatchFit(z, sigma, step, lin, stages)
+
+
+def _stage_batch(batch: _Batch, z, sigma, h, step, tau, stages: list[list[dict]], label: str):
+    """One stage of the whole batch at horizon `h` with the logs' steps `step` and first
+    damping `tau`; each log's record is appended to `stages`. Returns `z` and the
+    linearisation."""
+    z, result, steps, cost, lin = _solve_batch(
+        batch.grid.stacked,
+        z,
+        sigma,
+        jnp.asarray(h),
+        step,
+        batch.max_steps,
+        tau,
+        batch.max_steps,
+        batch.rtol,
+        batch.atol,
+    )
+    L = len(batch.singles)
+    for k in range(L):
+        stages[k].append(
+            {
+                "horizon_s": float(h),
+                "iterations": int(steps[k]),
+                "cost": float(cost[k]),
+                "result": _result_name(jax.tree_util.tree_map(lambda a: a[k], result)),
+            }
+        )
+    batch.say(f"  {label}horizon {h:8.3f} s: {int(jnp.max(steps)):3d} iterations (slowest of {L} logs)")
+    return z, lin
+
+
+def _residual_ms_per_log(batch: _Batch, fitted: _BatchFit) -> list:
+    """Each log's `_residual_ms` at `fitted` (every sample: the last stage's horizon)."""
+    z, sigma, step, lin = fitted.z, fitted.sigma, fitted.step, fitted.lin
+    return [
+        _residual_ms(
+            single,
+            {key: v[k] for key, v in z.items()},
+            sigma[k],
+            step[k],
+            (tuple(a[k] for a in lin), batch.horizons[-1]),
+        )
+        for k, single in enumerate(batch.singles)
+    ]
+
+
+def _restart_poor_logs(
+    batch: _Batch, fitted: _BatchFit, ms: list, z_start: dict, sigma0, restart: bool
+) -> tuple[_BatchFit, list]:
+    """`fit_independent`'s `restart_poor_fit` (`restart`): a log left far above its noise
+    floor while others fit theirs has its horizon grown again from the good logs' median
+    parameters (a wrong basin is that log's alone; a model that misses an effect leaves
+    every log poor, and nothing is retried), and keeps the new fit where it explains its
+    data better. The same compiled
+    programs: the batch keeps its size, the good logs restart where they were and keep
+    their first results. Returns the fit and each log's `_residual_ms`."""
+    problem, singles, say = batch.problem, batch.singles, batch.say
+    L = len(singles)
+    floors = [noise_floors(q) for q in singles]
+    scores = np.asarray([nf.score(ms[k], *floors[k]) for k in range(L)])
+    poor = [k for k in range(L) if any(q["poor"] for q in nf.goodness(problem.channels, ms[k], *floors[k]).values())]
+    good = [k for k in range(L) if k not in poor]
+    if not (restart and poor and good):
+        return fitted, ms
+    say(
+        f"  log(s) {', '.join(problem.log_names[k] for k in poor)} left far above the noise floor: "
+        f"growing the horizon again from the median of the other {len(good)} log(s)' parameters"
+    )
+    z, sigma = fitted.z, fitted.sigma
+    phys = np.asarray(z["phys"]).copy()
+    phys[poor] = np.median(phys[good], axis=0)
+    y0 = np.asarray(z["y0"]).copy()
+    y0[poor] = np.asarray(z_start["y0"])[poor]
+    off = np.asarray(z["offset"]).copy()
+    off[poor] = np.asarray(z_start["offset"])[poor]
+    z2 = {key: jax.device_put(v, z[key].sharding) for key, v in (("phys", phys), ("y0", y0), ("offset", off))}
+    # the poor logs start again from the problem's noise levels too (their re-estimated
+    # ones are their poor residuals')
+    redo = np.zeros(sigma.shape[0], bool)
+    redo[poor] = True
+    sigma_start = jax.device_put(jnp.where(jnp.asarray(redo)[:, None], sigma0, sigma), sigma.sharding)
+    again = _grow_batch(batch, z2, sigma_start, "again: ")
+    ms2 = _residual_ms_per_log(batch, again)
+    better = [k for k in poor if nf.score(ms2[k], *floors[k]) < scores[k]]
+    say(f"  kept the new fit of {len(better)} of {len(poor)} log(s)")
+    if not better:
+        return fitted, ms
+    pick = np.zeros(z["phys"].shape[0], bool)
+    pick[better] = True
+    z = {
+        key: jax.device_put(
+            np.where(pick.reshape(-1, *[1] * (np.ndim(v) - 1)), np.asarray(again.z[key]), np.asarray(v)), v.sharding
+        )
+        for key, v in z.items()
+    }
+    step = jnp.where(jnp.asarray(pick), again.step, fitted.step)
+    sigma = jnp.where(jnp.asarray(pick)[:, None], again.sigma, sigma)
+    lin = [np.where(pick.reshape(-1, *[1] * (a.ndim - 1)), a2, a) for a, a2 in zip(fitted.lin, again.lin)]
+    stages, ms = list(fitted.stages), list(ms)
+    for k in better:
+        stages[k], ms[k] = stages[k] + again.stages[k], ms2[k]
+    return _BatchFit(z, sigma, step, lin, stages), ms
+
+
+def _covariances(batch: _Batch, fitted: _BatchFit) -> tuple[jax.Array, list]:
+    """Each log's natural coordinates `(L, P)` and `_covariance_at` (covariance and blocks)
+    at its optimum; a `RuntimeError` names the logs whose simulation failed there."""
+    singles, z = batch.singles, fitted.z
+    x = jnp.stack([x_from_z(singles[k], z["phys"][k]) for k in range(len(singles))])
+    covariances, failed = [], []
+    for k, single in enumerate(singles):
+        try:
+            covariances.append(
+                _covariance_at(
+                    single,
+                    x[k],
+                    {key: v[k] for key, v in z.items()},
+                    fitted.sigma[k],
+                    fitted.step[k],
+                    tuple(a[k] for a in fitted.lin),
+                    batch.horizons[-1],
+                )
+            )
+        except _SimulationFailed:
+            failed.append(batch.problem.log_names[k])
+    if failed:
+        raise RuntimeError(
+            f"fit_independent: the simulation of log(s) {failed} at the fitted parameters failed; "
+            "check bounds and solver settings"
+        )
+    return x, covariances

@@ -1,10 +1,11 @@
-"""Initial guesses: the multi-start design, extra starts, distinct optima and frequency-domain
-initialisation of stiffnesses.
+"""Initial guesses: the fit's starting variables, the multi-start design and stage, extra starts,
+distinct optima and frequency-domain initialisation of stiffnesses.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -13,12 +14,89 @@ import numpy as np
 from .._model.parameters import theta_from_x, x_from_theta, z_from_x
 from .._model.problem import Problem, guesses_of
 from .frequency_init import STIFFNESS, initialise_stiffness
-from .steps import _grid_step, _span_horizon
+from .levenberg_marquardt import _result_name, _solve
+from .steps import _Grid, _grid_step, _span_horizon, _stage_step
 
 #: `_distinct`: two optima of the multi-start stage are the same when their costs agree to
 #: this relative tolerance (starts that end in one basin of the short horizon agree to
 #: ~1e-7 in cost while a direction it cannot see, such as a damping, may still differ)
 DISTINCT_COST = 1e-4
+
+
+def initial_variables(problem: Problem, x0) -> dict:
+    """`fit`'s variables `z` at the natural coordinates `x0`: `phys` (the sigmoid/log
+    coordinates of `z_from_x`), `y0` (the free initial-state entries at their known values)
+    and `offset` (the free sensor offsets, 0)."""
+    return {
+        "phys": jnp.asarray(z_from_x(problem, x0)),
+        "y0": jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float),
+        "offset": jnp.zeros(len(problem.offset_free)),
+    }
+
+
+def multi_start(
+    problem: Problem,
+    z: dict,
+    x0: np.ndarray,
+    extra: list,
+    horizon: float,
+    grid: _Grid,
+    sigma,
+    *,
+    n_starts: int,
+    spread: float,
+    max_steps: int,
+    cap: int,
+    rtol: float,
+    atol: float,
+    keep: int,
+    say: Callable,
+) -> tuple[list, dict]:
+    """`fit`'s multi-start stage: the first stage (`horizon`, s from each log's onset) fitted
+    from `_starts`' `n_starts` points around `x0` and then the `extra` ones (natural
+    coordinates), each with the budget `max_steps` and optimistix's first damping, the
+    nuisances of `z` kept. Returns the distinct optima, best first, at most `keep`
+    (`_distinct`), and the stage's record for `FitResult.stages`.
+
+    The starts run one after another with the stages' compiled program (`cap`: its static
+    loop bound): a vmapped call would be a second program to compile, and is not faster on
+    the CPU."""
+    step = _stage_step(problem, z, horizon, grid, sigma)
+    xs = list(_starts(problem, x0, n_starts, spread)) + extra
+    runs = [
+        _solve(
+            problem,
+            {"phys": jnp.asarray(z_from_x(problem, x)), "y0": z["y0"], "offset": z["offset"]},
+            sigma,
+            jnp.asarray(horizon),
+            step,
+            jnp.asarray(max_steps),  # an array: traced, not a static argument
+            jnp.asarray(0.0, dtype=float),  # optimistix's start: see `fit`'s `first_damping`
+            cap,
+            rtol,
+            atol,
+        )
+        for x in xs
+    ]
+    costs = np.asarray([float(r[3]) for r in runs])
+    order = np.argsort(np.where(np.isfinite(costs), costs, np.inf))
+    candidates = _distinct([runs[int(i)][0] for i in order], costs[order])[:keep]
+    best = int(order[0])
+    stage = {
+        "horizon_s": float(horizon),
+        "iterations": max(int(r[2]) for r in runs),
+        "cost": float(costs[best]),
+        "result": _result_name(runs[best][1]),
+        "starts": len(xs),
+        "start_costs": [float(c) for c in costs],
+    }
+    n_design = len(xs) - len(extra)
+    which = f"start {best + 1}" if best < n_design else f"extra start {best - n_design + 1}"
+    say(
+        f"  horizon {horizon:8.3f} s: {len(xs)} starts, best cost {float(costs[best]):.6g} from {which} "
+        f"(costs in order, the guess first: {', '.join(f'{float(c):.4g}' for c in costs)})"
+    )
+    return candidates, stage
 
 
 def _distinct(zs: list, costs) -> list:

@@ -1,16 +1,21 @@
-"""Each fitting stage's constant integration step, chosen against an adaptive reference, and
-the simulation-failure vocabulary (`SimulationFailed`).
+"""Each fitting stage's constant integration step, chosen against an adaptive reference (for
+`fit`'s one problem and, log by log, for `fit_independent`'s batch), and the simulation-failure
+vocabulary (`SimulationFailed`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
+
+from flexdyn import batch as fbatch
 
 from .._model.parameters import theta_from_x, x_from_z
 from .._model.problem import Problem
@@ -61,10 +66,8 @@ def _say_onsets(problem: Problem, horizons, say):
 #: the tight one (`grid_safety` times the adaptive solver's mean step at the problem's
 #: tolerances, 1e-10 by default) whose simulated outputs stay within this many noise
 #: levels of the adaptive solution at the stage's starting parameters, on every used
-#: sample of every channel. Measured (a 2-mode flexible link, 2 ms samples, noise 0.05 deg
-#: and 2e-3 1/m, 2026-12-05): the tight step 0.18 ms is 2e-10 noise levels off; 0.67 ms
-#: 4e-7, 1 ms 3e-6, 2 ms 1.5e-4. A systematic error of 1e-3 noise levels on every one of
-#: `N` samples moves a parameter by at most ~1e-3 sqrt(N) standard errors (0.05 at N = 2000).
+#: sample of every channel. A systematic error of 1e-3 noise levels on every one of `N`
+#: samples moves a parameter by at most ~1e-3 sqrt(N) standard errors (0.05 at N = 2000).
 GRID_ERROR = 1e-3
 
 
@@ -115,9 +118,8 @@ def _solve_flags(problem: Problem, theta, y0s, horizon):
 
 
 def _simulation_failure(problem: Problem, z, horizon) -> SimulationFailed:
-    """Why the logs' simulation at `z` over `horizon` failed, per log (one more solve,
-    only after a failure; review: "the simulation at the current parameters failed" said
-    neither which log, nor why, nor at which values)."""
+    """Why the logs' simulation at `z` over `horizon` failed: which log, why, and at which
+    parameter values (one more solve, only after a failure)."""
     theta = np.asarray(theta_from_x(problem, x_from_z(problem, z["phys"])))
     ok, limit = _solve_flags(problem, jnp.asarray(theta), initial_states_of(problem, z["y0"]), jnp.asarray(horizon))
     logs = {}
@@ -172,10 +174,14 @@ def _stage_step(problem: Problem, z, horizon, grid, sigma=None):
             jnp.asarray(grid.error, dtype=float),
         )
     )
-    for h, e in zip(tried, errors):
-        if e <= grid.error:
-            return jnp.asarray(h, dtype=jnp.asarray(tight).dtype)
-    return tight
+    chosen = _first_within(tried, errors, grid.error)
+    return tight if chosen is None else jnp.asarray(chosen, dtype=jnp.asarray(tight).dtype)
+
+
+def _first_within(tried, errors, bar) -> float | None:
+    """The first (coarsest) of the steps `tried` whose error (noise levels, `_grid_errors`)
+    is within `bar`; None if none is."""
+    return next((h for h, e in zip(tried, errors) if e <= bar), None)
 
 
 def _coarser_steps(problem: Problem, step, tight) -> list[float]:
@@ -244,13 +250,9 @@ def aligned_step(problem: Problem, step):
     sampled uniformly at one common interval `dt_s`: `dt_s / ceil(dt_s / step)` (at most
     2x more steps; `dt_s` itself when `step >= dt_s`). Otherwise `step` unchanged.
 
-    The applied torque is linear between samples, so its derivative jumps at every sample.
-    A constant step that straddles the sample times integrates across those kinks: the
-    local error there is second order, not fifth, and the sum over the log biases the fit.
-    Measured (identify diagnose, the tilted paper-004 arm, seed 1, 5 ms samples): at a
-    3.0 ms step the fitted in-plane gravity was 3 standard errors from the truth, at a
-    4x finer step inside its 95 % interval. With steps aligned to the samples every kink
-    falls on a step boundary, where Tsit5 restarts its stages."""
+    The applied torque is linear between samples, so its derivative jumps at every sample:
+    a constant step that straddles those kinks has a second-order local error there, which
+    biases the fit. Aligned, every kink falls on a step boundary, where Tsit5 restarts."""
     if step is None:
         return None
     tv = np.asarray(problem.torque_v)
@@ -265,11 +267,93 @@ def aligned_step(problem: Problem, step):
         return step
     h = float(step)
     if h >= dt_s:
-        # At most the sample interval. The mean adaptive step of a log that rests before
-        # its input starts is set by the rest, where the adaptive steps grow tenfold each:
-        # measured (a 2-mode flexible link, 4.0 s at rest then a 0.4 s doublet, 4 ms
-        # samples, free initial modal coordinates) 0.33 s, 27x the stiffest mode's
-        # stability limit (`fd.stable_step`, 12.2 ms), and the Jacobian at the optimum
-        # came out non-finite. The torque's samples resolve the input no finer anyway.
+        # At most the sample interval: the mean adaptive step of a log that rests before
+        # its input starts is set by the rest, where the adaptive steps grow tenfold each,
+        # and can exceed the stiffest mode's stability limit (`fd.stable_step`) many times.
+        # The torque's samples resolve the input no finer anyway.
         return jnp.asarray(dt_s, dtype=jnp.asarray(step).dtype)
     return jnp.asarray(dt_s / math.ceil(dt_s / h - 1e-9), dtype=jnp.asarray(step).dtype)
+
+
+class BatchGrid(NamedTuple):
+    """How `fit_independent` chooses each log's constant step: its batch (`stacked`, padded
+    to the devices and sharded, `flexdyn.batch`) and single-log problems (`singles`),
+    `_grid_step` and `_grid_errors` vmapped over the batch with each device's share run on
+    its own (`batch_grid`), and the fit's `grid_safety` (`safety`) and `grid_error`
+    (`error`)."""
+
+    stacked: Problem
+    singles: list
+    grid_step: Callable
+    grid_errors: Callable
+    safety: float
+    error: float | None
+
+
+def batch_grid(stacked: Problem, singles: list, mesh: Mesh, safety: float, error: float | None) -> BatchGrid:
+    """`fit_independent`'s `BatchGrid` over the devices of `mesh`."""
+    # `flexdyn.batch.sharded_vmap`: XLA's partitioning of the plain vmapped program replicated
+    # a division in it ("[SPMD] Involuntary full rematerialization ... _grid_step/div").
+    return BatchGrid(
+        stacked,
+        singles,
+        fbatch.sharded_vmap(_grid_step, (0, 0, None, None), mesh),
+        fbatch.sharded_vmap(_grid_errors, (0, 0, None, 0, 0, 0, None), mesh),
+        safety,
+        error,
+    )
+
+
+def batch_stage_steps(batch: BatchGrid, z, sigma, horizon, stage: int, coarsen: bool = True):
+    """`_stage_step` for every log of `fit_independent`'s batch at `horizon` (s from each
+    log's onset) with noise levels `sigma` `(B, C)`: each log's constant step, aligned with
+    its torque samples and (`coarsen`) coarsened within `batch.error`; also each log's tight
+    step and the adaptive outputs. Padding entries repeat the last log. One batched solve
+    per step tried, so a failed simulation raises `RuntimeError` naming the logs and the
+    stage (`stage`, from 0), not `SimulationFailed`."""
+    singles, n_logs = batch.singles, len(batch.singles)
+    adaptive, ok, reference = batch.grid_step(batch.stacked, z, jnp.asarray(horizon), batch.safety)
+    if not bool(jnp.all(ok)):
+        failed = [singles[k].log_names[0] for k in range(n_logs) if not bool(ok[k])]
+        raise RuntimeError(
+            f"fit_independent: the simulation of log(s) {failed} at their current parameters failed "
+            f"(stage {stage + 1}, horizon {float(horizon):g} s)"
+        )
+    n = adaptive.shape[0]
+    tight = [float(aligned_step(singles[min(k, n_logs - 1)], adaptive[k])) for k in range(n)]
+    chosen = list(tight)
+    tried = [_coarser_steps(singles[min(k, n_logs - 1)], adaptive[k], tight[k]) for k in range(n)]
+    if batch.error and coarsen and any(tried):
+        # (a log with nothing to try pads with its coarsest factor, unaligned: not read)
+        padded = jnp.stack(
+            [_padded_steps(tried[k], tried[k][0] if tried[k] else tight[k] * GRID_COARSEN[0]) for k in range(n)]
+        )
+        errors = np.asarray(
+            batch.grid_errors(
+                batch.stacked, z, jnp.asarray(horizon), padded, reference, sigma, jnp.asarray(batch.error, dtype=float)
+            )
+        )
+        for k in range(n):
+            step = _first_within(tried[k], errors[k], batch.error)
+            chosen[k] = tight[k] if step is None else step
+    return jnp.asarray(chosen, dtype=adaptive.dtype), jnp.asarray(tight, dtype=adaptive.dtype), reference
+
+
+def batch_steps_off(batch: BatchGrid, z, sigma, horizon, step, stage: int) -> tuple[list[int], jax.Array]:
+    """`fit`'s check of the last stage's step at the optimum (`_step_error`, `GRID_RECHECK`)
+    for every log of the batch: the logs (indices) whose constant `step` is coarser than
+    their tight step at `z` and over `GRID_RECHECK` times `batch.error` noise levels off the
+    adaptive solution there, and every entry's tight step."""
+    _, tight, reference = batch_stage_steps(batch, z, sigma, horizon, stage, coarsen=False)
+    padded = jnp.tile(step[:, None], (1, len(GRID_COARSEN)))
+    errors = np.asarray(
+        batch.grid_errors(
+            batch.stacked, z, jnp.asarray(horizon), padded, reference, sigma, jnp.asarray(jnp.inf, dtype=float)
+        )
+    )[:, 0]
+    off = [
+        k
+        for k in range(len(batch.singles))
+        if float(step[k]) > float(tight[k]) * (1 + 1e-9) and not errors[k] <= GRID_RECHECK * batch.error
+    ]
+    return off, tight

@@ -6,6 +6,7 @@ import dataclasses
 import math
 import warnings
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -52,8 +53,7 @@ class LogData:
         """The `LogData` of a loaded log (`identify.load_log`'s `Log`): times from its first
         sample, its output channels, its `torque<j>` columns as the torque of joint j (0
         for a joint without one; None when it has none), `entries` (`initial`,
-        `fit_initial`, `offsets`, `name`) passed on. Review: users of `load_log` had to
-        write this conversion themselves."""
+        `fit_initial`, `offsets`, `name`) passed on."""
         try:
             torque = log.torque(n_joints)
         except ValueError as e:
@@ -70,9 +70,8 @@ class LogData:
 class _LogLabels:
     """The logs' names, carried as static data that compares equal whenever the number of
     logs agrees. They label results and enter no computation, so problems that differ
-    only in their logs' names share compiled programs (a fit compiles in 10-30 s; before,
-    fitting a second experiment with the same layout but other log names compiled again).
-    Safe because no jitted function returns anything built from them."""
+    only in their logs' names share compiled programs (a fit compiles in 10-30 s). Safe
+    because no jitted function returns anything built from them."""
 
     __slots__ = ("names",)
 
@@ -210,10 +209,9 @@ def _log_set(chain, measurement, logs, free: set, known: set) -> tuple[tuple[str
 
 
 def _check_log_data(log: LogData) -> None:
-    """A `LogData` built in Python gets the checks the CSV loader makes (found in review:
-    a NaN in an output read "SVD did not converge", a NaN in the torque "check guesses
-    and bounds", arrays of the wrong length numpy's reshape errors), naming the log, the
-    channel and the first bad sample."""
+    """A `LogData` built in Python gets the checks the CSV loader makes, naming the log, the
+    channel and the first bad sample (a NaN or a wrong length would otherwise surface as
+    an unrelated error deep in the fit)."""
     if not isinstance(log, LogData):
         hint = (
             ": convert it with identify.LogData.from_log(log, n_joints, fit_initial=..., ...)"
@@ -269,11 +267,9 @@ AT_REST = 3.0
 def _warn_if_at_rest(log: LogData) -> None:
     """Warn when a log shows no motion above its noise: on every channel the RMS about its
     mean is below `AT_REST` times the channel's model-free noise floor (white noise alone
-    gives 1). Found in review: a pendulum hanging still for 5 s was fitted without a word,
-    "converged", and reported its hub inertia to within a factor of 3.7 (95 %) from noise
-    and the fitted initial angle's 0.01 deg. A static test under a load does determine the
-    static parameters (a mass times its centre's distance, from torque against angle), so
-    this warns and does not refuse."""
+    gives 1): such a log "converges" with intervals that come from the noise. A static
+    test under a load does determine the static parameters (a mass times its centre's
+    distance, from torque against angle), so this warns and does not refuse."""
     t = np.asarray(log.t, dtype=float)
     if t.size <= nf.ORDER + 1:
         return
@@ -299,8 +295,7 @@ def _warn_if_at_rest(log: LogData) -> None:
 
 def check_same_parameters(problem: Problem, parameters, caller: str) -> None:
     """The free parameters passed to a fit must be the problem's, in its order: the
-    guesses are read by position (found in review: `fit(problem, [hub1.inertia])` on a
-    problem made for `link1.EI` used the inertia's guess as EI's, silently)."""
+    guesses are read by position (another parameter's guess would be used, silently)."""
     given = tuple((p.name, bool(getattr(p, "per_log", False))) for p in parameters)
     expected = tuple((p.name, p.per_log) for p in problem.parameters) if problem.guess is not None else None
     if expected is None:
@@ -335,22 +330,84 @@ def make_problem(
 
     `rtol`, `atol` (adaptive Tsit5) or `dt` (fixed-step RK4) set the simulation. The
     default tolerances are tight on purpose: an adaptive solver's step choices make the
-    loss a slightly noisy function of the parameters (measured: 1e-5 relative at rtol
-    1e-7 on a flexible pendulum), which stalls Levenberg-Marquardt near the optimum."""
+    loss a slightly noisy function of the parameters, which stalls Levenberg-Marquardt
+    near the optimum."""
     if not logs:
         raise ValueError("make_problem: expected at least one log")
     measurement = Measurement() if measurement is None else measurement
     chain_names = set(fd.parameter_names(chain))
     known = chain_names | set(meas.parameter_names(measurement))
+    free = _free_parameters(chain, chain_names, known, parameters, logs)
+    seen = set()
+    for log in logs:
+        if log.name in seen:
+            raise ValueError(f"make_problem: two logs are named {log.name!r}; names label the results and must differ")
+        seen.add(log.name)
+        _check_log_data(log)
+        _warn_if_at_rest(log)
+    channels = sorted({c for log in logs for c in log.outputs})
+    for c in channels:
+        ch.check_channel(chain, c)
+    log_set_names, log_set = _log_set(chain, measurement, logs, {p.name for p in parameters}, known)
+    padded = _padded_logs(chain, logs, channels)
+    noise = dict(noise or {})
+    sigma = _noise_levels(chain, noise, channels, padded)
+    onset = _onsets(logs, channels, noise, sigma, padded)
+    return Problem(
+        chain=chain,
+        measurement=measurement,
+        lower=jnp.asarray(free.lower),
+        upper=jnp.asarray(free.upper),
+        t=jnp.asarray(padded.t),
+        valid=jnp.asarray(padded.valid),
+        measured=jnp.asarray(padded.measured),
+        present=jnp.asarray(padded.present),
+        sigma=jnp.asarray(sigma),
+        torque_t=jnp.asarray(padded.t),
+        torque_v=jnp.asarray(padded.torque_v),
+        y0_known=jnp.asarray(padded.y0_known),
+        onset=jnp.asarray(onset, dtype=float),
+        log_set=jnp.asarray(log_set),
+        names=tuple(free.names),
+        log_scale=tuple(free.log_scale),
+        channels=tuple(channels),
+        y0_free=tuple(padded.y0_free),
+        offset_free=tuple(padded.offset_free),
+        labels=tuple(log.name for log in logs),
+        rtol=rtol,
+        atol=atol,
+        dt=dt,
+        max_steps=max_steps,
+        declared=tuple(c for c in channels if noise.get(c) is not None),
+        log_set_names=log_set_names,
+        per_log=tuple(free.per_log),
+        guess=jnp.asarray(_guesses_made(parameters, len(logs)), dtype=float),
+    )
+
+
+class _FreeParameters(NamedTuple):
+    """`make_problem`'s free parameters, a per-log one once per log (`name[log]`): names,
+    whether each is fitted in log space, its bounds in natural coordinates, and the
+    per-log ones' `Problem.per_log` entries."""
+
+    names: list[str]
+    log_scale: list[bool]
+    lower: list[float]
+    upper: list[float]
+    per_log: list[tuple[str, tuple[int, ...]]]
+
+
+def _free_parameters(chain, chain_names: set, known: set, parameters, logs) -> _FreeParameters:
+    """The free parameters checked (listed once, existing, guess inside bounds, positive
+    where fitted in log space) and laid out in natural coordinates."""
     names, log_scale, lower, upper, per_log = [], [], [], [], []
     listed = [p.name for p in parameters]
     twice = sorted({n for n in listed if listed.count(n) > 1})
-    if twice:  # review: both were fitted, and `FitResult.value` kept one of them
+    if twice:  # both would be fitted, and `FitResult.value` would keep one of them
         raise ValueError(f"make_problem: free parameter(s) {', '.join(map(repr, twice))} listed more than once")
     for p in parameters:
         if p.name not in known and fd.params.absent_optional_term(chain, p.name):
-            # review: the 30 names listed did not say how to add the term (the experiment
-            # file adds it by itself)
+            # say how to add the term (the experiment file adds it by itself)
             raise ValueError(
                 f"free parameter {p.name!r} is an optional term this chain does not have: add it with "
                 f"`fd.with_optional_terms(chain, [{p.name!r}])` (at 0.0, its neutral value) before make_problem"
@@ -383,47 +440,57 @@ def make_problem(
         log_scale.extend([not signed] * len(own))
         lower.extend([lo] * len(own))
         upper.extend([hi] * len(own))
-    seen = set()
-    for log in logs:
-        if log.name in seen:
-            raise ValueError(f"make_problem: two logs are named {log.name!r}; names label the results and must differ")
-        seen.add(log.name)
-        _check_log_data(log)
-        _warn_if_at_rest(log)
-    channels = sorted({c for log in logs for c in log.outputs})
-    for c in channels:
-        ch.check_channel(chain, c)
-    log_set_names, log_set = _log_set(chain, measurement, logs, set(listed), known)
+    return _FreeParameters(names, log_scale, lower, upper, per_log)
+
+
+class _PaddedLogs(NamedTuple):
+    """The logs padded to a common length `T` (`valid` masks the padding; times and torques
+    repeat their last sample): the arrays of a `Problem` and its free nuisance entries."""
+
+    t: np.ndarray  # (L, T) s
+    valid: np.ndarray  # (L, T) bool
+    measured: np.ndarray  # (L, T, C) SI
+    present: np.ndarray  # (L, C) bool: log l records channel c
+    torque_v: np.ndarray  # (L, T, n_joints) N m
+    y0_known: np.ndarray  # (L, 2n)
+    y0_free: list[tuple[int, int]]  # (log, state index)
+    offset_free: list[tuple[int, int]]  # (log, channel index)
+
+
+def _padded_logs(chain, logs, channels: list[str]) -> _PaddedLogs:
+    """The logs' samples, torques and initial states on a common length, with their
+    `initial`, `fit_initial` and `offsets` entries checked against the chain's states and
+    the log's channels."""
     states = state_names(chain)
-    n2 = len(states)
-    L = len(logs)
-    T = max(len(log.t) for log in logs)
-    nj = chain.n_links
-    t = np.zeros((L, T))
-    valid = np.zeros((L, T), bool)
-    measured = np.zeros((L, T, len(channels)))
-    present = np.zeros((L, len(channels)), bool)
-    torque_v = np.zeros((L, T, nj))
-    y0_known = np.zeros((L, n2))
-    y0_free, offset_free = [], []
+    L, T, nj = len(logs), max(len(log.t) for log in logs), chain.n_links
+    out = _PaddedLogs(
+        t=np.zeros((L, T)),
+        valid=np.zeros((L, T), bool),
+        measured=np.zeros((L, T, len(channels))),
+        present=np.zeros((L, len(channels)), bool),
+        torque_v=np.zeros((L, T, nj)),
+        y0_known=np.zeros((L, len(states))),
+        y0_free=[],
+        offset_free=[],
+    )
     for l, log in enumerate(logs):
         tl = np.asarray(log.t, float)
         k = len(tl)
-        t[l, :k], t[l, k:] = tl, tl[-1]
-        valid[l, :k] = True
+        out.t[l, :k], out.t[l, k:] = tl, tl[-1]
+        out.valid[l, :k] = True
         for c, values in log.outputs.items():
             j = channels.index(c)
-            measured[l, :k, j] = np.asarray(values, float)
-            present[l, j] = True
+            out.measured[l, :k, j] = np.asarray(values, float)
+            out.present[l, j] = True
         if log.torque is not None:
             tv = np.asarray(log.torque, float).reshape(k, -1)
             if tv.shape[1] != nj:
                 raise ValueError(f"log {log.name!r}: torque has {tv.shape[1]} column(s), the rig has {nj} joint(s)")
-            torque_v[l, :k], torque_v[l, k:] = tv, tv[-1]
+            out.torque_v[l, :k], out.torque_v[l, k:] = tv, tv[-1]
         for name, value in log.initial.items():
             if name not in states:
                 raise ValueError(f"log {log.name!r}: initial-state entry {name!r} is not one of {states}")
-            y0_known[l, states.index(name)] = float(value)
+            out.y0_known[l, states.index(name)] = float(value)
         for field in ("fit_initial", "offsets"):
             entries = list(getattr(log, field))
             twice = sorted({e for e in entries if entries.count(e) > 1})
@@ -432,13 +499,19 @@ def make_problem(
         for name in log.fit_initial:
             if name not in states:
                 raise ValueError(f"log {log.name!r}: fit_initial entry {name!r} is not one of {states}")
-            y0_free.append((l, states.index(name)))
+            out.y0_free.append((l, states.index(name)))
         for c in log.offsets:
             if c not in log.outputs:
                 raise ValueError(f"log {log.name!r}: offset for channel {c!r}, which the log does not record")
-            offset_free.append((l, channels.index(c)))
-    noise = dict(noise or {})
-    for c in sorted(set(noise) - set(channels)):  # review: a typo ("theta") dropped the noise level in silence
+            out.offset_free.append((l, channels.index(c)))
+    return out
+
+
+def _noise_levels(chain, noise: dict, channels: list[str], padded: _PaddedLogs) -> list[float]:
+    """Each channel's noise standard deviation (SI): `noise`'s (checked: a channel of the
+    chain, a level > 0), else 1 % of the channel's RMS over the logs that record it (1 for
+    an all-zero channel)."""
+    for c in sorted(set(noise) - set(channels)):  # a typo ("theta") would drop the noise level in silence
         try:
             ch.check_channel(chain, c)
         except ValueError as e:
@@ -451,50 +524,27 @@ def make_problem(
                 raise ValueError(f"make_problem: noise[{c!r}] expected a standard deviation > 0 (SI), got {noise[c]!r}")
             sigma.append(float(noise[c]))
         else:
-            rms = np.sqrt(np.mean(measured[:, :, j][valid & present[:, j : j + 1]] ** 2))
+            rms = np.sqrt(np.mean(padded.measured[:, :, j][padded.valid & padded.present[:, j : j + 1]] ** 2))
             sigma.append(0.01 * rms if rms > 0 else 1.0)
+    return sigma
+
+
+def _onsets(logs, channels: list[str], noise: dict, sigma: list[float], padded: _PaddedLogs) -> list[float]:
+    """Each log's `log_onset` (s, on its clock)."""
+    t, measured, present, torque_v = padded.t, padded.measured, padded.present, padded.torque_v
     onset = []
     for l, log in enumerate(logs):
         k = len(log.t)
         # a channel given no noise level is judged at rest against at least its own
         # model-free floor in this log: 1 % of its RMS can be under its noise, and noise
-        # then read as motion (review: onsets at 0.012-0.018 s of logs driven from 0.1 s)
+        # would then be read as motion
         at_rest = [
             sigma[j] if noise.get(c) is not None else max(sigma[j], nf.series_floor(t[l, :k], measured[l, :k, j]))
             for j, c in enumerate(channels)
             if present[l, j]
         ]
         onset.append(log_onset(t[l, :k], torque_v[l, :k], measured[l, :k][:, present[l]], np.asarray(at_rest)))
-    return Problem(
-        chain=chain,
-        measurement=measurement,
-        lower=jnp.asarray(lower),
-        upper=jnp.asarray(upper),
-        t=jnp.asarray(t),
-        valid=jnp.asarray(valid),
-        measured=jnp.asarray(measured),
-        present=jnp.asarray(present),
-        sigma=jnp.asarray(sigma),
-        torque_t=jnp.asarray(t),
-        torque_v=jnp.asarray(torque_v),
-        y0_known=jnp.asarray(y0_known),
-        onset=jnp.asarray(onset, dtype=float),
-        log_set=jnp.asarray(log_set),
-        names=tuple(names),
-        log_scale=tuple(log_scale),
-        channels=tuple(channels),
-        y0_free=tuple(y0_free),
-        offset_free=tuple(offset_free),
-        labels=tuple(log.name for log in logs),
-        rtol=rtol,
-        atol=atol,
-        dt=dt,
-        max_steps=max_steps,
-        declared=tuple(c for c in channels if noise.get(c) is not None),
-        log_set_names=log_set_names,
-        per_log=tuple(per_log),
-        guess=jnp.asarray(_guesses_made(parameters, len(logs)), dtype=float),
-    )
+    return onset
 
 
 def _guesses_made(parameters, n_logs: int) -> list[float]:
@@ -530,10 +580,7 @@ def log_onset(t, torque, measured, sigma) -> float:
 
     A fit's horizons count from here (`fit`, `identify.residuals.predict`): a rig that sits
     still for seconds before the experimenter starts the input is common, and a growing
-    horizon counted from the log's start would fit its first stages to the rest alone
-    (measured: a 4-parameter flexible arm at rest for 3 s before two 0.05 N m doublets,
-    guesses 20 % off, 8 noise seeds: 7 fits within the accuracy bars, the eighth with joint
-    damping -98.6 % and payload +20 %; counted from the onset, 8 of 8)."""
+    horizon counted from the log's start would fit its first stages to the rest alone."""
     t, torque = np.asarray(t, float), np.asarray(torque, float).reshape(len(t), -1)
     measured, sigma = np.asarray(measured, float).reshape(len(t), -1), np.asarray(sigma, float)
     driven = np.flatnonzero(np.any(torque != 0.0, axis=1))

@@ -13,7 +13,6 @@ from fresh_jacobian import assert_standard_errors_match, fresh_covariance  # tes
 
 import flexdyn as fd
 import identify
-import identify._fit.fit_independent as fit_independent_module
 import identify._fit.starts as starts_module
 import identify._fit.steps as steps_module
 
@@ -114,7 +113,7 @@ def test_a_failed_simulation_names_its_log(monkeypatch):
         step, ok, out = grid_step(problem, z, horizon, safety)
         return step, ok & False, out
 
-    for module in (steps_module, starts_module, fit_independent_module):  # each binds the name
+    for module in (steps_module, starts_module):  # each binds the name
         monkeypatch.setattr(module, "_grid_step", failing)
     with pytest.raises(RuntimeError, match=r"the simulation of log\(s\) \['drop0', 'drop1'\] .*failed \(stage 1"):
         identify.fit_independent(problem, params, n_stages=1, frequency_init=False)
