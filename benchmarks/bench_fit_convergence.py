@@ -116,8 +116,8 @@ def one_fit(chain, t, tau, noise, seed, factors, options):
     return {
         "ok": ok,
         "converged": bool(result.converged),
-        "iterations": int(sum(s["iterations"] for s in result.stages)),
-        "stage_iterations": [s["iterations"] for s in result.stages],
+        "iterations": int(sum(s.iterations for s in result.stages)),
+        "stage_iterations": [s.iterations for s in result.stages],
         "seconds": seconds,
         "errors": errs,
     }

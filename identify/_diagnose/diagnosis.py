@@ -1,27 +1,33 @@
-"""`Diagnosis`: what `diagnose_logs` returns, with its summary and JSON form."""
+"""`Diagnosis`: what `diagnose_logs` returns, with its summary and JSON form; its assembly at the
+search's end (the extended model's intervals, the causes), and two stacked searches reported as one.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import math
 
+import jax.numpy as jnp
 import numpy as np
 
 import flexdyn as fd
 
 from .._data import measurement as meas, noise_floor as nf
+from .._data.units import display_unit
 from .._fit import covariance
 from .._fit.result import FitResult
-from .._model.parameters import names_at_bounds
-from .._model.problem import Problem
+from .._model.parameters import Z95, names_at_bounds, x_from_z
+from .._model.problem import Problem, parameter_unit
 from .._model.residuals import (
     initial_states_of,
     sensor_offsets,
 )
-from .held_out import _held_out_summary
-from .joint_model import _predict
+from . import catalogue as cat, evidence as ev
+from .held_out import HeldOutSet, _floor_per_channel, _held_out_summary, limits_at_end
+from .joint_model import Superset, _bounds, _jacobian, _pad_used, _predict
 from .notes import note_text
-from .scores import _limit_text, round_verdicts
+from .scores import Cause, _limit_text, _rms_per_channel, round_verdicts
+from .state import CurrentModel, SearchOptions, SearchState, Signals
 
 #: what `Diagnosis.detection_limits` are, as the summary and the report say it
 DETECTION_LIMITS_MEANING = (
@@ -114,14 +120,13 @@ class Diagnosis:
         """Whether the baseline fit's solver converged (a parameter on its bound does not
         count against it here: in a diagnosis that is often the missing effect's symptom,
         and `notes` says so). `identify diagnose` exits 3 when it did not."""
-        return self.baseline.stages[-1]["result"] == "successful"
+        return self.baseline.stages[-1].outcome == "successful"
 
     @property
     def extended_at_bounds(self) -> list[str]:
         """The baseline's parameters whose value in the extended model lies on one of
-        their bounds (judged as `FitResult.at_bounds` is). Found in review: the real
-        pendulum's `joint1.damping` went to its lower bound once air drag took over the
-        damping, and nothing said so."""
+        their bounds (judged as `FitResult.at_bounds` is): a named cause may have taken
+        over what such a parameter stood for in the baseline."""
         if not self.causes:
             return []
         problem = self.baseline.problem
@@ -188,10 +193,8 @@ class Diagnosis:
             "held-out RMS per channel (baseline -> extended, gain; the data's model-free noise floor, "
             "identify.noise_floor):"
         )
-        from .._data.units import display_unit
-
         for c in self.held_out["baseline"]:
-            k, unit = display_unit(c)  # (review: the console's values had no unit; SI rad beside report.md's deg)
+            k, unit = display_unit(c)
             lines.append(
                 f"  {c} ({unit}): {k * self.held_out['baseline'][c]:.4g} -> {k * self.held_out['extended'][c]:.4g} "
                 f"({self.held_out['gain'][c]:.2f}x)" + (f"; floor {k * floor[c]:.4g}" if c in floor else "")
@@ -345,8 +348,6 @@ def _stacked(outer: Diagnosis, inner: Diagnosis) -> Diagnosis:
 
 
 def _unit(problem: Problem, name: str) -> str:
-    from .._model.problem import parameter_unit
-
     return parameter_unit(problem, name)
 
 
@@ -354,21 +355,21 @@ def _unit_chain(name: str) -> str:
     return {"stiffness": "N m/rad", "rotor_inertia": "kg m^2"}.get(name.rsplit(".", 1)[-1], "")
 
 
-def _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, held_out) -> dict:
+def _traces(superset: Superset, held: HeldOutSet, baseline: CurrentModel, current: CurrentModel, step) -> dict:
     """Measured, baseline and extended outputs (SI) on the fit and held-out logs, for plots."""
     out = {}
-    variants = [("baseline", v_base, idx0, logf0)]
-    if current["layout"]:
-        variants.append(("extended", current["v"], current["idx"], current["logf"]))
-    for role, problem in (("fit", joint.problem), ("held-out", ho_problem)):
-        for name, v, idx, logf in variants:
-            theta = theta_of(v, idx, logf)
+    variants = [("baseline", baseline)]
+    if current.layout:
+        variants.append(("extended", current))
+    for role, problem in (("fit", superset.problem), ("held-out", held.problem)):
+        for name, model in variants:
+            theta = superset.theta_of(model.v, model.idx, model.logf)
             if role == "fit":
-                y0s, off = initial_states_of(problem, v["y0"]), sensor_offsets(problem, v["offset"])
+                y0s, off = initial_states_of(problem, model.v["y0"]), sensor_offsets(problem, model.v["offset"])
             else:
-                _, w = held_out(theta[None], nuisances=True)
-                y0s, off = initial_states_of(problem, w["y0"][0]), sensor_offsets(problem, w["offset"][0])
-                theta = w["theta"][0]  # (the held-out problem's: its logs' own per-log values in)
+                _, w = held.refit(theta[None], step)
+                y0s, off = initial_states_of(problem, w.y0[0]), sensor_offsets(problem, w.offset[0])
+                theta = w.theta[0]  # (the held-out problem's: its logs' own per-log values in)
             pred, _ = _predict(problem, theta, y0s, None, step)
             pred = np.asarray(pred + off[:, None, :])
             valid, present = np.asarray(problem.valid), np.asarray(problem.present)
@@ -380,3 +381,210 @@ def _traces(joint, ho_problem, v_base, current, theta_of, idx0, logf0, step, hel
                         entry["measured"][c] = np.asarray(problem.measured[l, k, j])
                         entry.setdefault(name, {})[c] = pred[l, k, j]
     return out
+
+
+def _extended_intervals(base: FitResult, superset: Superset, current: CurrentModel, step) -> tuple[dict, dict]:
+    """`Diagnosis.extended_intervals`: every parameter of the extended model (baseline and
+    extensions) with its standard error and 95 % interval, from the baseline fit or, with
+    extensions accepted, the exact Jacobian of the joint model at `current` (log-scale ones
+    through their logs); and the extensions' alone, with their units."""
+    problem = base.problem
+    ext_values = {}
+    ext_intervals = {
+        n: {
+            "value": float(base.values[i]),
+            "std_error": float(base.std_errors[i]),
+            "ci95": [float(base.ci_low[i]), float(base.ci_high[i])],
+        }
+        for i, n in enumerate(base.names)
+    }
+    if not current.layout:
+        return ext_intervals, ext_values
+    v, joint = current.v, superset.joint
+    xb = x_from_z(_bounds(joint), v["zb"])
+    r, J = _jacobian(
+        joint,
+        xb,
+        v["xe"],
+        v["y0"],
+        v["offset"],
+        jnp.asarray(current.idx),
+        jnp.asarray(current.logf),
+        superset.sigma_j,
+        step,
+    )
+    r, J = np.asarray(r)[superset.used], np.asarray(J)[superset.used]
+    # (an undetermined parameter gets an infinite error, as in the fit: `identify.covariance`)
+    se_nat = covariance.dense((), (), r, J).std_errors
+    natural = [(n, float(xb[i]), float(se_nat[i]), problem.log_scale[i]) for i, n in enumerate(problem.names)]
+    natural += [(n, float(v["xe"][s]), float(se_nat[joint.nb + s]), lg) for s, (n, _, lg) in enumerate(current.layout)]
+    for n, x, se, lg in natural:
+        val = math.exp(x) if lg else x
+        lo, hi = (math.exp(x - Z95 * se), math.exp(x + Z95 * se)) if lg else (x - Z95 * se, x + Z95 * se)
+        ext_intervals[n] = {"value": val, "std_error": val * se if lg else se, "ci95": [lo, hi]}
+    for n, _, _ in current.layout:
+        ext_values[n] = {**ext_intervals[n], "unit": _unit(superset.problem, n)}
+    return ext_intervals, ext_values
+
+
+def _causes(state: SearchState, ext_values: dict, chain: fd.Chain, signals: Signals, fit_logs) -> list[Cause]:
+    """A `Cause` per accepted entry, its parameters from `ext_values` (a continuous one) or
+    its structural model's own fit (replaced by the stacked search's, `_stacked`), with the
+    warnings of fitted values the component does not plausibly reach (`catalogue.implausible`)."""
+    causes = []
+    for accepted in state.accepted:
+        wc, sc = accepted.candidate, accepted.score
+        if wc.structural:
+            nan = {"std_error": float("nan"), "ci95": [float("nan")] * 2}
+            params = {
+                n: {"value": val, **sc.intervals.get(n, nan), "unit": _unit_chain(n)} for n, val in sc.params.items()
+            }
+        else:
+            params = {n: ext_values[n] for n in wc.params}
+        positive_modes = signals.positive_modes
+        causes.append(
+            Cause(
+                wc.name,
+                wc.where,
+                cat.DESCRIPTION[wc.name],
+                params,
+                sc.delta_bic,
+                sc.held_out_gain,
+                held_out_gain_se=sc.held_out_gain_se,
+                together_with=list(accepted.together_with),
+                warnings=cat.implausible(
+                    wc.name,
+                    {n: p["value"] for n, p in params.items()},
+                    torque_scale=cat.characteristic_torque(chain, signals.torque_rms),
+                    log_duration=min(float(np.ptp(np.asarray(log.t, float))) for log in fit_logs),
+                    lowest_mode_hz=min(positive_modes) if positive_modes else None,
+                ),
+            )
+        )
+    return causes
+
+
+def _extended_model(base: FitResult, superset: Superset, current: CurrentModel, ext_values: dict) -> tuple:
+    """The extended model's parameters (SI; a per-log one as `name[log]`), chain and measurement."""
+    problem = base.problem
+    extended_params = dict(base.value)
+    if current.layout:
+        theta_ext = np.asarray(superset.theta_of(current.v, current.idx, current.logf))
+        extended_params = {n: float(theta_ext[i]) for i, n in enumerate(problem.names)}
+        extended_params.update({n: d["value"] for n, d in ext_values.items()})
+    # (a per-log parameter keeps the rig's value in the extended chain, as `FitResult.chain`)
+    own_names = set(problem.names) - set(problem.shared_names)
+    chain_vals, meas_vals = meas.split_values({n: v for n, v in extended_params.items() if n not in own_names})
+    ext_chain = fd.with_parameters(superset.chain, chain_vals)
+    ext_meas = meas.with_parameters(superset.measurement, meas_vals)
+    return extended_params, ext_chain, ext_meas
+
+
+def _per_log(problem: Problem, held_problem: Problem, extended_params: dict, theta_held) -> dict:
+    """`Diagnosis.per_log`: each per-log parameter's value per log, the fit logs' from the
+    extended model, the held-out logs' refitted there (`theta_held`: their parameter vector)."""
+    per_log = {}
+    theta_held = np.asarray(theta_held)
+    for name, _ in problem.per_log:
+        per_log[name] = {log: extended_params[f"{name}[{log}]"] for log in problem.log_names}
+        (index_ho,) = [ix for n, ix in held_problem.per_log if n == name]
+        per_log[name].update({log: float(theta_held[i]) for log, i in zip(held_problem.log_names, index_ho)})
+    return per_log
+
+
+def _baseline_evidence(superset: Superset, held: HeldOutSet, base: FitResult, traces: dict, modal) -> dict:
+    """`Diagnosis.evidence`: what the baseline gets wrong, on the fit and the held-out logs."""
+    outs = {
+        name: {
+            "t": e["t"],
+            "measured": e["measured"],
+            "simulated": e["baseline"],
+            "residual": {c: e["baseline"][c] - e["measured"][c] for c in e["measured"]},
+        }
+        for name, e in traces.items()
+    }
+    torques = {}
+    for problem in (superset.problem, held.problem):
+        for l, name in enumerate(problem.log_names):
+            tv = np.asarray(problem.torque_v[l])[: len(traces[name]["t"]), 0]
+            if np.any(tv != 0):
+                torques[name] = tv
+    return ev.evidence(outs, base.sigma, modal, torques)
+
+
+def assemble(
+    *,
+    split: str,
+    options: SearchOptions,
+    base: FitResult,
+    superset: Superset,
+    held: HeldOutSet,
+    baseline: CurrentModel,
+    state: SearchState,
+    cands,
+    signals: Signals,
+    modal: list,
+    fit_logs,
+    not_tried: dict,
+) -> Diagnosis:
+    """The `Diagnosis` of a search that ended at `state` (totals: `_with_totals`): the extended
+    model and its intervals, the causes, the held-out RMS against the `baseline` model, the
+    traces and the baseline's evidence, the per-log values and the detection limits (unless the
+    search goes on from a structural model, `state.stack_on`, which reports them)."""
+    current, step, problem = state.current, state.step, base.problem
+    ext_intervals, ext_values = _extended_intervals(base, superset, current, step)
+    causes = _causes(state, ext_values, base.chain, signals, fit_logs)
+    rms_base = _rms_per_channel(held.problem, _pad_used(baseline.ho, held.used), superset.sigma)
+    rms_ext = _rms_per_channel(held.problem, _pad_used(current.ho, held.used), superset.sigma)
+    ho_cost0, ho_cost1 = float(baseline.ho @ baseline.ho), float(current.ho @ current.ho)
+    costs = {
+        "fit": {"baseline": baseline.cost, "extended": float(current.cost)},
+        "held_out": {"baseline": ho_cost0, "extended": ho_cost1},
+        "n_fit": superset.N,
+        "n_held_out": int(held.used.sum()),
+        "k": int(sum(s.k for s in state.causes_scores)),
+    }
+    extended_params, ext_chain, ext_meas = _extended_model(base, superset, current, ext_values)
+    traces = _traces(superset, held, baseline, current, step)
+    # the held-out logs' unknowns at the final model (each log's own per-log values, the
+    # detection limits' linearisation point): one held-out fit for both
+    unknowns = None
+    if problem.per_log or state.stack_on is None:
+        _, unknowns = held.refit(superset.theta_of(current.v, current.idx, current.logf)[None], step)
+    per_log = _per_log(problem, held.problem, extended_params, unknowns.theta[0]) if problem.per_log else {}
+    evidence = _baseline_evidence(superset, held, base, traces, modal)
+    model_checks = ev.stiffening_checks_of(base.chain, traces)
+    limits = {}
+    if state.stack_on is None:
+        options.say("detection limits of the candidates not named ...")
+        done = state.done
+        candidates = [c for c in cands if not c.structural and c.label not in done]
+        limits = limits_at_end(
+            superset, held, current, unknowns, candidates, step, options.bic_threshold, options.min_gain
+        )
+    return Diagnosis(
+        min_gain=options.min_gain,
+        split=split,
+        baseline=base,
+        evidence=evidence,
+        rounds=state.rounds,
+        causes=causes,
+        held_out=_held_out_summary(rms_base, rms_ext, ho_cost0, ho_cost1, _floor_per_channel(held.problem)),
+        delta_bic_total=0.0,
+        fraction_explained=0.0,
+        fraction_of_excess_explained=None,
+        extended_chain=ext_chain,
+        extended_measurement=ext_meas,
+        extended_parameters=extended_params,
+        outputs=traces,
+        modal_frequencies_hz=modal,
+        wall_time=0.0,
+        extended_intervals=ext_intervals,
+        costs=costs,
+        model_checks=model_checks,
+        notes=state.notes,
+        not_tried=not_tried,
+        detection_limits=limits,
+        per_log=per_log,
+        held_out_logs=tuple(held.problem.log_names),
+    )

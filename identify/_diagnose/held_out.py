@@ -14,14 +14,15 @@ import numpy as np
 import optimistix as optx
 
 from .._data import noise_floor as nf
+from .._data.channels import state_names
 from .._fit.result import FitResult
 from .._model.parameters import exp_natural, x_from_z, z_from_x
-from .._model.problem import Problem
+from .._model.problem import Problem, make_problem, parameter_unit
 from .._model.residuals import (
     log_blocked,
     residuals as _residuals_from,
 )
-from .joint_model import SLOTS, _bounds, _jacobian, _Joint, _pad_used, _used
+from .joint_model import SLOTS, Superset, _bounds, _jacobian, _Joint, _pad, _pad_used, _used
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,11 +41,11 @@ class _HeldOut:
 
 
 def detection_limits(
-    j: _Joint, current: dict, candidates, ext_names, used, sigma, step, bic_threshold: float, held: _HeldOut, min_gain
+    j: _Joint, current, candidates, ext_names, used, sigma, step, bic_threshold: float, held: _HeldOut, min_gain
 ):
     """The smallest value of each parameter of each continuous candidate that would have
     been named had it been in the logs, linearised at the model `current` (the search's
-    final one: `v`, `cost`, `layout`, `idx`, `logf`): `{label: {parameter: (limit,
+    final one, a `state.CurrentModel`): `{label: {parameter: (limit,
     criterion)}}` (the limit in the parameter's SI unit, an offset from its neutral value;
     the criterion that sets it, "BIC" or "held-out gain"; inf where the logs cannot tell
     the parameter from the model's own to first order).
@@ -65,12 +66,10 @@ def detection_limits(
     larger. Noise moves the realised drop and gain about these values: an effect at its
     limit is named about half the time. The linearisation holds while the effect is small
     against the motion (a dead band or a delay comparable with the motion's time scale is
-    not). Oracle: the search itself (tests/identify/test_diagnose.py): dry friction hidden
-    in simulated pendulum logs at 1.5x its limit is named, at 0.67x not (over 12 seeds:
-    12/12, 0/12; at 1.0x 7/12)."""
+    not). Checked against the search itself (tests/identify/test_diagnose.py)."""
     nb = j.nb
-    n_layout = len(current["layout"])
-    v = current["v"]
+    n_layout = len(current.layout)
+    v = current.v
     xb = x_from_z(_bounds(j), v["zb"])
     N = int(np.sum(used))
     out = {}
@@ -85,8 +84,8 @@ def detection_limits(
     for c in candidates:
         if n_layout + len(c.params) > SLOTS:
             continue
-        idx = np.asarray(current["idx"]).copy()
-        logf = np.asarray(current["logf"]).copy()
+        idx = np.asarray(current.idx).copy()
+        logf = np.asarray(current.logf).copy()
         xe = np.asarray(v["xe"], float).copy()
         for s, n in enumerate(c.params, start=n_layout):
             idx[s] = ext_names.index(n)
@@ -102,7 +101,7 @@ def detection_limits(
         shared_h = [i for i, src in enumerate(held.source) if src >= 0]
         nuisance_h = [i for i, src in enumerate(held.source) if src < 0] + list(range(nh + SLOTS, Jh.shape[1]))
         k = len(c.params)
-        drop = current["cost"] * -math.expm1(-(bic_threshold + k * math.log(N)) / N)
+        drop = current.cost * -math.expm1(-(bic_threshold + k * math.log(N)) / N)
         excess = (min_gain**2 - 1.0) * held.cost
         per = {}
         for s, n in enumerate(c.params, start=n_layout):
@@ -205,6 +204,116 @@ def _held_out_start(problem: Problem, own: _Own, base) -> dict:
         "y0": jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float),
         "offset": jnp.zeros(len(problem.offset_free)),
         "own": own.z_of(np.asarray(medians, float)[order]) if names else jnp.zeros(0),
+    }
+
+
+@dataclasses.dataclass(frozen=True)
+class HeldOutUnknowns:
+    """The held-out logs' unknowns refitted at a batch of models (`HeldOutSet.refit`), batch-first."""
+
+    y0: jax.Array  # free initial-state entries
+    offset: jax.Array  # free sensor offsets
+    theta: jax.Array  # the held-out problem's parameter vectors, each log's own per-log values in
+
+
+@dataclasses.dataclass(frozen=True)
+class HeldOutSet:
+    """The held-out logs of one search on the joint model (`joint_model.Superset`): their
+    `problem`, each entry's source among the fit problem's (`source`; a held-out log's own
+    value of a per-log parameter, at `own_set`, is re-estimated there, `own`), the start of
+    their unknowns (`start`), the residual entries that count (`used`) and the batch size
+    every held-out call is padded to (one compiled program for the whole search)."""
+
+    problem: Problem
+    own: _Own
+    own_set: frozenset[int]
+    source: np.ndarray
+    start: dict
+    used: np.ndarray
+    batch: int
+    sigma: jax.Array
+    max_steps: int
+
+    def _batch(self, thetas, step):
+        thetas_ho = jnp.asarray(thetas)[:, self.source]
+        return _held_out_batch(
+            self.problem, _pad(thetas_ho, self.batch), self.start, self.own, self.sigma, step, self.max_steps
+        )
+
+    def residuals(self, thetas, step) -> np.ndarray:
+        """Weighted held-out residuals (used entries) at a batch of the fit problem's parameter vectors."""
+        n = thetas.shape[0]
+        r, _, _ = self._batch(thetas, step)
+        return np.asarray(r)[:n][:, self.used]
+
+    def refit(self, thetas, step) -> tuple[np.ndarray, HeldOutUnknowns]:
+        """`residuals`, and the held-out unknowns re-estimated there."""
+        n = thetas.shape[0]
+        r, w, th = self._batch(thetas, step)
+        return np.asarray(r)[:n][:, self.used], HeldOutUnknowns(w["y0"][:n], w["offset"][:n], th[:n])
+
+
+def held_out_set(superset: Superset, held_out_logs, channels, base, batch: int, max_steps: int) -> HeldOutSet:
+    """The held-out logs on the joint model `superset` (recording its `channels`), their
+    unknowns started from the baseline fit `base` (`_held_out_start`)."""
+    problem = make_problem(
+        superset.chain,
+        superset.parameters,
+        held_out_logs,
+        dict(zip(channels, superset.sigma)),
+        measurement=superset.measurement,
+    )
+    if problem.channels != channels:
+        raise ValueError(f"diagnose: held-out logs record channels {problem.channels}, the fit logs {channels}")
+    own = _Own.of(problem)
+    own_set = frozenset(np.asarray(own.pos).tolist())
+    names = superset.problem.names
+    source = np.asarray([0 if i in own_set else names.index(n) for i, n in enumerate(problem.names)], dtype=int)
+    start = _held_out_start(problem, own, base)
+    return HeldOutSet(problem, own, own_set, source, start, _used(problem), batch, superset.sigma_j, max_steps)
+
+
+def limits_at_end(
+    superset: Superset, held: HeldOutSet, current, unknowns: HeldOutUnknowns, candidates, step, bic_threshold, min_gain
+) -> dict:
+    """`Diagnosis.detection_limits`: `detection_limits` of the continuous `candidates` at the
+    search's final model `current` (a `state.CurrentModel`), whose held-out unknowns are
+    `unknowns` (`HeldOutSet.refit`), with each parameter's unit and neutral value."""
+    problem = held.problem
+    nb_ho = len(problem.names) - len(superset.ext_names)
+    theta_ho = np.asarray(unknowns.theta[0])[:nb_ho]
+    at_end = _HeldOut(
+        _Joint(problem, superset.joint.neutral, nb_ho),
+        unknowns.y0[0],
+        unknowns.offset[0],
+        held.used,
+        float(current.ho @ current.ho),
+        jnp.asarray(np.where(np.asarray(problem.log_scale[:nb_ho]), np.log(np.abs(theta_ho)), theta_ho)),
+        tuple(-1 if i in held.own_set else int(held.source[i]) for i in range(nb_ho)),
+    )
+    limits = detection_limits(
+        superset.joint,
+        current,
+        candidates,
+        superset.ext_names,
+        superset.used,
+        superset.sigma_j,
+        step,
+        bic_threshold,
+        at_end,
+        min_gain,
+    )
+    return {
+        lab: {
+            n: {
+                "value": a,
+                "criterion": why,
+                "unit": parameter_unit(superset.problem, n),
+                "neutral": superset.neutral[superset.ext_names.index(n)],
+            }
+            for n, (a, why) in per.items()
+        }
+        for lab, per in limits.items()
     }
 
 
@@ -328,9 +437,7 @@ def _own_starts(result: FitResult) -> tuple:
     value in `result` (none without per-log parameters): a `Parameter`'s guess is one value
     for all logs, their median in a refit (`_value_of`), which may be far from a log's own.
     A structural candidate's multi-start gets this warm start beside its design (one start
-    more). (The search from a structural winner refits its baseline from one start, the
-    median, warm in the other parameters: on the arm with payloads 30 and 50 g it reached
-    the noise floor from there.)"""
+    more)."""
     own = {f"{name}[{log}]": v for name, by_log in result.per_log.items() for log, v in by_log.items()}
     return (own,) if own else ()
 
@@ -338,8 +445,6 @@ def _own_starts(result: FitResult) -> tuple:
 def _with_extra_state(logs, chain):
     """Logs whose initial-state names exist in `chain` (a structural change may add
     coordinates; their initial values default to 0)."""
-    from .._data.channels import state_names
-
     names = set(state_names(chain))
     out = []
     for log in logs:

@@ -1,9 +1,10 @@
-"""One model holding every continuous catalogue candidate at its neutral value, and its batched
-Levenberg-Marquardt fits (each candidate a row of one vmapped program).
+"""One model holding every continuous catalogue candidate at its neutral value (`Superset`), and its
+batched Levenberg-Marquardt fits (each candidate a row of one vmapped program).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import types
 
@@ -13,9 +14,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+import flexdyn as fd
+
+from .._data import measurement as meas
 from .._fit.steps import aligned_step
-from .._model.parameters import exp_natural, x_from_z
-from .._model.problem import Problem
+from .._model.parameters import Parameter, exp_natural, x_from_z
+from .._model.problem import Problem, make_problem
 from .._model.residuals import (
     initial_states_of,
     log_blocked,
@@ -23,6 +27,7 @@ from .._model.residuals import (
     predict_jit,
     residuals as _residuals_from,
 )
+from . import catalogue as cat
 
 SLOTS = 4  # extension parameters one fit can free at a time (accepted + candidate)
 
@@ -93,12 +98,10 @@ Z_SATURATION = 6.0
 
 def _unsaturated(j: _Joint, zb):
     """`zb` with every bounded coordinate pulled back to at most `Z_SATURATION` inside its
-    transform's linear range. A baseline parameter that the misspecified baseline pushed
-    onto its bound sits where the sigmoid (softplus) is flat (z ~ -50: dx/dz ~ 1e-22), and
-    Levenberg-Marquardt cannot move it back when the extension makes the bound no longer
-    optimal (seen: a sensor gain error drove the pendulum's hub inertia onto its lower
-    bound; with the gain free the true inertia was unreachable). At |z| = 6 the parameter
-    moves by at most 0.25 % of its (log-)range and regains a usable gradient."""
+    transform's linear range. A parameter the misspecified baseline pushed onto its bound sits
+    where the sigmoid is flat (dx/dz ~ 1e-22 at z ~ -50), where Levenberg-Marquardt cannot move
+    it back once an extension makes the bound no longer optimal; at |z| = 6 it moves by at most
+    0.25 % of its (log-)range and regains a usable gradient."""
     lo, hi = np.asarray(j.problem.lower[: j.nb]), np.asarray(j.problem.upper[: j.nb])
     z = np.asarray(zb, float).copy()
     low = np.isfinite(lo) & (z < -Z_SATURATION)
@@ -115,13 +118,9 @@ MAX_REFINEMENTS = 8
 #: `grid_error=None`), which a candidate may need finer: dry friction is a stiff damper at
 #: rest. At the best candidate's fit, when its outputs at that step are more than this many
 #: noise levels off, the candidates' fits go on at the coarsest of the step over
-#: `STEP_DIVISORS` within it, and so does the search (`_finer_step`). Measured on the
-#: shipped example (`identify/examples/pendulum_friction`, friction model, N = 1602): at the
-#: baseline's 8.9 ms the friction model was 0.33 noise levels off, its cost at the optimum
-#: 32 too high (1634 against 1602: a BIC shift of 32), and two runs ended 10 apart in cost
-#: and 0.8 standard errors apart in the friction torque. At 0.06 noise levels (5.5 ms) the
-#: fitted values were 0.1-0.17 standard errors from those at a 10x finer step (cost 0.8
-#: apart): this bar keeps a candidate's values within ~0.1 of their standard errors.
+#: `STEP_DIVISORS` within it, and so does the search (`_finer_step`). On the shipped example
+#: (`identify/examples/pendulum_friction`) this bar keeps a candidate's fitted values within
+#: ~0.1 standard errors of those at a 10x finer step.
 STEP_RECHECK = 0.05
 
 
@@ -130,9 +129,7 @@ STEP_DIVISORS = (2, 4, 8)
 
 
 #: ... against the outputs at the step over this (Tsit5 is fifth order: 16x finer is ~1e6
-#: times more accurate, a reference without an adaptive solve of its own to compile; on
-#: the friction model, whose error falls irregularly with the step, the reference at
-#: 0.55 ms was 9e-5 noise levels off one at 0.14 ms)
+#: times more accurate, a reference without an adaptive solve of its own to compile)
 REFERENCE_DIVISOR = 16
 
 
@@ -140,10 +137,8 @@ REFERENCE_DIVISOR = 16
 #: batch size they reuse its compiled program, but every padded copy costs as much as a
 #: fit (on CPU a vmapped member is a fit of its own). When the round's batch call took longer
 #: than this (seconds: compiling plus running), they run at the smallest batch size that holds
-#: them instead (`_few_size`), paying one compilation (10-60 s on 2 cores) to save the copies.
-#: Seen on the spinning link (`identify/examples/spinning_link`): 3 rounds of 1 unconverged
-#: fit padded to 6 took 225 s each, the round's call 339 s. Below it (the pendulum examples:
-#: calls of 5-20 s, mostly compilation), a second program would cost more than the copies.
+#: them instead (`_few_size`), paying one compilation to save the copies; below it, a second
+#: program would cost more than the copies.
 FEW_SIZE_AFTER_S = 60.0
 
 
@@ -162,19 +157,15 @@ def _refine(
     but ran out of Levenberg-Marquardt steps, `max_steps` at a time (the same compiled
     program), until each converges or its dBIC moves by less than 0.1 per round (at most
     `MAX_REFINEMENTS` rounds; `size`: the round's `(batch size, seconds its call took)`,
-    `_few_size`). A winner's scores and 95 % intervals must be those of its
-    optimum: seen, a sensor-gain candidate whose fit moved the pendulum's hub inertia 5.3
-    in log from its bound needed 40 steps, and at 25 its held-out prediction was 2.6x
-    worse than the baseline's. Candidates drifting to their neutral value (dBIC > 0 and no
-    prediction below 0: a log-scale parameter sliding towards zero never "converges") and
-    those far behind the best one (dBIC above half the lowest) are left alone: they cannot
-    win.
+    `_few_size`). Returns the variables and costs with the continued fits in. Candidates
+    drifting to their neutral value (dBIC > 0 and no prediction below 0) and those far behind
+    the best one (dBIC above half the lowest) are left alone: they cannot win.
 
-    `predicted`: label -> the cost the screening's Gauss-Newton step predicted. A fit that
-    ran out of steps short of it counts as a contender at the predicted dBIC: seen on the
-    real pendulum, dry friction predicted 3656 against the baseline's 9167 (the best
-    prediction of the round) ended 25 steps at 9193, above the model it extends, and was
-    never continued."""
+    `predicted`: label -> the cost the screening's Gauss-Newton step predicted; a fit that
+    ran out of steps short of it counts as a contender at the predicted dBIC.
+
+    A winner's scores and 95 % intervals must be those of its optimum, and a fit stopped
+    after `max_steps` can end far from it, even above the model it extends."""
     by_label = {c.label: c for c in owners}
     predicted = predicted or {}
 
@@ -302,3 +293,85 @@ def _pad_used(r_used, used):
     full = np.zeros(used.shape[0])
     full[used] = r_used
     return full
+
+
+@dataclasses.dataclass(frozen=True)
+class Superset:
+    """The joint model of one search: the rig and sensors with every continuous candidate's
+    parameters (`ext_names`, at their `neutral` values), fitted on the fit logs (`joint`,
+    its problem's parameter vector the baseline's entries then the extensions), the residual
+    entries that count (`used`, `N` of them) and the channels' noise `sigma` (SI; `sigma_j`
+    the same as a JAX array, for the compiled programs)."""
+
+    chain: fd.Chain
+    measurement: meas.Measurement
+    parameters: list  # the baseline's free `Parameter`s, then one per extension parameter
+    ext_names: list[str]
+    neutral: list[float]
+    joint: _Joint
+    used: np.ndarray
+    N: int
+    sigma: np.ndarray
+    sigma_j: jax.Array
+
+    @property
+    def problem(self) -> Problem:
+        return self.joint.problem
+
+    def layout(self, names_vals) -> tuple:
+        """Slot index, log flags and starting natural values for [(name, value, is_log), ...]."""
+        idx = np.full(SLOTS, len(self.ext_names), int)
+        logf = np.zeros(SLOTS, bool)
+        x = np.zeros(SLOTS)
+        for s, (n, val, is_log) in enumerate(names_vals):
+            idx[s] = self.ext_names.index(n)
+            logf[s] = is_log
+            x[s] = np.log(val) if is_log else val
+        return idx, logf, x
+
+    def theta_of(self, v, idx, logf):
+        """The physical parameter vector (SI) of the joint model's variables `v` in slot layout `idx`, `logf`."""
+        xb = x_from_z(_bounds(self.joint), v["zb"])
+        return _theta(self.joint, xb, v["xe"], jnp.asarray(idx), jnp.asarray(logf))
+
+
+def superset_of(chain, measurement, channels, driven, candidates, parameters, fit_logs, sigma, nb: int) -> Superset:
+    """The joint model of the continuous `candidates` on the baseline's `chain` and
+    `measurement` (`catalogue.superset`), its free `parameters` (`nb` entries in the
+    baseline's parameter vector) and every candidate parameter, fitted on `fit_logs` with
+    the channels' noise `sigma`."""
+    sup_chain, sup_meas = cat.superset(chain, measurement, channels, driven)
+    ext_names = []
+    for c in candidates:
+        if not c.structural:
+            ext_names.extend(n for n in c.params if n not in ext_names)
+    ext_params = [
+        Parameter(
+            n, 0.0 if (meas.is_signed(n) if meas.is_measurement_parameter(n) else fd.is_signed(sup_chain, n)) else 1.0
+        )
+        for n in ext_names
+    ]
+    sup_problem = make_problem(
+        sup_chain, parameters + ext_params, fit_logs, dict(zip(channels, sigma)), measurement=sup_meas
+    )
+    neutral = []
+    for n in ext_names:
+        neutral.append(
+            float(meas.get_parameter(sup_meas, n))
+            if meas.is_measurement_parameter(n)
+            else float(fd.get_parameter(sup_chain, n))
+        )
+    joint = _Joint(sup_problem, jnp.asarray(neutral, dtype=float), nb)
+    used = _used(sup_problem)
+    return Superset(
+        sup_chain,
+        sup_meas,
+        parameters + ext_params,
+        ext_names,
+        neutral,
+        joint,
+        used,
+        int(used.sum()),
+        sigma,
+        jnp.asarray(sigma),
+    )

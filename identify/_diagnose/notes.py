@@ -33,8 +33,7 @@ def _after_continuous_at_noise(labels: set, scores, fits, problem, min_gain: flo
     `notes`)."""
     passing = [s for s in scores if s.accepted and not s.members and s.label in fits["labels"]]
     fitted = [s for s in scores if not s.screened and not s.members]
-    # review: a two-link arm's round printed nothing for 15 minutes of structural fits, and
-    # its continuous results (dry friction screened 20x ahead) only after them
+    # the round's continuous results are said before the structural fits, which take long
     structural = f"fitting the structural candidates ({', '.join(sorted(labels))}; each a model of its own)"
     if not passing:
         lead = min(fitted, key=lambda s: s.delta_bic, default=None)
@@ -68,8 +67,7 @@ def _after_continuous_at_noise(labels: set, scores, fits, problem, min_gain: flo
 
 
 #: `_stuck_above_nested`: an excess below this fraction of the current cost is the
-#: optimiser's precision, not a local minimum (seen on the spinning-link example, whose
-#: baseline misfit is large: a sensor high-pass ended at 104508119 against 104508062)
+#: optimiser's precision, not a local minimum (it matters where the baseline's misfit is large)
 STUCK_RELATIVE = 1e-4
 
 
@@ -134,9 +132,8 @@ def _fits_but_does_not_predict(scores, bic_threshold: float, min_gain: float, of
     """A note when the round's best fit (lowest dBIC, below `-bic_threshold`) predicts the
     held-out logs worse than the model it extends, by as much as acceptance asks it to
     predict them better (held-out gain below `1 / min_gain`): it absorbs something
-    particular to the fit logs. A sensor calibration candidate on a channel without per-log offsets is the
-    usual case (seen on the real pendulum: an encoder offset that differs between logs).
-    Else ''."""
+    particular to the fit logs. A sensor calibration candidate on a channel without per-log
+    offsets is the usual case (an encoder offset that differs between logs). Else ''."""
     fitted = [s for s in scores if not s.screened and np.isfinite(s.held_out_gain)]
     if not fitted:
         return ""
@@ -161,10 +158,9 @@ def _fits_but_does_not_predict(scores, bic_threshold: float, min_gain: float, of
 def _convergence_notes(result: str, at_bounds) -> list:
     """`Diagnosis.notes` of a baseline fit that did not converge (`result`: its last
     stage's solver result, "successful", "max_steps_reached" or "failed") or ended with
-    parameters `at_bounds` (found in review: `identify diagnose` said nothing of either and
-    exited 0). A fit stopped short of its optimum makes every candidate look better than it
-    is: part of each candidate's cost drop is the baseline's own fit finishing. A parameter
-    on its bound is often the missing effect's symptom (a damping pushed to zero by the
+    parameters `at_bounds`. A fit stopped short of its optimum makes every candidate look
+    better than it is: part of each candidate's cost drop is the baseline's own fit
+    finishing. A parameter on its bound is often the missing effect's symptom (a damping pushed to zero by the
     friction the model lacks), so it is said, not refused."""
     notes = []
     if result != "successful":

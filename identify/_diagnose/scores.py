@@ -115,9 +115,8 @@ def gain_standard_error(r_base, r_ext) -> float:
     pair up). Delta method: `log gain^2 = log mean(a) - log mean(b)` (`a = r_base^2`,
     `b = r_ext^2`) has variance `var(a / mean(a) - b / mean(b)) / n_eff`, with `n_eff = n
     (1 - rho) / (1 + rho)` for a lag-1 autocorrelation `rho >= 0` of that difference (a
-    residual correlated in time holds fewer independent samples). Review: a false cause
-    passed the 1.1x bar at 1.1002x on ~1,000 held-out samples, well within the gain's own
-    scatter (the summary now marks such a cause as marginal)."""
+    residual correlated in time holds fewer independent samples). A gain that passes its bar
+    by less than its own scatter is marked marginal (`Cause.marginal`)."""
     a, b = np.square(np.asarray(r_base, float)), np.square(np.asarray(r_ext, float))
     if a.shape != b.shape or a.size < 10 or not (a.mean() > 0 and b.mean() > 0):
         return float("nan")
@@ -135,8 +134,7 @@ def gain_standard_error(r_base, r_ext) -> float:
 def round_verdicts(scores) -> dict:
     """Label -> `"named"` for a round's first accepted candidate (the one the search
     names), `"passes, not named (the named one is better)"` for the others that pass both
-    tests, `""` else: what the console, the summary and the report show (review: two rows
-    said "ACCEPTED"/"yes" and one cause was named)."""
+    tests, `""` else: what the console, the summary and the report show."""
     named = next((s.label for s in scores if s.accepted), None)
     return {
         s.label: ("named" if s.label == named else "passes, not named (the named one is better)") if s.accepted else ""

@@ -1,4 +1,5 @@
-"""Structural candidates (a missing mode, joint elasticity): each its own model, fitted and scored."""
+"""Structural candidates (a missing mode, joint elasticity): each its own model, fitted and scored,
+and the structural part of a search's round."""
 
 from __future__ import annotations
 
@@ -22,7 +23,9 @@ from .._model.problem import make_problem
 from . import catalogue as cat
 from .held_out import _held_out_batch, _held_out_start, _Own, _own_starts, _with_extra_state
 from .joint_model import _used
-from .scores import Score, _rms_per_channel, gain_standard_error
+from .notes import _after_continuous_at_noise, _stuck_above_nested
+from .scores import Score, _promising, _rms_per_channel, _with_headroom, gain_standard_error
+from .state import CandidateFits, CurrentModel, SearchState, StackOn, StructuralModel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,7 +50,7 @@ class _StructuralFits:
     nyquist_hz: float
     say: Callable[[str], None]
 
-    def score(self, c, current: dict, rms_cur: float):
+    def score(self, c, current: CurrentModel, rms_cur: float):
         return _structural_score(self, c, current, rms_cur)
 
 
@@ -67,12 +70,9 @@ def _rigid_limit(c, error, nyquist_hz: float) -> str | None:
     it failed is far above the logs' Nyquist frequency, the evidence that the fit was
     making the joint rigid (None otherwise). The joint mode is at least
     `sqrt(k / J_rotor) / (2 pi)` (the rotor on its spring against a locked link; a free
-    link raises it: `omega^2 = k (1/J_rotor + 1/J_link)`).
-
-    Found on a driven rigid pendulum whose logs hide dry friction: the elastic-joint fit
-    took the stiffness from 2.7e-3 to 87 N m/rad and the rotor inertia from 1.5e-5 to
-    8.6e-8 kg m^2, a joint mode of >= 5 kHz against a 100 Hz Nyquist frequency, and the
-    adaptive solve ran out of steps; the note said "no evidence either way"."""
+    link raises it: `omega^2 = k (1/J_rotor + 1/J_link)`). An elastic-joint fit to logs
+    with another effect can drive the joint mode kHz above Nyquist until its adaptive
+    solve runs out of steps: that failure is evidence, not "no evidence either way"."""
     if c.name != "joint_elasticity" or not isinstance(error, SimulationFailed):
         return None
     if not any("limit of" in why for why in error.logs.values()):
@@ -92,18 +92,17 @@ def _rigid_limit(c, error, nyquist_hz: float) -> str | None:
     )
 
 
-def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float):
+def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cur: float):
     """Fit a structural candidate as a model of its own (baseline parameters refitted from
-    the baseline's values, accepted continuous effects kept at their fitted values).
-    Returns `(score, model)` (`model`: the fitted chain, its measurement, the free
-    parameters at their fitted values, the fit, the held-out weighted cost), or, when the
-    fit failed, the reason (a string, for `Diagnosis.notes`; found on the spinning-link
-    example: a failed candidate was only printed, and missing from the report)."""
+    the baseline's values, accepted continuous effects kept at their fitted values), scored
+    against the model `current` (held-out RMS `rms_cur`). Returns `(score, model)` (a
+    `state.StructuralModel`), or, when the fit failed, the reason (a string, for
+    `Diagnosis.notes`)."""
     base, parameters, sup_meas = setting.base, setting.parameters, setting.measurement
     channels, sigma, N, rtol, say = setting.channels, setting.sigma, setting.N, setting.rtol, setting.say
     fit_logs, held_out_logs = setting.fit_logs, setting.held_out_logs
     bic_threshold, min_gain, max_f = setting.bic_threshold, setting.min_gain, setting.max_frequency_hz
-    values = {n: val for n, val, _ in current["layout"]}
+    values = {n: val for n, val, _ in current.layout}
     base_chain = base.chain
     struct_chain, new = cat.structural_model(base_chain, c, max_frequency_hz=max_f)
     m = sup_meas
@@ -172,9 +171,9 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
         return reason if rigid is None else _FailedTowardRigid(reason, rigid)
     k = len(new)
     k_eff = max(k, 1)
-    dbic = N * math.log(max(res.cost, 1e-300) / current["cost"]) + k * math.log(N)
+    dbic = N * math.log(max(res.cost, 1e-300) / current.cost) + k * math.log(N)
     dof = max(N - len(problem.names) - len(problem.y0_free) - len(problem.offset_free), 1)
-    F = ((current["cost"] - res.cost) / k_eff) / (res.cost / dof)
+    F = ((current.cost - res.cost) / k_eff) / (res.cost / dof)
     p_value = float(stats.f.sf(F, k_eff, dof))
     used = _used(ho_problem)
     r_ho = np.asarray(r_ho[0])
@@ -200,18 +199,18 @@ def _structural_score(setting: _StructuralFits, c, current: dict, rms_cur: float
         bool(dbic < -bic_threshold and gain >= min_gain),
         k,
         intervals=intervals,
-        held_out_gain_se=gain_standard_error(np.asarray(current["ho"]), r_ho[used]),
+        held_out_gain_se=gain_standard_error(np.asarray(current.ho), r_ho[used]),
     )
     fitted_params = [dataclasses.replace(p, guess=_value_of(res, p.name)) for p in params]
-    model = {
-        "chain": fitted,
-        "measurement": m,
-        "parameters": fitted_params,
-        "fit": res,
-        "held_out_cost": float(np.sum(r_ho[used] ** 2)),
-        "held_out_problem": ho_problem,
-        "held_out_residual": r_ho[used],
-    }
+    model = StructuralModel(
+        chain=fitted,
+        measurement=m,
+        parameters=fitted_params,
+        fit=res,
+        held_out_cost=float(np.sum(r_ho[used] ** 2)),
+        held_out_problem=ho_problem,
+        held_out_residual=r_ho[used],
+    )
     return score, model
 
 
@@ -221,3 +220,87 @@ def _value_of(result: FitResult, name: str) -> float:
     if name in result.per_log:
         return float(np.median(list(result.per_log[name].values())))
     return float(result.value[name])
+
+
+def fit_structural_round(
+    setting: _StructuralFits, state: SearchState, cands, scores: list, fits: CandidateFits | None, held_problem
+) -> None:
+    """The structural candidates of round `state.round`, fitted and scored against the
+    current model, their scores appended to `scores` (the round's continuous ones; `fits`
+    their fits, `held_problem` the held-out problem). In round 1 all of them, unless the
+    baseline is at the noise; later only those that improved significantly on the model of
+    the previous round (`state.struct_promising`); none once an accepted continuous
+    candidate of the round reaches the noise. Each is a model of its own to compile and fit."""
+    rnd, done, notes, say = state.round, state.done, state.notes, setting.say
+    if rnd == 0:
+        state.struct_promising = _with_headroom(
+            {x.label for x in cands if x.structural and x.label not in done},
+            held_problem,
+            state.current.ho,
+            setting.min_gain,
+            1,
+            notes,
+            say,
+        )
+    # an accepted continuous candidate at the noise leaves a structural one at best a tie
+    pending = {x.label for x in cands if x.structural and x.label not in done} & state.struct_promising
+    if pending and fits is not None:
+        state.struct_promising = _after_continuous_at_noise(
+            pending, scores, {"labels": fits.labels, "ho": fits.ho}, held_problem, setting.min_gain, rnd + 1, notes, say
+        )
+    rms_cur = float(np.sqrt(np.mean(state.current.ho**2)))
+    for c in [x for x in cands if x.structural and x.label not in done and x.label in state.struct_promising]:
+        s = setting.score(c, state.current, rms_cur)
+        if isinstance(s, str):  # its fit failed: said, not dropped in silence
+            evidence = getattr(s, "evidence", "no evidence either way")
+            text = f"{c.label}: its fit failed ({s}); not scored; {evidence}"
+            say(f"  round {rnd + 1}: {text}")
+            notes.append({"round": rnd + 1, "text": text})
+        else:
+            scores.append(s[0])
+            state.struct_models[c.label] = s[1]
+            stuck = _stuck_above_nested(c, s[0].cost, state.current.cost, setting.bic_threshold)
+            if stuck:
+                say(f"  round {rnd + 1}: {stuck}")
+                notes.append({"round": rnd + 1, "text": stuck})
+
+
+def record_drops(state: SearchState, scores, cands) -> None:
+    """`state.struct_drop`: the cost each structural candidate of the round took off its
+    model. The next round refits one only if that drop would pass the BIC test there
+    (`_promising`): on the absolute drop, since a large effect masks a small one in a log-ratio."""
+    state.struct_drop.update(
+        {
+            s.label: (state.current.cost - s.cost, s.k)
+            for s in scores
+            if any(c.label == s.label and c.structural for c in cands)
+        }
+    )
+
+
+def stack_on_structural(setting: _StructuralFits, state: SearchState, winner: Score, candidate) -> None:
+    """An accepted structural `candidate` changes the model's coordinates, which the joint
+    model cannot hold: the search goes on from its model as a new baseline
+    (`state.stack_on`), with the structural candidates worth fitting again there."""
+    model = state.struct_models[candidate.label]
+    again = _promising(state.struct_drop, winner.cost, setting.N, setting.bic_threshold) - {candidate.label}
+    if candidate.name in cat.REPEATABLE:
+        again |= {candidate.label}
+    again = _with_headroom(
+        again,
+        model.held_out_problem,
+        model.held_out_residual,
+        setting.min_gain,
+        state.round + 2,
+        state.notes,
+        setting.say,
+    )
+    state.stack_on = StackOn(model, state.round + 1, again)
+
+
+def promising_next(setting: _StructuralFits, state: SearchState, held_problem) -> None:
+    """`state.struct_promising` for the next round, after a continuous candidate was accepted."""
+    promising = _promising(state.struct_drop, state.current.cost, setting.N, setting.bic_threshold)
+    state.struct_promising = _with_headroom(
+        promising, held_problem, state.current.ho, setting.min_gain, state.round + 2, state.notes, setting.say
+    )

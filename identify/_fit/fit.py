@@ -19,7 +19,7 @@ from .._data import noise_floor as nf
 from .._model.parameters import Parameter, names_at_bounds, x_from_theta, x_from_z
 from .._model.problem import Problem, check_same_parameters, guesses_of
 from .jacobian import _covariance_at
-from .levenberg_marquardt import _check_budgets, _check_damping, _result_name, _solve
+from .levenberg_marquardt import _check_budgets, _check_damping, _solve
 from .quality import (
     NOISE_AGREEMENT,
     NOISE_ROUNDS,
@@ -31,6 +31,7 @@ from .quality import (
     noise_floors,
 )
 from .result import FitResult, _finish
+from .stage import Stage
 from .starts import _extra_starts, _frequency_initialise, initial_variables, multi_start
 from .steps import GRID_ERROR, GRID_RECHECK, _default_horizons, _Grid, _say_onsets, _stage_step, _step_error
 
@@ -288,9 +289,9 @@ def _best_attempt(attempts: list[_Attempt], say: Callable) -> _Attempt:
     return attempts[kept]
 
 
-def _stage_record(horizon, steps, cost, result) -> dict:
+def _stage_record(horizon, steps, cost, result) -> Stage:
     """A stage's entry of `FitResult.stages`."""
-    return {"horizon_s": float(horizon), "iterations": int(steps), "cost": float(cost), "result": _result_name(result)}
+    return Stage(float(horizon), int(steps), float(cost), result)
 
 
 def _grow(problem, z, sigma, horizons, schedule: _Schedule, say, tau_first):
@@ -312,11 +313,11 @@ def _grow(problem, z, sigma, horizons, schedule: _Schedule, say, tau_first):
             )
             stages.append(_stage_record(h, steps, cost, result))
             say(
-                f"  horizon {h:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1]['result']}"
+                f"  horizon {h:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1].outcome}"
                 + (
                     f": an early stage's budget, early_max_steps={schedule.early_max_steps}; the next stage goes "
                     "on from here)"
-                    if not last and stages[-1]["result"] == "max_steps_reached"
+                    if not last and stages[-1].outcome == "max_steps_reached"
                     else ")"
                 )
             )
@@ -360,5 +361,5 @@ def _recheck_step(problem, z, sigma, horizon, step, lin, schedule: _Schedule, st
         schedule.atol,
     )
     stages.append(_stage_record(horizon, steps, cost, result))
-    say(f"  horizon {horizon:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1]['result']})")
+    say(f"  horizon {horizon:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1].outcome})")
     return z, tight, lin

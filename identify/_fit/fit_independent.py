@@ -20,8 +20,8 @@ from .._data import noise_floor as nf
 from .._data.channels import state_names
 from .._model.parameters import Parameter, x_from_theta, x_from_z, z_from_x
 from .._model.problem import Problem, check_same_parameters, guesses_of
-from .jacobian import _covariance_at, _SimulationFailed
-from .levenberg_marquardt import _check_budgets, _check_damping, _result_name, _solve
+from .jacobian import _covariance_at
+from .levenberg_marquardt import _check_budgets, _check_damping, _solve
 from .quality import (
     NOISE_AGREEMENT,
     NOISE_ROUNDS,
@@ -32,11 +32,13 @@ from .quality import (
     noise_floors,
 )
 from .result import FitResult, _finish
+from .stage import Stage
 from .starts import _frequency_initialise_independent
 from .steps import (
     GRID_ERROR,
     GRID_RECHECK,
     BatchGrid,
+    SimulationFailed,
     _default_horizons,
     _say_onsets,
     batch_grid,
@@ -287,14 +289,7 @@ def _stage_batch(batch: _Batch, z, sigma, h, step, tau, stages: list[list[dict]]
     )
     L = len(batch.singles)
     for k in range(L):
-        stages[k].append(
-            {
-                "horizon_s": float(h),
-                "iterations": int(steps[k]),
-                "cost": float(cost[k]),
-                "result": _result_name(jax.tree_util.tree_map(lambda a: a[k], result)),
-            }
-        )
+        stages[k].append(Stage(float(h), int(steps[k]), float(cost[k]), jax.tree_util.tree_map(lambda a: a[k], result)))
     batch.say(f"  {label}horizon {h:8.3f} s: {int(jnp.max(steps)):3d} iterations (slowest of {L} logs)")
     return z, lin
 
@@ -391,7 +386,7 @@ def _covariances(batch: _Batch, fitted: _BatchFit) -> tuple[jax.Array, list]:
                     batch.horizons[-1],
                 )
             )
-        except _SimulationFailed:
+        except SimulationFailed:
             failed.append(batch.problem.log_names[k])
     if failed:
         raise RuntimeError(

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._model.parameters import SIGMOID_Z_MAX, dx_dz, theta_from_x
+from .._model.parameters import SIGMOID_Z_MAX, dx_dz, theta_from_x, x_from_z
 from .._model.problem import Problem
 from .._model.residuals import (
     FAILED_RESIDUAL,
@@ -17,6 +17,7 @@ from . import covariance
 from .block_lm import Layout
 from .covariance import Covariance
 from .levenberg_marquardt import _blocked
+from .steps import SimulationFailed
 
 
 @eqx.filter_jit
@@ -82,16 +83,26 @@ def _natural_blocks(problem: Problem, z, lin, horizon):
     r, S, U = (np.asarray(a) for a in lin)
     L, n = r.shape
     used = mask.reshape(L, n)
-    if any(used[l].any() and np.all(r[l][used[l]] == FAILED_RESIDUAL) for l in range(L)):
-        raise _SimulationFailed(_FAILED_AT_OPTIMUM)
+    failed = [used[l].any() and np.all(r[l][used[l]] == FAILED_RESIDUAL) for l in range(L)]
+    if any(failed):
+        raise _failed_at_optimum(problem, x_from_z(problem, z["phys"]), failed)
     return r, S / scale, U, _nuisance_slots(problem), used
 
 
 _FAILED_AT_OPTIMUM = "fit: the simulation at the fitted parameters failed; check bounds and solver settings"
 
 
-class _SimulationFailed(RuntimeError):
-    """A log's simulation failed at the fitted parameters."""
+def _failed_at_optimum(problem: Problem, x, failed) -> SimulationFailed:
+    """`SimulationFailed` for the logs flagged in `failed` at natural coordinates `x`."""
+    theta = np.asarray(theta_from_x(problem, jnp.asarray(x)))
+    return SimulationFailed(
+        _FAILED_AT_OPTIMUM,
+        horizon_s=None,
+        values=dict(zip(problem.names, theta.tolist())),
+        logs={
+            name: "the simulation at the fitted parameters failed" for name, f in zip(problem.log_names, failed) if f
+        },
+    )
 
 
 def jacobian_blocks_at(problem: Problem, x, z, sigma, step):
@@ -101,7 +112,7 @@ def jacobian_blocks_at(problem: Problem, x, z, sigma, step):
     `slots` their positions among the nuisances, `used` which residuals count)."""
     jac = _jacobian_blocks(problem, x, z["y0"], z["offset"], sigma, step)
     if not bool(jnp.all(jac.ok)):
-        raise _SimulationFailed(_FAILED_AT_OPTIMUM)
+        raise _failed_at_optimum(problem, x, ~np.asarray(jac.ok))
     L, n, _ = jac.shared.shape
     used = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :]).reshape(L, n)
     return (

@@ -49,7 +49,7 @@ class FitResult:
     residual_variance: float
     cost: float
     n_residuals: int
-    stages: list  # [{horizon, iterations, cost, result}]
+    stages: list  # [Stage]
     converged: bool
     at_bounds: list  # parameters that ended on a bound (the fit is then not converged)
     identifiability: list  # warnings, [{'combination': str, 'ratio': float}]
@@ -192,7 +192,7 @@ class FitResult:
             for k, n in enumerate(self.problem.log_set_names):
                 per_log = ", ".join(f"{v:g} ({log})" for v, log in zip(values[:, k], self.problem.log_names))
                 lines.append(f"known per log: {n} = {per_log} {parameter_unit(self.problem, n)}")
-        its = sum(s["iterations"] for s in self.stages)
+        its = sum(s.iterations for s in self.stages)
         lines.append(
             f"cost {self.cost:.6g} over {self.n_residuals} residuals, residual variance {self.residual_variance:.4g}, "
             f"{its} LM iterations in {len(self.stages)} solver stages (`stages`), {self.wall_time:.1f} s"
@@ -322,7 +322,7 @@ class FitResult:
             "residual_variance": self.residual_variance,
             "cost": self.cost,
             "n_residuals": self.n_residuals,
-            "stages": self.stages,
+            "stages": [s.to_dict() for s in self.stages],
             # where each log's horizons count from (`log_onset`), s after its first sample
             "onset_s": {
                 name: float(o - t0)
@@ -384,7 +384,7 @@ def _finish(
     initial_far = _initial_far(problem, init, offs, sigma)
     # A parameter on its bound is not an interior optimum: the standard errors mean nothing
     # there and the bound, not the data, decided the value.
-    converged = stages[-1]["result"] == "successful" and not at_bounds
+    converged = stages[-1].outcome == "successful" and not at_bounds
     return FitResult(
         names=list(problem.names),
         values=values,

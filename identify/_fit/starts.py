@@ -14,7 +14,8 @@ import numpy as np
 from .._model.parameters import theta_from_x, x_from_theta, z_from_x
 from .._model.problem import Problem, guesses_of
 from .frequency_init import STIFFNESS, initialise_stiffness
-from .levenberg_marquardt import _result_name, _solve
+from .levenberg_marquardt import _solve
+from .stage import Stage
 from .steps import _Grid, _grid_step, _span_horizon, _stage_step
 
 #: `_distinct`: two optima of the multi-start stage are the same when their costs agree to
@@ -82,14 +83,14 @@ def multi_start(
     order = np.argsort(np.where(np.isfinite(costs), costs, np.inf))
     candidates = _distinct([runs[int(i)][0] for i in order], costs[order])[:keep]
     best = int(order[0])
-    stage = {
-        "horizon_s": float(horizon),
-        "iterations": max(int(r[2]) for r in runs),
-        "cost": float(costs[best]),
-        "result": _result_name(runs[best][1]),
-        "starts": len(xs),
-        "start_costs": [float(c) for c in costs],
-    }
+    stage = Stage(
+        float(horizon),
+        max(int(r[2]) for r in runs),
+        float(costs[best]),
+        runs[best][1],
+        starts=len(xs),
+        start_costs=tuple(float(c) for c in costs),
+    )
     n_design = len(xs) - len(extra)
     which = f"start {best + 1}" if best < n_design else f"extra start {best - n_design + 1}"
     say(

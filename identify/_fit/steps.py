@@ -98,12 +98,13 @@ def _span_horizon(problem: Problem, span: float):
 
 
 class SimulationFailed(RuntimeError):
-    """A fit stage could not simulate its logs at the current parameters (the adaptive
-    solver reached its step limit, or the state stopped being finite). Attributes:
-    `horizon_s` (the stage's horizon, s from each log's onset), `values` (parameter name
-    -> value, SI, where the simulation failed), `logs` (log name -> what failed)."""
+    """A fit could not simulate its logs at the current (or the fitted) parameters: the
+    adaptive solver reached its step limit, or the state stopped being finite. Attributes:
+    `horizon_s` (the stage's horizon, s from each log's onset; `None`: the whole logs),
+    `values` (parameter name -> value, SI, where the simulation failed), `logs` (log name
+    -> what failed)."""
 
-    def __init__(self, message: str, *, horizon_s: float, values: dict, logs: dict):
+    def __init__(self, message: str, *, horizon_s: float | None, values: dict, logs: dict):
         super().__init__(message)
         self.horizon_s = horizon_s
         self.values = values

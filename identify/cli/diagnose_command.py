@@ -108,7 +108,7 @@ def run_diagnose(args) -> int:
     if not diag.baseline_converged:  # on stderr and in the exit status, not only in the report
         print(
             f"identify diagnose: exit status {NOT_CONVERGED}: the baseline fit did not converge "
-            f"({diag.baseline.stages[-1]['result']}); the diagnosis is written, but its scores are measured "
+            f"({diag.baseline.stages[-1].outcome}); the diagnosis is written, but its scores are measured "
             "against a model short of its optimum (see the baseline note in the summary)",
             file=sys.stderr,
         )

@@ -246,7 +246,7 @@ def _print_results(report) -> None:
         ratio = float(sv[-1] / sv[0]) if sv.size and sv[0] > 0 else float("nan")
         print(f"identifiability: no warnings (smallest/largest singular value of the Jacobian {ratio:.2g})")
     if not result.converged:
-        last = result.stages[-1]["result"]
+        last = result.stages[-1].outcome
         if last != "successful":
             print(f"WARNING: the fit did not converge (last stage: {last}); try more --stages")
         else:  # the solver stopped at a bound: not an interior optimum

@@ -44,7 +44,7 @@ _SCRIPT = textwrap.dedent(
         "std_errors": [float(r.std_errors[0]) for r in results],
         "theta0": [float(next(iter(r.initial_states.values()))["theta1"][0]) for r in results],
         "costs": [float(r.cost) for r in results],
-        "iterations": [[s["iterations"] for s in r.stages] for r in results],
+        "iterations": [[s.iterations for s in r.stages] for r in results],
         "poor": [r.poor_fit for r in results],
         "retried": any("again:" in m for m in said),
     }))

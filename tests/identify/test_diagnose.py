@@ -35,11 +35,11 @@ from diagnose_cases import (  # tests/ is on sys.path
 )
 
 import flexdyn as fd
+import identify._diagnose.continuous as continuous_module
 import identify._diagnose.held_out as held_out_module
 import identify._diagnose.joint_model as joint_model_module
 import identify._diagnose.notes as notes_module
 import identify._diagnose.scores as scores_module
-import identify._diagnose.search as search_module
 import identify._diagnose.structural as structural_module
 import identify._model.residuals as residuals_module
 import identify._workflow as _workflow_module
@@ -184,7 +184,7 @@ def test_quadratic_damping_hidden_and_told_apart_from_dry_friction(monkeypatch):
     sizes = []
     few = joint_model_module._few_size
     monkeypatch.setattr(joint_model_module, "FEW_SIZE_AFTER_S", 0.0)
-    for module in (joint_model_module, search_module):  # each binds the name
+    for module in (joint_model_module, continuous_module):  # each binds the name
         monkeypatch.setattr(module, "_few_size", lambda *a: sizes.append(few(*a)) or sizes[-1])
     rng = np.random.default_rng(502)
     c = float(rng.uniform(0.1, 0.4))  # kg/m^2
@@ -654,7 +654,7 @@ def test_an_unconverged_fit_short_of_its_screening_prediction_is_continued(monke
         continued.append(sorted(set(b.tolist())))
         return v0, jnp.asarray(costs[b] * 0.9 ** (len(continued))), jnp.full(b.size, max_steps)
 
-    for module in (joint_model_module, search_module):  # each binds the name
+    for module in (joint_model_module, continuous_module):  # each binds the name
         monkeypatch.setattr(module, "_fit_batch", fake_fit_batch)
     vs = {"zb": jnp.zeros((3, 2))}
     idx = jnp.arange(3)[:, None]

@@ -128,14 +128,14 @@ def in_ci(result) -> dict:
 
 
 def iterations(result) -> int:
-    return sum(s["iterations"] for s in result.stages)
+    return sum(s.iterations for s in result.stages)
 
 
 def describe(result, seconds, label="") -> str:
     errs = rel_errors(result)
     se = {n: result.std_errors[i] / TRUTH[n] for i, n in enumerate(result.names)}
     cells = "  ".join(f"{n} {100 * errs[n]:+.3f}% (SE {100 * se[n]:.3f}%)" for n in TRUTH)
-    its = "+".join(str(s["iterations"]) for s in result.stages)
+    its = "+".join(str(s.iterations) for s in result.stages)
     return f"{label} {cells}  iterations {its}={iterations(result)}  {seconds:.1f} s  converged={result.converged}"
 
 
@@ -217,7 +217,7 @@ def test_one_start_growing_horizon_needs_the_scaled_first_damping(arm):
     helped, seconds = arm.fit(3008, factors, first_damping=0.0, extra_starts=[near], **options)
     print(describe(helped, seconds, "with a start near the truth:"))
     first = helped.stages[0]
-    assert first["starts"] == 2 and first["start_costs"][1] < first["start_costs"][0], first
+    assert first.starts == 2 and first.start_costs[1] < first.start_costs[0], first
     assert helped.converged and within_bars(helped), helped.summary()
 
 
@@ -595,7 +595,7 @@ def _trial_row(trial, seed, factors, result, seconds):
         "err": rel_errors(result),
         "in_ci": in_ci(result),
         "iters": iterations(result),
-        "iters_str": "+".join(str(s["iterations"]) for s in result.stages),
+        "iters_str": "+".join(str(s.iterations) for s in result.stages),
         "seconds": seconds,
         "converged": result.converged,
         "ok": result.converged and within_bars(result),
