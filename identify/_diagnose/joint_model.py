@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import types
 
 import equinox as eqx
 import jax
@@ -18,7 +17,7 @@ import flexdyn as fd
 
 from .._data import measurement as meas
 from .._fit.steps import aligned_step
-from .._model.parameters import Parameter, exp_natural, x_from_z
+from .._model.parameters import Bounds, Parameter, exp_natural, x_from_z
 from .._model.problem import Problem, make_problem
 from .._model.residuals import (
     initial_states_of,
@@ -51,8 +50,9 @@ def _theta(j: _Joint, xb, xe, idx, logf):
     return jnp.concatenate([tb, te])
 
 
-def _bounds(j: _Joint):
-    return types.SimpleNamespace(lower=j.problem.lower[: j.nb], upper=j.problem.upper[: j.nb])
+def _bounds(j: _Joint) -> Bounds:
+    """The bounds of the joint model's baseline block (its first `nb` parameters)."""
+    return Bounds(j.problem.lower[: j.nb], j.problem.upper[: j.nb])
 
 
 def _unpack(args):

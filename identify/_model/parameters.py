@@ -8,7 +8,7 @@ otherwise) and `theta` the physical values (SI).
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -39,8 +39,19 @@ class Parameter:
     per_log: bool = False
 
 
-def x_from_z(problem: Problem, z):
-    lo, hi = problem.lower, problem.upper
+class Bounds(NamedTuple):
+    """Lower and upper bounds of free parameters in natural coordinates `x` (the log of a
+    log-scale parameter's SI value, else the SI value), `-inf`/`inf` where unbounded. A
+    `Problem` carries the same two fields, so the maps below take either."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+
+
+def x_from_z(bounds: Bounds | Problem, z):
+    """Natural coordinates `x` from unbounded `z`: `lo + (hi - lo) sigmoid(z)` between two
+    bounds, `lo + softplus(z)` above one, `hi - softplus(-z)` below one, `z` unbounded."""
+    lo, hi = bounds.lower, bounds.upper
     both = jnp.isfinite(lo) & jnp.isfinite(hi)
     only_lo = jnp.isfinite(lo) & ~jnp.isfinite(hi)
     only_hi = ~jnp.isfinite(lo) & jnp.isfinite(hi)
@@ -53,8 +64,9 @@ def x_from_z(problem: Problem, z):
     )
 
 
-def z_from_x(problem: Problem, x):
-    lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
+def z_from_x(bounds: Bounds | Problem, x):
+    """The inverse of `x_from_z` (host-side; `x` kept 1e-9 of the range or 1e-12 inside a bound)."""
+    lo, hi = np.asarray(bounds.lower), np.asarray(bounds.upper)
     x = np.asarray(x, float)
     z = x.copy()
     for i in range(len(x)):
@@ -95,9 +107,9 @@ def x_from_theta(problem: Problem, theta):
     return np.array([np.log(v) if s else v for v, s in zip(theta, problem.log_scale)], float)
 
 
-def dx_dz(problem: Problem, z_phys) -> np.ndarray:
+def dx_dz(bounds: Bounds | Problem, z_phys) -> np.ndarray:
     """`d x / d z` of `x_from_z` (elementwise), host-side."""
-    lo, hi, z = np.asarray(problem.lower), np.asarray(problem.upper), np.asarray(z_phys, float)
+    lo, hi, z = np.asarray(bounds.lower), np.asarray(bounds.upper), np.asarray(z_phys, float)
 
     def sig(v):  # the logistic, to full relative precision in both tails, without overflow
         e = np.exp(-np.abs(v))
