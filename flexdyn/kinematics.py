@@ -1,19 +1,20 @@
 """Planar kinematics of an assembled chain: each body's frame (origin and rotation) and its
 rates, from the generalised coordinates `Q` (rad, m) and velocities `Qd`.
+
+`asm` is an `AssembledChain` (`flexdyn.assemble(chain)`), `lay` its `Layout`. The chain
+imports this module, not the other way round, so the types are named here, not imported.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import jax.numpy as jnp
 from jaxtyping import Array
 
-if TYPE_CHECKING:  # annotations only: the chain imports these kinematics
-    from flexdyn.chain import AssembledChain, Layout
-
 
 def rotation_matrix(angle):
+    """The planar rotation by `angle` (rad), `[[cos, -sin], [sin, cos]]`."""
     c, s = jnp.cos(angle), jnp.sin(angle)
     return jnp.array([[c, -s], [s, c]])
 
@@ -28,7 +29,7 @@ class Frames(NamedTuple):
     end: Array  # o_{n+1}, position of the tip of the last link
 
 
-def frames(asm: AssembledChain, Q) -> Frames:
+def frames(asm, Q) -> Frames:
     lay = asm.layout
     o = jnp.zeros(2)
     psi = jnp.zeros(())
@@ -46,7 +47,7 @@ def frames(asm: AssembledChain, Q) -> Frames:
     return Frames(tuple(origins), tuple(angles), tuple(tips), tuple(carriers), o)
 
 
-def frames_and_rates(asm: AssembledChain, Q, Qd) -> tuple[Frames, Frames]:
+def frames_and_rates(asm, Q, Qd) -> tuple[Frames, Frames]:
     """`frames(asm, Q)` and its time derivative along `Qd`, by the velocity recursion
 
         phi_dot_i = psi_dot_{i-1} + theta_dot_i,
@@ -85,12 +86,12 @@ def frames_and_rates(asm: AssembledChain, Q, Qd) -> tuple[Frames, Frames]:
     return f, fd
 
 
-def modal_slice(lay: Layout, Q, i):
+def modal_slice(lay, Q, i):
     idx = lay.modal[i]
     return Q[idx[0] : idx[-1] + 1] if idx else jnp.zeros((0,), Q.dtype)
 
 
-def stiffening_of(asm: AssembledChain, i: int) -> bool:
+def stiffening_of(asm, i: int) -> bool:
     """Whether link i has geometric stiffening (static structure)."""
     return bool(getattr(asm.chain.links[i], "geometric_stiffening", False))
 
@@ -100,14 +101,14 @@ def quadratic_of(A, x, y):
     return jnp.sum(x[:, None] * A * y[None, :])
 
 
-def reach_length(asm: AssembledChain, i: int, q):
+def reach_length(asm, i: int, q):
     """Axial position of link i's tip in its root frame, m: `l + u(l)`, `u(l) = -1/2 q^T
     shortening q` with geometric stiffening, `l` without."""
     lm = asm.links[i]
     return lm.length - 0.5 * quadratic_of(lm.shortening, q, q) if stiffening_of(asm, i) else lm.length
 
 
-def reach_rate(asm: AssembledChain, i: int, q, qd):
+def reach_rate(asm, i: int, q, qd):
     """Time derivative of `_reach`, m/s."""
     if not stiffening_of(asm, i):
         return jnp.zeros((), q.dtype)

@@ -8,15 +8,11 @@ otherwise) and `theta` the physical values (SI).
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-if TYPE_CHECKING:  # annotations only: the problem is built on these maps
-    from .problem import Problem
-
 
 Z95 = 1.959963984540054
 
@@ -42,13 +38,14 @@ class Parameter:
 class Bounds(NamedTuple):
     """Lower and upper bounds of free parameters in natural coordinates `x` (the log of a
     log-scale parameter's SI value, else the SI value), `-inf`/`inf` where unbounded. A
-    `Problem` carries the same two fields, so the maps below take either."""
+    `Problem` carries the same two fields, so the maps below take either. (The maps that
+    need the names and log scales, `theta_from_x` and the like, take the `Problem`.)"""
 
     lower: np.ndarray
     upper: np.ndarray
 
 
-def x_from_z(bounds: Bounds | Problem, z):
+def x_from_z(bounds: Bounds, z):
     """Natural coordinates `x` from unbounded `z`: `lo + (hi - lo) sigmoid(z)` between two
     bounds, `lo + softplus(z)` above one, `hi - softplus(-z)` below one, `z` unbounded."""
     lo, hi = bounds.lower, bounds.upper
@@ -64,7 +61,7 @@ def x_from_z(bounds: Bounds | Problem, z):
     )
 
 
-def z_from_x(bounds: Bounds | Problem, x):
+def z_from_x(bounds: Bounds, x):
     """The inverse of `x_from_z` (host-side; `x` kept 1e-9 of the range or 1e-12 inside a bound)."""
     lo, hi = np.asarray(bounds.lower), np.asarray(bounds.upper)
     x = np.asarray(x, float)
@@ -97,17 +94,20 @@ def exp_natural(x):
     return jnp.exp(jnp.clip(x, -LOG_CLIP, LOG_CLIP))
 
 
-def theta_from_x(problem: Problem, x):
+def theta_from_x(problem, x):
+    """Physical values (SI) from natural coordinates `x`: `exp` of a log-scale parameter's
+    (`problem.log_scale`, clipped by `exp_natural`), the others as they are."""
     if not problem.names:
         return jnp.zeros((0,), x.dtype)
     return jnp.stack([exp_natural(x[i]) if problem.log_scale[i] else x[i] for i in range(len(problem.names))])
 
 
-def x_from_theta(problem: Problem, theta):
+def x_from_theta(problem, theta):
+    """The inverse of `theta_from_x` (host-side)."""
     return np.array([np.log(v) if s else v for v, s in zip(theta, problem.log_scale)], float)
 
 
-def dx_dz(bounds: Bounds | Problem, z_phys) -> np.ndarray:
+def dx_dz(bounds: Bounds, z_phys) -> np.ndarray:
     """`d x / d z` of `x_from_z` (elementwise), host-side."""
     lo, hi, z = np.asarray(bounds.lower), np.asarray(bounds.upper), np.asarray(z_phys, float)
 
@@ -131,7 +131,7 @@ def dx_dz(bounds: Bounds | Problem, z_phys) -> np.ndarray:
 SIGMOID_Z_MAX = 15.0
 
 
-def names_at_bounds(problem: Problem, xs: np.ndarray) -> list[str]:
+def names_at_bounds(problem, xs: np.ndarray) -> list[str]:
     """Names of the parameters whose natural coordinate is on (within 0.1 % of the range
     of) a finite bound."""
     lo_b, hi_b = np.asarray(problem.lower), np.asarray(problem.upper)
