@@ -64,7 +64,7 @@ from _common import environment, format_environment, median_time, publish, timed
 import flexdyn as fd  # noqa: E402  (enables float64)
 from flexdyn import fixed_step  # noqa: E402
 from flexdyn.fused import rk4_sweep_final  # noqa: E402
-from flexdyn.simulate import as_input  # noqa: E402
+from flexdyn.simulation import as_input  # noqa: E402
 
 T_END = 5.0
 DT = 1e-3

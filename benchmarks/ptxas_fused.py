@@ -51,7 +51,7 @@ from _common import write_json  # noqa: E402
 
 import flexdyn as fd  # noqa: E402  (enables float64)
 from flexdyn import fused  # noqa: E402
-from flexdyn.simulate import as_input  # noqa: E402
+from flexdyn.simulation import as_input  # noqa: E402
 
 T_END, DT = 5.0, 1e-3
 

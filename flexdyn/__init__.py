@@ -83,7 +83,7 @@ from .program_cache import (
     mapping_count as mapping_count,
     mapping_limit as mapping_limit,
 )
-from .simulate import (
+from .simulation import (
     ChainVectorField as ChainVectorField,
     Outputs as Outputs,
     Trajectory as Trajectory,

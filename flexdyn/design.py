@@ -51,7 +51,7 @@ from jaxtyping import Array, Float
 from ._checks import _is_concrete, as_float_array, check_parameter, warn_if_degrees
 from .chain import Chain, assemble, generalised_forces
 from .inputs import AbstractInput
-from .simulate import observe, simulate
+from .simulation import observe, simulate
 
 
 def cubic_bspline(x):

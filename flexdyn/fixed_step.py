@@ -49,7 +49,7 @@ from .chain import (
 )
 from .inputs import AbstractInput, ZeroTorque
 from .linear import check_rk4_step
-from .simulate import Trajectory, _check_torque_shape, as_initial_state, as_input, check_times
+from .simulation import Trajectory, _check_torque_shape, as_initial_state, as_input, check_times
 from .smallsolve import spd_solve, spd_solve_rsqrt
 
 _SOLVES = {

@@ -78,7 +78,7 @@ from .fixed_step import _breaks, _pieces, vector_field
 from .inputs import SampledTorque
 from .linear import RK4_MARGIN, rk4_growth
 from .scalarize import eval_elementwise, is_constant, object_array
-from .simulate import as_input
+from .simulation import as_input
 
 __all__ = ["rk4_sweep_final"]
 

@@ -63,7 +63,7 @@ from jaxtyping import Array, Float
 from .chain import AssembledChain, Chain, _solve_forward_dynamics
 from .fixed_step import _stage_vjp
 from .inputs import ZeroTorque
-from .simulate import ChainVectorField, Trajectory, adaptive_controller, prepare
+from .simulation import ChainVectorField, Trajectory, adaptive_controller, prepare
 
 _TABLEAU = diffrax.Tsit5.tableau
 _C = (0.0, *(float(c) for c in _TABLEAU.c))  # the stage times t_k + c_i h, 7 stages

@@ -108,5 +108,11 @@ def _public_names(package: str) -> list[str]:
 @pytest.mark.parametrize("package", ["flexdyn", "identify"])
 def test_api_reference_lists_every_public_name(package):
     api = "\n".join(p.read_text(encoding="utf-8") for p in sorted((ROOT / "docs" / "api").glob("*.md")))
-    missing = [n for n in _public_names(package) if not re.search(rf"^::: {package}(\.\w+)*\.{n}\b", api, re.M)]
+    # (an entry rendered from another object names the public one as its `heading`)
+    missing = [
+        n
+        for n in _public_names(package)
+        if not re.search(rf"^::: {package}(\.\w+)*\.{n}\b", api, re.M)
+        and not re.search(rf'^\s+heading: "{package}\.{n}"$', api, re.M)
+    ]
     assert not missing, f"docs/api/ has no '::: {package}.NAME' entry for {missing}"

@@ -34,7 +34,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 import flexdyn as fd
-from flexdyn.simulate import adaptive_controller as _adaptive_controller
+from flexdyn.simulation import adaptive_controller as _adaptive_controller
 
 from .._data import channels as ch, measurement as meas
 

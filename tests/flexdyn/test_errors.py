@@ -153,7 +153,7 @@ def test_non_finite_initial_states_and_torques_are_named():
             getattr(fd, solve)(chain, y0, ts, fd.BangBang([NAN, 0.1], 0.1)).Q.block_until_ready()
     with pytest.raises(RUNTIME_ERRORS, match=r"simulate: the torque input is not finite"):
         fd.simulate(chain, y0, ts, fd.BangBang([NAN, 0.1], 0.1), dt=1e-3).Q.block_until_ready()
-    from flexdyn.simulate import as_initial_state
+    from flexdyn.simulation import as_initial_state
 
     with pytest.raises(ValueError, match=r"simulate: y0 expected finite values, got nan at index 0 \(theta1\)"):
         as_initial_state(fd.assemble(chain), y0.at[0].set(NAN), "simulate")
