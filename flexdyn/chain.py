@@ -451,8 +451,8 @@ def kinetic_energy(asm: AssembledChain | Chain, Q, Qd):
     call of its own, and under `vmap` the scalars become contiguous batch vectors (the
     measured gain: `docs/performance.md`)."""
     asm = assemble(asm)
-    _check_coordinates(asm.layout, Q, "kinetic_energy")
-    _check_coordinates(asm.layout, Qd, "kinetic_energy", "Qd")
+    check_coordinates(asm.layout, Q, "kinetic_energy")
+    check_coordinates(asm.layout, Qd, "kinetic_energy", "Qd")
     lay, chain = asm.layout, asm.chain
     zero = jnp.zeros((), Q.dtype)
     vx = vy = psi = psi_dot = zero  # o_dot of the current joint, tip angle and rate of the previous link
@@ -507,7 +507,7 @@ def potential_energy(asm: AssembledChain | Chain, Q):
     elastic parts; the gravity datum is the base joint. (Scalar components, as
     `kinetic_energy`; the position recursion of `frames` inlined.)"""
     asm = assemble(asm)
-    _check_coordinates(asm.layout, Q, "potential_energy")
+    check_coordinates(asm.layout, Q, "potential_energy")
     lay, chain = asm.layout, asm.chain
     zero = jnp.zeros((), Q.dtype)
     ox = oy = psi = zero
@@ -561,7 +561,7 @@ def total_energy(asm: AssembledChain | Chain, Q, Qd):
 def mass_matrix(asm: AssembledChain | Chain, Q) -> Float[Array, "n n"]:
     """Generalised mass matrix M(Q) = d^2 T / dQ_dot^2 (T is exactly quadratic in Q_dot)."""
     asm = assemble(asm)
-    _check_coordinates(asm.layout, Q, "mass_matrix")  # (a short Q would give a smaller M)
+    check_coordinates(asm.layout, Q, "mass_matrix")  # (a short Q would give a smaller M)
     zero = jnp.zeros_like(Q)
     return jax.jacfwd(jax.grad(kinetic_energy, argnums=2), argnums=2)(asm, Q, zero)
 
@@ -618,7 +618,7 @@ def accelerations(asm: AssembledChain | Chain, Q, Qd, torque) -> Float[Array, " 
     return _forward_dynamics(static, dynamic, Q, Qd, torque)
 
 
-def _lagrange_residual(asm: AssembledChain, Q, Qd, Qdd, torque):
+def lagrange_residual(asm: AssembledChain, Q, Qd, Qdd, torque):
     """`d/dt (dT/dQ_dot) - dT/dQ - F` along `(Q_dot, Q_ddot)`, = `M Q_ddot + h - F`, formed
     without `M`: the momentum `p = dT/dQ_dot` differentiated forward along `(Q_dot, Q_ddot)`
     gives `M_dot Q_dot + M Q_ddot` in one Jacobian-vector product."""
@@ -627,14 +627,14 @@ def _lagrange_residual(asm: AssembledChain, Q, Qd, Qdd, torque):
     return p_dot - jax.grad(kinetic_energy, argnums=1)(asm, Q, Qd) - generalised_forces(asm, Q, Qd, torque)
 
 
-# `_solve_forward_dynamics` and `_forward_dynamics_and_tangent` are jitted so that JAX
+# `solve_forward_dynamics` and `_forward_dynamics_and_tangent` are jitted so that JAX
 # traces each once per structure and shapes and reuses the jaxpr: one trace of `simulate`
 # calls the vector field four times, a fit traces the model in each of its programs, and
 # each trace of the forward dynamics is seconds of Python (the energies' derivatives).
 # Inside an outer `jit` the nested programs are inlined by XLA, so the compiled code is
 # the same (the tracing time saved: `docs/performance.md`).
 @eqx.filter_jit
-def _solve_forward_dynamics(asm: AssembledChain, Q, Qd, torque):
+def solve_forward_dynamics(asm: AssembledChain, Q, Qd, torque):
     M, h = mass_and_velocity_terms(asm, Q, Qd)
     factor = jsl.cho_factor(M)
     return jsl.cho_solve(factor, generalised_forces(asm, Q, Qd, torque) - h), factor
@@ -642,7 +642,7 @@ def _solve_forward_dynamics(asm: AssembledChain, Q, Qd, torque):
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _forward_dynamics(static, dynamic, Q, Qd, torque):
-    return _solve_forward_dynamics(eqx.combine(dynamic, static), Q, Qd, torque)[0]
+    return solve_forward_dynamics(eqx.combine(dynamic, static), Q, Qd, torque)[0]
 
 
 @_forward_dynamics.defjvp
@@ -664,18 +664,18 @@ def _forward_dynamics_jvp(static, primals, tangents):
 @eqx.filter_jit
 def _forward_dynamics_and_tangent(static, primals, tangents):
     dynamic, Q, Qd, torque = primals
-    Qdd, factor = _solve_forward_dynamics(eqx.combine(dynamic, static), Q, Qd, torque)
-    residual = lambda dyn_, Q_, Qd_, tau_: _lagrange_residual(eqx.combine(dyn_, static), Q_, Qd_, Qdd, tau_)  # noqa: E731
+    Qdd, factor = solve_forward_dynamics(eqx.combine(dynamic, static), Q, Qd, torque)
+    residual = lambda dyn_, Q_, Qd_, tau_: lagrange_residual(eqx.combine(dyn_, static), Q_, Qd_, Qdd, tau_)  # noqa: E731
     _, d_residual = jax.jvp(residual, primals, tangents)
     return Qdd, -jsl.cho_solve(factor, d_residual)
 
 
 def inverse_dynamics(asm: AssembledChain | Chain, Q, Qd, Qdd):
     """Generalised force that produces `Qdd`: M Qdd + h + dV/dQ + dR/dQ_dot (- dry
-    friction and drag), formed without `M` (`_lagrange_residual`)."""
+    friction and drag), formed without `M` (`lagrange_residual`)."""
     asm = assemble(asm)
     zero = jnp.zeros(len(asm.layout.actuated), dtype=Q.dtype)
-    return _lagrange_residual(asm, Q, Qd, Qdd, zero)
+    return lagrange_residual(asm, Q, Qd, Qdd, zero)
 
 
 def end_point(asm: AssembledChain | Chain, Q):
@@ -684,7 +684,7 @@ def end_point(asm: AssembledChain | Chain, Q):
     return frames(asm, Q).end
 
 
-def _check_coordinates(lay, Q, caller: str, name: str = "Q") -> None:
+def check_coordinates(lay, Q, caller: str, name: str = "Q") -> None:
     """`Q` (or the rates `Qd`) must hold one entry per coordinate (a trace-time check)."""
     n = lay.n_dof
     if jnp.shape(Q) != (n,):
@@ -698,7 +698,7 @@ def tip_deflections(asm: AssembledChain | Chain, Q):
     """Elastic tip deflection v_i(l_i) of every link, m (0 for rigid links)."""
     asm = assemble(asm)
     lay = asm.layout
-    _check_coordinates(lay, Q, "tip_deflections")
+    check_coordinates(lay, Q, "tip_deflections")
     return jnp.stack(
         [lm.tip_shape @ modal_slice(lay, Q, i) if lay.modal[i] else jnp.zeros(()) for i, lm in enumerate(asm.links)]
     )
@@ -709,7 +709,7 @@ def root_curvatures(asm: AssembledChain | Chain, Q):
     strain = curvature * half thickness)."""
     asm = assemble(asm)
     lay = asm.layout
-    _check_coordinates(lay, Q, "root_curvatures")
+    check_coordinates(lay, Q, "root_curvatures")
     return jnp.stack(
         [
             lm.root_curvature @ modal_slice(lay, Q, i) if lay.modal[i] else jnp.zeros(())

@@ -40,16 +40,16 @@ from jaxtyping import Array, Float
 from .chain import (
     AssembledChain,
     Chain,
-    _lagrange_residual,
-    _solve_forward_dynamics,
     accelerations,
     assemble,
     generalised_forces,
+    lagrange_residual,
     mass_and_velocity_terms,
+    solve_forward_dynamics,
 )
 from .inputs import AbstractInput, ZeroTorque
 from .linear import check_rk4_step
-from .simulation import Trajectory, _check_torque_shape, as_initial_state, as_input, check_times
+from .simulation import Trajectory, as_initial_state, as_input, check_times, check_torque_shape
 from .smallsolve import spd_solve, spd_solve_rsqrt
 
 _SOLVES = {
@@ -92,12 +92,12 @@ def _jump_values(torque: AbstractInput, caller: str) -> list[float]:
         ) from e
 
 
-def _breaks(torque: AbstractInput, t0: float, t1: float, caller: str = "rk4_final") -> list[float]:
+def input_breaks(torque: AbstractInput, t0: float, t1: float, caller: str = "rk4_final") -> list[float]:
     inner = sorted({j for j in _jump_values(torque, caller) if t0 < j < t1})
     return [t0, *inner, t1]
 
 
-def _pieces(breaks: list[float], dt: float, jumps=None) -> list[tuple[float, float, int, float]]:
+def input_pieces(breaks: list[float], dt: float, jumps=None) -> list[tuple[float, float, int, float]]:
     """`(a, h, n, last)` for each piece `[a, b]` between consecutive `breaks`: `n =
     ceil((b - a) / dt)` equal steps `h`, and the last admissible input time, `b^-` (the
     last float before `b`) where the input jumps at `b` (every break when `jumps` is None),
@@ -114,7 +114,7 @@ def _step_table(breaks: list[float], dt: float):
     """Per-step start time, step and last admissible input time (numpy arrays): each piece
     `[a, b]` in `n = ceil((b - a) / dt)` equal steps, the input read at `min(t, b^-)`."""
     starts, steps, lasts = [], [], []
-    for a, h, n, last in _pieces(breaks, dt):
+    for a, h, n, last in input_pieces(breaks, dt):
         starts.append(a + h * np.arange(n))
         steps.append(np.full(n, h))
         lasts.append(np.full(n, last))
@@ -154,10 +154,10 @@ def rk4_final(
     asm = assemble(chain)
     torque = as_input(torque, asm.chain.n_links)
     y0 = as_initial_state(asm, y0, "rk4_final")
-    _check_torque_shape(torque, t0, y0, asm.chain.n_links)
+    check_torque_shape(torque, t0, y0, asm.chain.n_links)
     y0 = check_rk4_step(asm, y0, torque(t0, y0), dt, "rk4_final")
     field = vector_field(asm, torque, solve)
-    starts, steps, lasts = _step_table(_breaks(torque, t0, t1), dt)
+    starts, steps, lasts = _step_table(input_breaks(torque, t0, t1), dt)
 
     def f(t, y, last):
         return field(jnp.minimum(t, last), y)
@@ -187,7 +187,7 @@ def _output_table(ts: np.ndarray, jumps: list[float], dt: float):
     jumps = {j for j in jumps if ts[0] < j <= ts[-1]}  # one at the end: read before it too
     breaks = sorted(set(ts.tolist()) | jumps)
     starts, steps, lasts, boundary = [], [], [], [0]
-    for a, h, n, last in _pieces(breaks, dt, jumps):
+    for a, h, n, last in input_pieces(breaks, dt, jumps):
         starts.append(a + h * np.arange(n))
         steps.append(np.full(n, h))
         lasts.append(np.full(n, last))
@@ -217,7 +217,7 @@ def _rk4_step(dynamic, static, y, x, record=False):
         Y = y + (a * h) * k
         tau = torque(jnp.minimum(t + a * h, last), Y)
         if record:
-            Qdd, (factor, lower) = _solve_forward_dynamics(asm, Y[:n], Y[n:], tau)
+            Qdd, (factor, lower) = solve_forward_dynamics(asm, Y[:n], Y[n:], tau)
             return jnp.concatenate([Y[n:], Qdd]), (Qdd, factor.T if lower else factor)
         return jnp.concatenate([Y[n:], accelerations(asm, Y[:n], Y[n:], tau)]), None
 
@@ -271,11 +271,11 @@ def _rk4_states_adjoint_fwd(perturbed, vjp_arg, static, table):
     return ys, (ys, Qdds, factors)
 
 
-def _stage_vjp(dynamic, static, Y, t, Qdd, factor, v):
+def stage_vjp(dynamic, static, Y, t, Qdd, factor, v):
     """`(df/dY)^T v` and `(df/dp)^T v` for `f(t, Y) = [Q_dot, Q_ddot]` at a stage whose
     accelerations `Q_ddot` and mass-matrix factor were recorded: with `w = M^-1 v_a`,
     `v_a^T dQ_ddot = -d(w^T r)` for the Lagrange residual `r = M Q_ddot + h - F` at fixed
-    `Q_ddot` (`flexdyn.chain._lagrange_residual`), so one reverse pass over the scalar
+    `Q_ddot` (`flexdyn.chain.lagrange_residual`), so one reverse pass over the scalar
     `w^T r` gives the derivatives w.r.t. `Q`, `Q_dot`, the torque and the chain's arrays,
     and no mass matrix is formed again."""
     asm_dyn, torque_dyn = dynamic
@@ -284,7 +284,7 @@ def _stage_vjp(dynamic, static, Y, t, Qdd, factor, v):
     w = jsl.cho_solve((factor, False), v[n:])  # the upper Cholesky factor of M
 
     def contracted(asm_dyn_, Q, Qd, tau):
-        return w @ _lagrange_residual(eqx.combine(asm_dyn_, asm_static), Q, Qd, Qdd, tau)
+        return w @ lagrange_residual(eqx.combine(asm_dyn_, asm_static), Q, Qd, Qdd, tau)
 
     tau, torque_vjp = jax.vjp(lambda d, Y_: eqx.combine(d, torque_static)(t, Y_), torque_dyn, Y)
     asm_bar, Q_bar, Qd_bar, tau_bar = jax.grad(contracted, argnums=(0, 1, 2, 3))(asm_dyn, Y[:n], Y[n:], tau)
@@ -309,7 +309,7 @@ def _step_vjp(dynamic, static, y, x, Qdds, factors, lam):
     y_bar, p_bar = lam, None
     for i in reversed(range(4)):
         t_i = jnp.minimum(t + _RK4_A[i] * h, last)
-        Y_bar, p_i = _stage_vjp(dynamic, static, Ys[i], t_i, Qdds[i], factors[i], k_bar[i])
+        Y_bar, p_i = stage_vjp(dynamic, static, Ys[i], t_i, Qdds[i], factors[i], k_bar[i])
         y_bar = y_bar + Y_bar
         p_bar = p_i if p_bar is None else jax.tree.map(jnp.add, p_bar, p_i)
         if i > 0:
@@ -410,7 +410,7 @@ def rk4_trajectory(
     torque = as_input(torque, asm.chain.n_links)
     n = asm.layout.n_dof
     y0 = as_initial_state(asm, y0, "rk4_trajectory")
-    _check_torque_shape(torque, ts_np[0], y0, asm.chain.n_links)
+    check_torque_shape(torque, ts_np[0], y0, asm.chain.n_links)
     y0 = check_rk4_step(asm, y0, torque(ts_np[0], y0), dt, "rk4_trajectory")
     jumps = [j for j in _jump_values(torque, "rk4_trajectory") if ts_np[0] < j <= ts_np[-1]]
     table, index = _output_table(ts_np, jumps, dt)

@@ -74,7 +74,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .chain import AssembledChain, Chain, assemble, check_batch
-from .fixed_step import _breaks, _pieces, vector_field
+from .fixed_step import input_breaks, input_pieces, vector_field
 from .inputs import SampledTorque
 from .linear import RK4_MARGIN, rk4_growth
 from .scalarize import eval_elementwise, is_constant, object_array
@@ -91,7 +91,7 @@ _cache: collections.OrderedDict = collections.OrderedDict()
 def _segments(torque, t0: float, t1: float, dt: float):
     """(start, step, number of steps, last input time) of each piece between jumps: the
     steps of `rk4_final`."""
-    return tuple(_pieces(_breaks(torque, t0, t1, caller="rk4_sweep_final"), dt))
+    return tuple(input_pieces(input_breaks(torque, t0, t1, caller="rk4_sweep_final"), dt))
 
 
 def _next_pow2(n: int) -> int:

@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import warn_if_single_precision
-from .chain import AssembledChain, Chain, _check_coordinates, accelerations, assemble, generalised_forces, mass_matrix
+from .chain import AssembledChain, Chain, accelerations, assemble, check_coordinates, generalised_forces, mass_matrix
 
 
 class LinearModel(eqx.Module):
@@ -156,7 +156,7 @@ def stiffness_matrix(chain: Chain | AssembledChain, Q0) -> Float[Array, "n n"]:
     """Tangent stiffness `K = -d(F - dV/dQ)/dQ` at rest (bending, joint springs, gravity)."""
     asm = assemble(chain)
     n = asm.layout.n_dof
-    _check_coordinates(asm.layout, Q0, "stiffness_matrix")
+    check_coordinates(asm.layout, Q0, "stiffness_matrix")
     zero_qd = jnp.zeros(n)
     zero_tau = jnp.zeros(len(asm.layout.actuated))
     return -jax.jacfwd(lambda Q: generalised_forces(asm, Q, zero_qd, zero_tau))(jnp.asarray(Q0, dtype=float))

@@ -70,7 +70,7 @@ def as_initial_state(asm, y0, caller: str) -> Float[Array, " 2n"]:
     return y0
 
 
-def _check_torque_shape(torque: AbstractInput, t0, y0, n_joints: int) -> None:
+def check_torque_shape(torque: AbstractInput, t0, y0, n_joints: int) -> None:
     shape = jax.eval_shape(torque, t0, y0).shape
     if shape != (n_joints,):
         raise ValueError(
@@ -114,7 +114,7 @@ def prepare(chain, y0, ts, torque, caller: str):
     y0 = as_initial_state(asm, y0, caller)
     ts = check_times(ts, caller)
     torque = as_input(torque, asm.chain.n_links)
-    _check_torque_shape(torque, ts[0], y0, asm.chain.n_links)
+    check_torque_shape(torque, ts[0], y0, asm.chain.n_links)
     # (a NaN torque makes the adaptive steps collapse until max_steps: said here instead)
     y0 = eqx.error_if(
         y0,

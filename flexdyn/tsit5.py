@@ -19,7 +19,7 @@ the accepted steps, each step's stages are computed again from `y_k`, with each 
 accelerations and Cholesky factor of `M`, and transposed in reverse order
 (`lambda_k = (dPhi_k / dy)^T lambda_{k+1} + ` the outputs' cotangents), each stage by one
 reverse pass over the scalar `w^T r` of the Lagrange residual at fixed accelerations
-(`flexdyn.fixed_step._stage_vjp`: no mass matrix is formed or factorised in the
+(`flexdyn.fixed_step.stage_vjp`: no mass matrix is formed or factorised in the
 transpose). This is the exact derivative of the computed states at those step sizes
 (Hager 2000; Sandu 2006). It equals diffrax's reverse-mode gradient through `simulate`
 (tested to 1e-8 relative, across input jumps), except for the input's switching times.
@@ -60,8 +60,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .chain import AssembledChain, Chain, _solve_forward_dynamics
-from .fixed_step import _stage_vjp
+from .chain import AssembledChain, Chain, solve_forward_dynamics
+from .fixed_step import stage_vjp
 from .inputs import ZeroTorque
 from .simulation import ChainVectorField, Trajectory, adaptive_controller, prepare
 
@@ -127,14 +127,14 @@ def _tsit5_adjoint_fwd(perturbed, vjp_arg, static, ts, rtol, atol, max_steps, dt
 def _stages(dynamic, static, t0, h, y):
     """The seven stages of the Tsit5 step from `(t0, y)` of size `h`, in a `lax.scan` (one
     right-hand side in the compiled program): their times, states, accelerations and upper
-    Cholesky factors of `M` (the residuals of `_stage_vjp`)."""
+    Cholesky factors of `M` (the residuals of `stage_vjp`)."""
     asm, torque = eqx.combine(dynamic, static)
     n = y.shape[0] // 2
 
     def stage(fs, i):
         Y = y + h * (jnp.asarray(_A_MATRIX)[i] @ fs)
         t = t0 + jnp.asarray(_C_VECTOR)[i] * h
-        Qdd, (factor, lower) = _solve_forward_dynamics(asm, Y[:n], Y[n:], torque(t, Y))
+        Qdd, (factor, lower) = solve_forward_dynamics(asm, Y[:n], Y[n:], torque(t, Y))
         return fs.at[i].set(jnp.concatenate([Y[n:], Qdd])), (t, Y, Qdd, factor.T if lower else factor)
 
     _, recorded = jax.lax.scan(stage, jnp.zeros((7, y.shape[0]), y.dtype), jnp.arange(7))
@@ -225,7 +225,7 @@ def _tsit5_adjoint_bwd(residuals, grads, perturbed, vjp_arg, static, ts, rtol, a
         def transpose(carry, inputs):
             y_bar, f_bar, p_bar = carry
             i, t, Y, Qdd, factor = inputs
-            Y_bar, p_i = _stage_vjp(dynamic, static, Y, t, Qdd, factor, f_bar[i])
+            Y_bar, p_i = stage_vjp(dynamic, static, Y, t, Qdd, factor, f_bar[i])
             Y_bar = Y_bar + jnp.where(i == 6, 1.0, 0.0) * lam  # y_{k+1} = Y_7
             f_bar = f_bar + (h * jnp.asarray(_A_MATRIX)[i])[:, None] * Y_bar[None, :]
             return (y_bar + Y_bar, f_bar, jax.tree.map(jnp.add, p_bar, p_i)), None
