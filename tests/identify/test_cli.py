@@ -439,7 +439,7 @@ def test_diagnose_exits_3_when_its_baseline_fit_did_not_converge(tmp_path, monke
     module = importlib.import_module("identify._workflow")
     report = importlib.import_module("identify._report.diagnosis_report")
     exp = _copy_example(tmp_path / "example")
-    baseline = SimpleNamespace(stages=[{"result": "successful"}, {"result": result}])
+    baseline = SimpleNamespace(stages=[SimpleNamespace(outcome="successful"), SimpleNamespace(outcome=result)])
 
     @dataclasses.dataclass
     class StandIn:

@@ -31,6 +31,7 @@ import time
 
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 from fresh_jacobian import assert_standard_errors_match, fresh_covariance  # tests/ is on sys.path
 from scipy.integrate import quad
@@ -45,6 +46,7 @@ import identify._fit.starts as starts_module
 import identify._fit.steps as steps_module
 import identify._model.parameters as parameters_module
 import identify._model.residuals as residuals_module
+from identify._fit.stage import Stage
 
 # ---------------------------------------------------------------------------
 # The 4-parameter scenario
@@ -1149,7 +1151,7 @@ def test_a_gross_misfit_points_at_the_set_up_first():
         return FitResult(
             names=["joint1.damping"], values=one, guesses=one, std_errors=0.1 * one, ci_low=0.8 * one,
             ci_high=1.2 * one, correlation=np.eye(1), initial_states={}, offsets={}, sigma={"theta1": 1e-3},
-            residual_variance=ratio**2, cost=1.0, n_residuals=100, stages=[{"iterations": 3, "result": "successful"}],
+            residual_variance=ratio**2, cost=1.0, n_residuals=100, stages=[Stage(1.0, 3, 1.0, optx.RESULTS.successful)],
             converged=True, at_bounds=[], identifiability=[], singular_values=one, wall_time=1.0, problem=None,
             z={}, fit_quality=quality,
         ).summary()  # fmt: skip
