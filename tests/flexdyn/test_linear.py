@@ -7,6 +7,7 @@ it); central differences of a Dopri8 solution at rtol 1e-12 for the derivatives.
 """
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -174,3 +175,21 @@ def test_damped_modes_of_a_free_arm_report_its_rigid_rotation_as_zero():
     assert sorted(zeta) == [-1.0, 1.0] and list(freqs) == [0.0, 0.0], (freqs, zeta)
     rate = 2 * np.pi * -float(fd.modal_analysis(up, jnp.array([np.pi / 2])).natural_frequency[0])
     np.testing.assert_allclose(sorted(np.linalg.eigvals(np.asarray(model.A)).real), [-rate, rate], rtol=1e-10)
+
+
+def test_natural_frequencies_of_a_hanging_rigid_pendulum_match_the_compound_pendulum():
+    """`fd.natural_frequencies` analyses a chain about its hanging equilibrium
+    (`fd.modal_configuration`). Oracle: the compound pendulum's small-swing frequency,
+    `f = sqrt(g (m_l L / 2 + m_p L) / (J_h + m_l L^2 / 3 + m_p L^2)) / (2 pi)` (uniform rod
+    of mass `m_l`, length `L`; point payload `m_p` at its tip; hub inertia `J_h`); and
+    without gravity the configuration is the zero one, with only the rigid-body mode."""
+    g, L, m_l, m_p, J_h = 9.81, 0.30, 0.180, 0.020, 2e-5  # (paper 000: g = 9.81 m/s^2)
+    chain = fd.rigs.rigid_pendulum(payload_mass=m_p, hub_inertia=J_h)
+    freqs, where = fd.natural_frequencies(chain)
+    expected = np.sqrt(g * (m_l * L / 2 + m_p * L) / (J_h + m_l * L**2 / 3 + m_p * L**2)) / (2 * np.pi)
+    assert freqs == pytest.approx([expected], rel=1e-10)
+    assert "hanging equilibrium" in where and "-90 deg" in where
+    Q0, _ = fd.modal_configuration(chain)
+    assert Q0[0] == pytest.approx(-np.pi / 2, rel=1e-15)
+    free, where = fd.natural_frequencies(eqx.tree_at(lambda c: c.gravity, chain, jnp.zeros(2)))
+    assert where == "zero configuration" and free == pytest.approx([0.0], abs=1e-6)
