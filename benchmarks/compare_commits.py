@@ -7,11 +7,12 @@ spell of the machine falls on both alike):
   `identify/examples/pendulum_friction/experiment.toml`, a new process (tracing,
   compilation and run), into a fresh folder;
 - `benchmarks/bench_fit_vs_scipy.py --repeats 1 --skip-default` of that tree (its cold fit
-  includes the fit pipeline's compilation; it prints its own warm time).
+  includes the fit pipeline's compilation; it prints its own warm time);
+- in the first round only, `identify fit` of each of `--fit-examples` (cold).
 
 It reports each job's wall time per tree (median over rounds) and the ratio new / old,
-and checks that the two trees' `diagnosis.json` agree to `--rtol` (timing and version
-fields aside): a refactor must not change a result.
+and checks that the two trees' `diagnosis.json` and `result.json` files agree to `--rtol`
+(timing and version fields aside): a refactor must not change a result.
 
 The older commit is checked out with `git worktree` into a temporary folder (removed at
 the end); both trees run with this interpreter and its installed dependencies.
@@ -76,6 +77,12 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--rtol", type=float, default=1e-6)
     parser.add_argument("--json", default=None)
+    parser.add_argument(
+        "--fit-examples",
+        nargs="*",
+        default=["pendulum_drops", "pendulum_friction"],
+        help="shipped examples (identify/examples/NAME) fitted in the first round, their result.json compared",
+    )
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="compare_commits_"))
     old = work / "old"
@@ -92,12 +99,22 @@ def main() -> None:
                     tree, [str(tree / "benchmarks/bench_fit_vs_scipy.py"), "--repeats", "1", "--skip-default"], work
                 )
                 times[name]["fit_vs_scipy"].append(wall)
+                if r == 0:
+                    for ex in args.fit_examples:
+                        exp = tree / "identify" / "examples" / ex / "experiment.toml"
+                        fit_out = work / f"{name}-fit-{ex}"
+                        wall, _ = _run(tree, ["-m", "identify", "fit", str(exp), "--out", str(fit_out)], work)
+                        times[name][f"fit_{ex}"] = [wall]
                 print(
-                    f"round {r + 1} {name}: main job {times[name]['main_job'][-1]:.1f} s, fit_vs_scipy {wall:.1f} s",
+                    f"round {r + 1} {name}: main job {times[name]['main_job'][-1]:.1f} s, "
+                    f"fit_vs_scipy {times[name]['fit_vs_scipy'][-1]:.1f} s",
                     flush=True,
                 )
         a, b = (json.loads((work / f"{n}-0" / "diagnosis.json").read_text()) for n in ("old", "new"))
-        diff = differences(a, b, args.rtol)
+        diff = differences(a, b, args.rtol, "diagnosis.json")
+        for ex in args.fit_examples:
+            a, b = (json.loads((work / f"{n}-fit-{ex}" / "result.json").read_text()) for n in ("old", "new"))
+            diff += differences(a, b, args.rtol, f"{ex}/result.json")
     finally:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)], check=False)
     summary = {
@@ -107,7 +124,7 @@ def main() -> None:
         row["ratio_new_over_old"] = row["new"] / row["old"]
         ratio = row["ratio_new_over_old"]
         print(f"{job}: old {row['old']:.1f} s, new {row['new']:.1f} s (median of {args.rounds}), new/old {ratio:.3f}")
-    print(f"diagnosis.json: {len(diff)} differences beyond rtol {args.rtol}")
+    print(f"diagnosis.json and result.json: {len(diff)} differences beyond rtol {args.rtol}")
     print("\n".join(diff[:40]))
     if args.json:
         record = {"base": args.base, "rounds": args.rounds, "times_s": times, "median": summary, "differences": diff}
