@@ -9,19 +9,21 @@ from pathlib import Path
 from .._report.json import package_versions
 from .check_command import _set_up_checks
 from .fit_command import _failure_text
-from .output import NOT_CONVERGED, PROGRESS_FILE, _experiment_and_folder, _Refused, _write_marker, check_output_folder
+from .output import (
+    NOT_CONVERGED,
+    PROGRESS_FILE,
+    _experiment_and_folder,
+    _Refused,
+    _write_marker,
+    check_output_folder,
+    printers,
+)
 
 
 def run_diagnose(args) -> int:
     start = time.perf_counter()
 
-    def say(msg=""):
-        if not args.quiet:
-            print(msg, flush=True)
-
-    def error(msg: str) -> int:
-        print(f"identify diagnose: {msg}", file=sys.stderr, flush=True)
-        return 2
+    say, error = printers("diagnose", args.quiet)
 
     from .._diagnose.catalogue import NAMES
 

@@ -18,6 +18,7 @@ from .output import (
     _Refused,
     _write_marker,
     check_output_folder,
+    printers,
 )
 
 
@@ -132,13 +133,7 @@ def run_fit(args) -> int:
     Exit status 0, 1 (the fit failed), 2 (bad arguments or folder), `NOT_CONVERGED`."""
     start = time.perf_counter()
 
-    def say(msg=""):
-        if not args.quiet:
-            print(msg, flush=True)
-
-    def error(msg: str) -> int:
-        print(f"identify fit: {msg}", file=sys.stderr, flush=True)
-        return 2
+    say, error = printers("fit", args.quiet)
 
     if args.stages < 1:
         return error(f"--stages expects an integer >= 1, got {args.stages}")

@@ -4,6 +4,7 @@ files the commands write, and the exit codes.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 MARKER = ".identify-output"
@@ -119,3 +120,18 @@ def _write_marker(out: Path) -> None:
         "Written by `identify` (flexdyn). This folder holds its outputs; a new run may overwrite these "
         f"files: {', '.join(output_files())}.\n"
     )
+
+
+def printers(command: str, quiet: bool):
+    """`(say, error)` of a command: `say` prints progress unless `quiet`; `error` prints
+    `identify COMMAND: message` on stderr and returns exit status 2 (bad arguments)."""
+
+    def say(msg=""):
+        if not quiet:
+            print(msg, flush=True)
+
+    def error(msg: str) -> int:
+        print(f"identify {command}: {msg}", file=sys.stderr, flush=True)
+        return 2
+
+    return say, error
