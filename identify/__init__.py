@@ -1,6 +1,6 @@
 """identify: fit flexdyn models to measured joint and tip-deflection logs.
 
-- `load_experiment(path)`: an experiment file (TOML) and its logs (CSV, .mat); see FORMAT.md.
+- `load_experiment(path)`: an experiment file (TOML) and its logs (CSV, .mat); see docs/experiment-format.md.
 - `fit_experiment(experiment)`: Levenberg-Marquardt through the diffrax solve, with
   standard errors, confidence intervals and identifiability warnings;
   `clustered_uncertainty(result)`: intervals that hold when the residual is model error

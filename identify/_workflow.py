@@ -200,7 +200,7 @@ class FitReport:
     validation_nuisances: dict = dataclasses.field(default_factory=dict)
 
     def to_dict(self, *, options: dict, command: list) -> dict:
-        """`result.json`'s content (FORMAT.md): the fit's `to_dict` with the experiment,
+        """`result.json`'s content (docs/experiment-format.md): the fit's `to_dict` with the experiment,
         residuals, validation, modal and uncertainty sections, `options`, `command` and
         the package versions."""
         result, val = self.result, self.validation_nuisances

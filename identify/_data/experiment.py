@@ -6,7 +6,7 @@ a `flexdyn.Chain`, loads and checks every log (`identify.logs`) and returns an
 problem inside a log file), both `ValueError`s, whose message names the file,
 the line when it can be found, the key path (`logs[2].columns.tip1`) and what
 was expected. The format is documented, with a full example, in
-`identify/FORMAT.md`.
+`docs/experiment-format.md`.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ class LogSpec:
     - `calibration`: channel -> `Calibration` for voltage, strain-gauge and motor-side columns.
     - `initial`: known initial-state entries, coordinate or `<coordinate>_rate` -> SI value
       (entries not listed are 0, except rotor angles/rates of elastic joints, which default
-      to the link's: see FORMAT.md). Also the starting guess of entries in `fit_initial`.
+      to the link's: see docs/experiment-format.md). Also the starting guess of entries in `fit_initial`.
     - `fit_initial`: initial-state entries to estimate for this log.
     - `offsets`: output channels whose constant sensor offset is estimated for this log.
     - `log`: the loaded data (SI).
@@ -221,7 +221,7 @@ def _noise_text(channel: str, sigma: float) -> str:
 def gravity_text(gravity) -> str:
     """The rig's gravity and where it makes the first link hang, in the logs' angle
     convention (`theta1` from the base x axis, counter-clockwise): the check of a log's
-    angle zero against the model's (FORMAT.md, "Gravity and the angle zero")."""
+    angle zero against the model's (docs/experiment-format.md, "Gravity and the angle zero")."""
     g = np.asarray(gravity, float)
     if not np.any(g):
         return "gravity [0, 0]: a rig in a horizontal plane (give [rig] gravity for a vertical one)"

@@ -23,7 +23,7 @@ _LOG_KEYS = ("file", "name", "role", "columns", "calibration", "initial", "fit_i
 
 
 def load_experiment(path) -> Experiment:
-    """Read an experiment file (TOML) and everything it refers to; see `identify/FORMAT.md`.
+    """Read an experiment file (TOML) and everything it refers to; see `docs/experiment-format.md`.
 
     Raises `ExperimentError` for a problem in the experiment file and `LogError` for one
     in a log file (both `ValueError`); nothing is written.

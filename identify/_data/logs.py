@@ -5,7 +5,7 @@ the sample times, measured outputs (`theta1`, `tip1`, ...) and applied inputs
 (`torque1`, ...). `load_log` reads one file, converts every channel to SI and
 checks it; anything wrong raises `LogError` naming the file, the line and column
 (CSV) or the variable and sample (.mat), and what was expected. Nothing is ever
-written. The file format is documented in `identify/FORMAT.md`.
+written. The file format is documented in `docs/experiment-format.md`.
 """
 
 from __future__ import annotations

@@ -235,7 +235,7 @@ class FitResult:
                 "sampling rate makes the floor 0.42 of the noise: identify.noise_floor)"
                 + (
                     "; this far off, check the set-up first: the rig's gravity against the logs' angle zero, and "
-                    "the columns' units (identify/FORMAT.md)"
+                    "the columns' units (docs/experiment-format.md)"
                     if q["ratio"] > GROSS_MISFIT
                     else ""
                 )
@@ -257,7 +257,7 @@ class FitResult:
                 "each log's first push of the torque): is its sign "
                 "reversed (or the torque's)? flexdyn's angles, deflections and torques are counter-clockwise "
                 "positive (README: conventions); negate the column in the log (a column in volts: a negative "
-                "calibration scale, identify/FORMAT.md)"
+                "calibration scale, docs/experiment-format.md)"
             )
         if self.poor_fit:
             lines.append(

@@ -15,7 +15,7 @@ model extensions (`identify.catalogue`), names the cause(s) whose gain is signif
 writes `diagnosis.json`, `report.md` and plots (default folder
 `./<experiment file stem>-diagnosis/`; see `identify.diagnose`).
 
-`fit` loads the experiment (see `identify/FORMAT.md`), fits its free parameters to its fit
+`fit` loads the experiment (see `docs/experiment-format.md`), fits its free parameters to its fit
 logs, checks the fit on its validation logs, prints the parameter table, the
 identifiability warnings and a residual summary, and writes into the output folder
 (default `./<experiment file stem>-fit/`):
@@ -62,7 +62,7 @@ def _parser() -> argparse.ArgumentParser:
     fit = sub.add_parser(
         "fit",
         help="fit an experiment's free parameters to its logs",
-        description="Fit the free parameters of an experiment file (identify/FORMAT.md) to its fit logs, check "
+        description="Fit the free parameters of an experiment file (docs/experiment-format.md) to its fit logs, check "
         "the fit on its validation logs, print the results and write result.json and plots.",
     )
     fit.add_argument("experiment", type=Path, help="the experiment file (TOML)")
@@ -122,7 +122,7 @@ def _parser() -> argparse.ArgumentParser:
     ck = sub.add_parser(
         "check",
         help="read an experiment file and its logs and say what a fit would start from, without fitting",
-        description="Load the experiment file (identify/FORMAT.md) and its logs with every check a fit makes, "
+        description="Load the experiment file (docs/experiment-format.md) and its logs with every check a fit makes, "
         "print the rig, the free parameters, the logs and the set-up checks, and exit: 0 if a fit could start, 2 "
         "(with the file, line and key) if not. Nothing is compiled or written (a few seconds).",
     )

@@ -651,10 +651,10 @@ def test_no_rig_or_no_logs(tmp_path):
 
 
 def test_format_md_example_loads(tmp_path):
-    """The complete example in identify/FORMAT.md is a valid experiment file."""
+    """The complete example in docs/experiment-format.md is a valid experiment file."""
     import pathlib
 
-    doc = (pathlib.Path(__file__).parents[2] / "identify" / "FORMAT.md").read_text()
+    doc = (pathlib.Path(__file__).parents[2] / "docs" / "experiment-format.md").read_text()
     example = doc.split("## A complete example", 1)[1].split("```toml\n", 1)[1].split("```", 1)[0]
     # gauge column: 10 cos(t) + 1 V, so 11 V at t = 0
     write_log(tmp_path / "logs" / "drop_0deg.csv", header=("time [s]", "enc [deg]", "gauge [V]", "status"))

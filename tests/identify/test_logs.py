@@ -696,19 +696,19 @@ def test_centimetres(tmp_path, unit, factor):
 
 
 def test_format_md_lists_every_unit_and_spelling():
-    """identify/FORMAT.md's units table and its list of other spellings name every key of
+    """docs/experiment-format.md's units table and its list of other spellings name every key of
     `units.UNITS` and `units.ALIASES` (review: five accepted spellings were not listed)."""
     import pathlib
 
     from identify._data import units
 
-    doc = (pathlib.Path(__file__).parents[2] / "identify" / "FORMAT.md").read_text()
+    doc = (pathlib.Path(__file__).parents[2] / "docs" / "experiment-format.md").read_text()
     missing = [k for k in [*units.UNITS, *units.ALIASES] if f"`[{k}]`" not in doc and f"`{k}`" not in doc]
     assert not missing, missing
 
 
 def test_write_log_is_read_back_bit_for_bit_and_never_overwrites(tmp_path):
-    """Review: users simulating logs had to write the CSV layout of FORMAT.md by hand.
+    """Review: users simulating logs had to write the CSV layout of docs/experiment-format.md by hand.
     Oracle: the CSV reader (`load_log`, its own unit table) gives back the same float64
     values (the deg/mm scaling round-trips to within one rounding); an existing file is
     refused, named, and left as it was."""
