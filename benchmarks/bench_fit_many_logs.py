@@ -61,6 +61,7 @@ import identify._fit.levenberg_marquardt as levenberg_marquardt_module
 import identify._model.parameters as parameters_module
 import identify._model.problem as problem_module
 from identify._model.residuals import log_jacobian, residuals  # noqa: E402
+from identify._model.variables import Variables  # noqa: E402
 
 COLUMNS = [
     ("run", "run", ""),
@@ -100,11 +101,11 @@ def problem(L: int, per_log: str = ""):
     ]
     p = identify.make_problem(chain, params, logs, noise)
     x = jnp.asarray(parameters_module.x_from_theta(p, problem_module.guesses_of(p, params)))
-    z = {
-        "phys": jnp.asarray(parameters_module.z_from_x(p, np.asarray(x))),
-        "y0": jnp.asarray([p.y0_known[a, b] for a, b in p.y0_free]),
-        "offset": jnp.zeros(len(p.offset_free)),
-    }
+    z = Variables(
+        offset=jnp.zeros(len(p.offset_free)),
+        phys=jnp.asarray(parameters_module.z_from_x(p, np.asarray(x))),
+        y0=jnp.asarray([p.y0_known[a, b] for a, b in p.y0_free]),
+    )
     return p, x, z
 
 
@@ -122,9 +123,9 @@ def dense_rule(fn):
         tz, _ = tangents
         J, r = jax.jacfwd(lambda z_: (lambda out: (out, out))(fn(z_, args)), has_aux=True)(z)
         dr = jnp.zeros_like(r)
-        for key in z:
-            if tz[key] is not None:
-                dr = dr + J[key].reshape(r.shape[0], -1) @ tz[key].reshape(-1)
+        for key in ("offset", "phys", "y0"):
+            if getattr(tz, key) is not None:
+                dr = dr + getattr(J, key).reshape(r.shape[0], -1) @ getattr(tz, key).reshape(-1)
         return r, dr
 
     return wrapped
@@ -132,9 +133,7 @@ def dense_rule(fn):
 
 @eqx.filter_jit
 def jac_ours(p, x, z):
-    jac = log_jacobian(
-        p, lambda x_: parameters_module.theta_from_x(p, x_), x, z["y0"], z["offset"], p.sigma, None, STEP
-    )
+    jac = log_jacobian(p, lambda x_: parameters_module.theta_from_x(p, x_), x, z.y0, z.offset, p.sigma, None, STEP)
     return jac.r.reshape(-1), jac.dense(len(p.y0_free), len(p.offset_free))
 
 
@@ -143,14 +142,14 @@ def jac_dense(p, x, z):
     def fn(v):
         return residuals(p, parameters_module.theta_from_x(p, v["x"]), v["y0"], v["offset"], p.sigma, None, STEP)[0]
 
-    v = {"x": x, "y0": z["y0"], "offset": z["offset"]}
+    v = {"x": x, "y0": z.y0, "offset": z.offset}
     J = jax.jacfwd(fn)(v)
     return fn(v), jnp.concatenate([J["x"], J["y0"], J["offset"]], axis=1)
 
 
 @eqx.filter_jit
 def residual(p, x, z):
-    return residuals(p, parameters_module.theta_from_x(p, x), z["y0"], z["offset"], p.sigma, None, STEP)[0]
+    return residuals(p, parameters_module.theta_from_x(p, x), z.y0, z.offset, p.sigma, None, STEP)[0]
 
 
 _dense_lm = dense_rule(levenberg_marquardt_module._residual_fn)
@@ -175,7 +174,7 @@ def covariance_rows(L: int, repeats: int, per_log: str = ""):
     ncol = len(p.names) + len(p.y0_free) + len(p.offset_free)
 
     def dense():
-        r, J, _ = jacobian_module._jacobian_natural(p, x, z["y0"], z["offset"], p.sigma, STEP)
+        r, J, _ = jacobian_module._jacobian_natural(p, x, z.y0, z.offset, p.sigma, STEP)
         return jacobian_module._dense_covariance(p, r, J), J.nbytes
 
     out = {}

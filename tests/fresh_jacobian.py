@@ -23,9 +23,9 @@ def fresh_covariance(result):
     linearisation. Standard errors in natural coordinates (log ones for log-scale
     parameters)."""
     problem = result.problem
-    x = parameters_module.x_from_z(problem, result.z["phys"])
+    x = parameters_module.x_from_z(problem, result.z.phys)
     sigma = jnp.asarray([result.sigma[c] for c in problem.channels])
-    r, J, ok = jacobian_module._jacobian_natural(problem, x, result.z["y0"], result.z["offset"], sigma, result.step)
+    r, J, ok = jacobian_module._jacobian_natural(problem, x, result.z.y0, result.z.offset, sigma, result.step)
     assert bool(ok)
     return jacobian_module._dense_covariance(problem, r, J)
 

@@ -9,6 +9,7 @@ import dataclasses
 import math
 import time
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import stats
@@ -22,6 +23,7 @@ from .joint_model import (
     MAX_REFINEMENTS,
     REFERENCE_DIVISOR,
     SLOTS,
+    JointVariables,
     Superset,
     _best_starts,
     _bounds,
@@ -72,9 +74,7 @@ def score_continuous(
         labels = [c.label for c in remaining if c.label in best]
         thetas = jnp.stack(
             [
-                superset.theta_of(
-                    {k: v[best[lab]] for k, v in vs.items()}, np.asarray(idx[best[lab]]), np.asarray(logf[best[lab]])
-                )
+                superset.theta_of(vs.take(best[lab]), np.asarray(idx[best[lab]]), np.asarray(logf[best[lab]]))
                 for lab in labels
             ]
         )
@@ -112,7 +112,7 @@ def _screening(
     starts to fit (each kept candidate's two most promising), the labels kept, each label's
     predicted cost, and why each other one was left out."""
     joint, N, n_fit, cost = superset.joint, superset.N, options.n_fit, state.current.cost
-    xb_cur = x_from_z(_bounds(joint), v_start["zb"])
+    xb_cur = x_from_z(_bounds(joint), v_start.zb)
     B = len(owners)
     if state.screen_batch is None:
         state.screen_batch = B
@@ -121,8 +121,8 @@ def _screening(
         joint,
         xb_cur,
         _pad(jnp.asarray(xe), size),
-        v_start["y0"],
-        v_start["offset"],
+        v_start.y0,
+        v_start.offset,
         _pad(idx, size),
         _pad(logf, size),
         superset.sigma_j,
@@ -171,12 +171,12 @@ def _fit_starts(
     candidate's best start, and `(batch size, seconds the call took)`."""
     joint, sigma_j, max_steps, say = superset.joint, superset.sigma_j, options.max_steps, options.say
     B = len(owners)
-    v0 = {
-        "zb": jnp.tile(_unsaturated(joint, v_start["zb"]), (B, 1)),
-        "xe": jnp.asarray(xe),
-        "y0": jnp.tile(v_start["y0"], (B, 1)),
-        "offset": jnp.tile(v_start["offset"], (B, 1)),
-    }
+    v0 = JointVariables(
+        offset=jnp.tile(v_start.offset, (B, 1)),
+        xe=jnp.asarray(xe),
+        y0=jnp.tile(v_start.y0, (B, 1)),
+        zb=jnp.tile(_unsaturated(joint, v_start.zb), (B, 1)),
+    )
     say(f"round {state.round + 1}: fitting {len(remaining)} candidates ({B} starts) in one vmapped call ...")
     # padded to a few fixed sizes, so that every round reuses the compiled programs
     size = next(b for b in (3, 6, 12, 24, 10**9) if b >= B) if B <= 24 else B
@@ -229,9 +229,9 @@ def _step_check(superset: Superset, options: SearchOptions, state: SearchState, 
         return None
     top = min(dbic, key=dbic.get)
     b = best[top]
-    v = {key: val[b] for key, val in vs.items()}
+    v = vs.take(b)
     theta = superset.theta_of(v, np.asarray(idx[b]), np.asarray(logf[b]))
-    off, finer = _finer_step(superset.problem, theta, v["y0"], state.step, superset.sigma_j)
+    off, finer = _finer_step(superset.problem, theta, v.y0, state.step, superset.sigma_j)
     if finer is None:
         return None
     text = (
@@ -347,7 +347,7 @@ def pair_search(
     options.say(
         f"  no single entry accepted; pairing {lead.label} (dBIC {lead_s.delta_bic:.1f}) with {len(pairs)} others ..."
     )
-    v_lead = fits.variables(lead.label, ("zb", "y0", "offset"))
+    v_lead = fits.variables(lead.label)
     pair_scores, pair_fits = score_continuous(superset, held, options, state, pairs, v_lead)
     return pairs, pair_scores, pair_fits
 
@@ -361,8 +361,8 @@ def reconverge(
     `_few_size`). Without it, a candidate of the next round would get the credit for whatever
     this refit gains."""
     cur, joint, N, max_steps = state.current, superset.joint, superset.N, options.max_steps
-    v = {k: jnp.asarray(val)[None] for k, val in cur.v.items()}
-    v["zb"] = _unsaturated(joint, v["zb"][0])[None]
+    v = jax.tree_util.tree_map(lambda a: jnp.asarray(a)[None], cur.v)
+    v = dataclasses.replace(v, zb=_unsaturated(joint, v.zb[0])[None])
     idx_c, logf_c = jnp.asarray(cur.idx)[None], jnp.asarray(cur.logf)[None]
     cost, moved = cur.cost, False
     size = _few_size(1, *sized)
@@ -374,13 +374,13 @@ def reconverge(
         if not (np.isfinite(c2) and c2 < cost):
             break
         gained = N * math.log(cost / max(c2, 1e-300))
-        v = {k: jnp.asarray(val)[:1] for k, val in out.items()}
+        v = jax.tree_util.tree_map(lambda a: jnp.asarray(a)[:1], out)
         cost, moved = c2, True
         if gained < 0.1 or int(np.asarray(s2)[0]) < max_steps:
             break
     if not moved or N * math.log(cur.cost / max(cost, 1e-300)) < 0.1:
         return cur
     options.say(f"  the accepted model refitted alone: cost {cur.cost:.6g} -> {cost:.6g}")
-    v1 = {k: val[0] for k, val in v.items()}
+    v1 = v.take(0)
     theta = superset.theta_of(v1, np.asarray(cur.idx), np.asarray(cur.logf))
     return dataclasses.replace(cur, v=v1, cost=cost, ho=held.residuals(theta[None], state.step)[0])

@@ -365,7 +365,7 @@ def _traces(superset: Superset, held: HeldOutSet, baseline: CurrentModel, curren
         for name, model in variants:
             theta = superset.theta_of(model.v, model.idx, model.logf)
             if role == "fit":
-                y0s, off = initial_states_of(problem, model.v["y0"]), sensor_offsets(problem, model.v["offset"])
+                y0s, off = initial_states_of(problem, model.v.y0), sensor_offsets(problem, model.v.offset)
             else:
                 _, w = held.refit(theta[None], step)
                 y0s, off = initial_states_of(problem, w.y0[0]), sensor_offsets(problem, w.offset[0])
@@ -401,13 +401,13 @@ def _extended_intervals(base: FitResult, superset: Superset, current: CurrentMod
     if not current.layout:
         return ext_intervals, ext_values
     v, joint = current.v, superset.joint
-    xb = x_from_z(_bounds(joint), v["zb"])
+    xb = x_from_z(_bounds(joint), v.zb)
     r, J = _jacobian(
         joint,
         xb,
-        v["xe"],
-        v["y0"],
-        v["offset"],
+        v.xe,
+        v.y0,
+        v.offset,
         jnp.asarray(current.idx),
         jnp.asarray(current.logf),
         superset.sigma_j,
@@ -417,7 +417,7 @@ def _extended_intervals(base: FitResult, superset: Superset, current: CurrentMod
     # (an undetermined parameter gets an infinite error, as in the fit: `identify.covariance`)
     se_nat = covariance.dense((), (), r, J).std_errors
     natural = [(n, float(xb[i]), float(se_nat[i]), problem.log_scale[i]) for i, n in enumerate(problem.names)]
-    natural += [(n, float(v["xe"][s]), float(se_nat[joint.nb + s]), lg) for s, (n, _, lg) in enumerate(current.layout)]
+    natural += [(n, float(v.xe[s]), float(se_nat[joint.nb + s]), lg) for s, (n, _, lg) in enumerate(current.layout)]
     for n, x, se, lg in natural:
         val = math.exp(x) if lg else x
         lo, hi = (math.exp(x - Z95 * se), math.exp(x + Z95 * se)) if lg else (x - Z95 * se, x + Z95 * se)

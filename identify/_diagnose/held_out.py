@@ -22,6 +22,7 @@ from .._model.residuals import (
     log_blocked,
     residuals as _residuals_from,
 )
+from .._model.variables import AbstractVariables
 from .joint_model import SLOTS, Superset, _bounds, _jacobian, _Joint, _pad, _pad_used, _used
 
 
@@ -70,7 +71,7 @@ def detection_limits(
     nb = j.nb
     n_layout = len(current.layout)
     v = current.v
-    xb = x_from_z(_bounds(j), v["zb"])
+    xb = x_from_z(_bounds(j), v.zb)
     N = int(np.sum(used))
     out = {}
 
@@ -86,13 +87,13 @@ def detection_limits(
             continue
         idx = np.asarray(current.idx).copy()
         logf = np.asarray(current.logf).copy()
-        xe = np.asarray(v["xe"], float).copy()
+        xe = np.asarray(v.xe, float).copy()
         for s, n in enumerate(c.params, start=n_layout):
             idx[s] = ext_names.index(n)
             logf[s] = False
             xe[s] = float(j.neutral[ext_names.index(n)])
         idx, logf, xe = jnp.asarray(idx), jnp.asarray(logf), jnp.asarray(xe)
-        J = np.asarray(_jacobian(j, xb, xe, v["y0"], v["offset"], idx, logf, sigma, step)[1])[used]
+        J = np.asarray(_jacobian(j, xb, xe, v.y0, v.offset, idx, logf, sigma, step)[1])[used]
         Jh = np.asarray(_jacobian(held.joint, held.xb, xe, held.y0, held.offset, idx, logf, sigma, step)[1])
         Jh = Jh[held.used]
         nh = held.joint.nb
@@ -160,14 +161,31 @@ class _Own(eqx.Module):
         return jnp.asarray(z_from_x(self, x), dtype=float)
 
 
+class HeldVariables(AbstractVariables):
+    """The held-out logs' unknowns at one model: their own values of the per-log parameters
+    (`own`, transformed coordinates of `_Own`), shared by nothing but fitted with the logs'
+    nuisances `y0`, `offset`."""
+
+    offset: jax.Array
+    own: jax.Array
+    y0: jax.Array
+
+    @property
+    def shared(self):
+        return self.own
+
+    def with_parts(self, shared, y0, offset) -> HeldVariables:
+        return HeldVariables(offset=offset, own=shared, y0=y0)
+
+
 def _held_unpack(args):
     problem, theta, own, sigma, step = args
-    return problem, lambda v: own.theta(theta, v["own"]), sigma, None, step
+    return problem, lambda z_own: own.theta(theta, z_own), sigma, None, step
 
 
-def _held_residual(v, args):
+def _held_residual(v: HeldVariables, args):
     problem, theta, own, sigma, step = args
-    return _residuals_from(problem, own.theta(theta, v["own"]), v["y0"], v["offset"], sigma, None, step)[0]
+    return _residuals_from(problem, own.theta(theta, v.own), v.y0, v.offset, sigma, None, step)[0]
 
 
 _held_residual_lm = log_blocked(_held_unpack)
@@ -176,35 +194,35 @@ _held_residual_lm = log_blocked(_held_unpack)
 @eqx.filter_jit
 def _held_out_batch(problem: Problem, thetas, v0, own: _Own, sigma, step, max_steps: int):
     """Weighted held-out residuals for a batch of parameter vectors (the held-out
-    problem's), each held-out log's own unknowns re-estimated: its nuisances (`v0["y0"]`
-    initial state entries, `v0["offset"]` offsets) and its own values of the per-log
-    parameters (`v0["own"]`, at `own`'s entries). Returns the residuals, the re-estimated
+    problem's), each held-out log's own unknowns re-estimated from `v0`: its nuisances
+    (`v0.y0` initial state entries, `v0.offset` offsets) and its own values of the per-log
+    parameters (`v0.own`, at `own`'s entries). Returns the residuals, the re-estimated
     unknowns and the parameter vectors with the own values in."""
     solver = optx.LevenbergMarquardt(rtol=1e-4, atol=1e-10, norm=optx.rms_norm)
 
     def one(theta):
         args = (problem, theta, own, sigma, step)
-        if v0["y0"].size + v0["offset"].size + v0["own"].size:
+        if v0.y0.size + v0.offset.size + v0.own.size:
             v = optx.least_squares(_held_residual_lm, solver, v0, args=args, max_steps=max_steps, throw=False).value
         else:
             v = v0
-        return _held_residual(v, args), v, own.theta(theta, v["own"])
+        return _held_residual(v, args), v, own.theta(theta, v.own)
 
     return jax.vmap(one)(thetas)
 
 
-def _held_out_start(problem: Problem, own: _Own, base) -> dict:
+def _held_out_start(problem: Problem, own: _Own, base) -> HeldVariables:
     """The held-out unknowns' start: the logs' own initial-state values, zero offsets and,
     for each own value of a per-log parameter, the median of the fit logs' values
     (`base`: the baseline `FitResult`)."""
     names = [name for name, index in problem.per_log for _ in index]
     order = np.argsort([i for _, index in problem.per_log for i in index]).astype(int)
     medians = [float(np.median(list(base.per_log[n].values()))) for n in names]
-    return {
-        "y0": jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float),
-        "offset": jnp.zeros(len(problem.offset_free)),
-        "own": own.z_of(np.asarray(medians, float)[order]) if names else jnp.zeros(0),
-    }
+    return HeldVariables(
+        offset=jnp.zeros(len(problem.offset_free)),
+        own=own.z_of(np.asarray(medians, float)[order]) if names else jnp.zeros(0),
+        y0=jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float),
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -228,7 +246,7 @@ class HeldOutSet:
     own: _Own
     own_set: frozenset[int]
     source: np.ndarray
-    start: dict
+    start: HeldVariables
     used: np.ndarray
     batch: int
     sigma: jax.Array
@@ -250,7 +268,7 @@ class HeldOutSet:
         """`residuals`, and the held-out unknowns re-estimated there."""
         n = thetas.shape[0]
         r, w, th = self._batch(thetas, step)
-        return np.asarray(r)[:n][:, self.used], HeldOutUnknowns(w["y0"][:n], w["offset"][:n], th[:n])
+        return np.asarray(r)[:n][:, self.used], HeldOutUnknowns(w.y0[:n], w.offset[:n], th[:n])
 
 
 def held_out_set(superset: Superset, held_out_logs, channels, base, batch: int, max_steps: int) -> HeldOutSet:

@@ -26,9 +26,37 @@ from .._model.residuals import (
     predict_jit,
     residuals as _residuals_from,
 )
+from .._model.variables import AbstractVariables
 from . import catalogue as cat
 
 SLOTS = 4  # extension parameters one fit can free at a time (accepted + candidate)
+
+
+class JointShared(eqx.Module):
+    """The shared part of `JointVariables`: `xe` the extension slots' natural values `(SLOTS,)`
+    (a log-scale slot holds the logarithm), `zb` the baseline's transformed coordinates."""
+
+    xe: jax.Array
+    zb: jax.Array
+
+
+class JointVariables(AbstractVariables):
+    """The variables of a joint-model fit (`Superset`): the baseline's free parameters in
+    transformed coordinates (`zb`, as `identify.fit`'s `Variables.phys`), the extension slots'
+    natural values (`xe`, `SLOTS`; which parameters they hold is the fit's slot layout), and
+    the per-log nuisances `y0`, `offset`. Batch-first in the vmapped fits."""
+
+    offset: jax.Array
+    xe: jax.Array
+    y0: jax.Array
+    zb: jax.Array
+
+    @property
+    def shared(self) -> JointShared:
+        return JointShared(self.xe, self.zb)
+
+    def with_parts(self, shared: JointShared, y0, offset) -> JointVariables:
+        return JointVariables(offset=offset, xe=shared.xe, y0=y0, zb=shared.zb)
 
 
 class _Joint(eqx.Module):
@@ -57,12 +85,12 @@ def _bounds(j: _Joint) -> Bounds:
 
 def _unpack(args):
     j, idx, logf, sigma, step = args
-    return j.problem, lambda v: _theta(j, x_from_z(_bounds(j), v["zb"]), v["xe"], idx, logf), sigma, None, step
+    return j.problem, lambda s: _theta(j, x_from_z(_bounds(j), s.zb), s.xe, idx, logf), sigma, None, step
 
 
-def _residual(v, args):
+def _residual(v: JointVariables, args):
     problem, theta_of, sigma, horizon, step = _unpack(args)
-    return _residuals_from(problem, theta_of(v), v["y0"], v["offset"], sigma, horizon, step)[0]
+    return _residuals_from(problem, theta_of(v.shared), v.y0, v.offset, sigma, horizon, step)[0]
 
 
 _residual_lm = log_blocked(_unpack)  # same value, one forward-mode pass per log per LM step
@@ -85,8 +113,8 @@ def _fit_batch(j: _Joint, v0, idx, logf, sigma, step, max_steps: int):
 @eqx.filter_jit
 def _jacobian(j: _Joint, xb, xe, y0, off, idx, logf, sigma, step):
     """Residuals and their Jacobian w.r.t. (xb, xe, y0, offsets), columns in that order."""
-    theta_of = lambda w: _theta(j, w["xb"], w["xe"], idx, logf)  # noqa: E731
-    jac = log_jacobian(j.problem, theta_of, {"xb": xb, "xe": xe}, y0, off, sigma, None, step)
+    theta_of = lambda w: _theta(j, *w, idx, logf)  # noqa: E731  (w = (xb, xe))
+    jac = log_jacobian(j.problem, theta_of, (xb, xe), y0, off, sigma, None, step)
     return jac.r.reshape(-1), jac.dense(len(j.problem.y0_free), len(j.problem.offset_free))
 
 
@@ -185,7 +213,7 @@ def _refine(
         n = _few_size(len(more), *size)
         say(f"  continuing {len(more)} unconverged fit(s) for {max_steps} more steps (batch of {n}) ...")
         sel = np.asarray(more, dtype=int)
-        v0 = {k: v[sel] for k, v in vs.items()}
+        v0 = vs.take(sel)
         out, c2, s2 = _fit_batch(joint, _pad(v0, n), _pad(idx[sel], n), _pad(logf[sel], n), sigma, step, max_steps)
         c2, s2 = np.asarray(c2, dtype=float), np.asarray(s2)
         moved = False
@@ -193,7 +221,7 @@ def _refine(
             if np.isfinite(c2[i]) and c2[i] < costs[b]:
                 improving = N * (costs[b] - c2[i]) / costs[b] >= 0.1
                 moved |= improving
-                vs = {k: v.at[b].set(out[k][i]) for k, v in vs.items()}
+                vs = jax.tree_util.tree_map(lambda v, o: v.at[b].set(o[i]), vs, out)
                 costs[b] = c2[i]
                 # a start that stopped improving counts as converged
                 steps[b] = s2[i] if improving else 0
@@ -232,7 +260,7 @@ def _best_starts(vs, costs, steps, owners) -> tuple:
     """A candidate batch's results trimmed to its `len(owners)` starts (host copies of the
     costs and step counts) and each candidate's best start, `{label: index}`."""
     B = len(owners)
-    vs = {k: v[:B] for k, v in vs.items()}
+    vs = vs.take(slice(None, B))
     costs = np.asarray(costs, dtype=float)[:B].copy()
     steps = np.asarray(steps)[:B].copy()
     best = {}
@@ -331,8 +359,8 @@ class Superset:
 
     def theta_of(self, v, idx, logf):
         """The physical parameter vector (SI) of the joint model's variables `v` in slot layout `idx`, `logf`."""
-        xb = x_from_z(_bounds(self.joint), v["zb"])
-        return _theta(self.joint, xb, v["xe"], jnp.asarray(idx), jnp.asarray(logf))
+        xb = x_from_z(_bounds(self.joint), v.zb)
+        return _theta(self.joint, xb, v.xe, jnp.asarray(idx), jnp.asarray(logf))
 
 
 def superset_of(chain, measurement, channels, driven, candidates, parameters, fit_logs, sigma, nb: int) -> Superset:

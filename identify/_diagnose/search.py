@@ -23,7 +23,7 @@ from . import catalogue as cat, evidence as ev
 from .continuous import pair_search, reconverge, score_continuous
 from .diagnosis import Diagnosis, _stacked, _with_totals, assemble
 from .held_out import HeldOutSet, _with_extra_state, held_out_set
-from .joint_model import SLOTS, Superset, superset_of
+from .joint_model import SLOTS, JointVariables, Superset, superset_of
 from .notes import _baseline_notes, _convergence_notes, _fits_but_does_not_predict, _not_tried
 from .scores import round_verdicts
 from .state import Accepted, CurrentModel, SearchOptions, SearchState, Signals
@@ -239,12 +239,12 @@ def _baseline_model(superset: Superset, held: HeldOutSet, base: FitResult, say) 
     """The baseline in the joint model (every extension neutral): the same model, so the same
     cost as its fit; its held-out residual."""
     idx0, logf0, _ = superset.layout([])
-    v_base = {
-        "zb": jnp.asarray(base.z["phys"]),
-        "xe": jnp.zeros(SLOTS),
-        "y0": jnp.asarray(base.z["y0"]),
-        "offset": jnp.asarray(base.z["offset"]),
-    }
+    v_base = JointVariables(
+        offset=jnp.asarray(base.z.offset),
+        xe=jnp.zeros(SLOTS),
+        y0=jnp.asarray(base.z.y0),
+        zb=jnp.asarray(base.z.phys),
+    )
     theta_base = superset.theta_of(v_base, idx0, logf0)
     cost0 = float(base.cost)
     ho0 = held.residuals(theta_base[None], base.step)[0]

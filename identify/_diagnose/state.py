@@ -17,6 +17,7 @@ from .._data import measurement as meas
 from .._fit.result import FitResult
 from .._model.problem import Problem
 from . import catalogue as cat
+from .joint_model import JointVariables
 from .scores import Score
 
 
@@ -56,7 +57,7 @@ class SearchOptions:
 class CurrentModel:
     """The model the search stands at, in the joint model (`joint_model.Superset`)."""
 
-    v: dict  # the joint model's variables: `zb`, `xe` (SLOTS), `y0`, `offset`
+    v: JointVariables
     cost: float  # weighted cost on the fit logs (sum of squared residuals over the noise)
     ho: np.ndarray  # weighted held-out residuals (used entries)
     idx: np.ndarray  # (SLOTS,) each slot's extension parameter (`Superset.layout`)
@@ -73,7 +74,7 @@ class CandidateFits:
     candidates' best starts (`ho`, rows in `labels` order), and `size`, the batch size and the
     seconds its call took (`joint_model._few_size`)."""
 
-    vs: dict
+    vs: JointVariables  # batch-first
     best: dict
     idx: jax.Array
     logf: jax.Array
@@ -81,10 +82,9 @@ class CandidateFits:
     labels: list
     size: tuple[int, float]
 
-    def variables(self, label: str, keys=None) -> dict:
-        """The variables of `label`'s best start (only `keys`, if given)."""
-        b = self.best[label]
-        return {k: self.vs[k][b] for k in (self.vs if keys is None else keys)}
+    def variables(self, label: str) -> JointVariables:
+        """The variables of `label`'s best start."""
+        return self.vs.take(self.best[label])
 
     def held_out_residual(self, label: str) -> np.ndarray:
         return self.ho[self.labels.index(label)]

@@ -40,16 +40,11 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
 from .._model.residuals import Layout
-
-_NUISANCES = ("y0", "offset")
-
-
-def _shared(y):
-    return {k: v for k, v in y.items() if k not in _NUISANCES}
+from .._model.variables import AbstractVariables
 
 
 class _State(eqx.Module):
-    template: dict  # zeros in the structure of the variables
+    template: AbstractVariables  # zeros in the structure of the variables
     r: jax.Array  # (L, n)
     S: jax.Array  # (L, n, P)
     U: jax.Array  # (L, n, k): y0 slots then offset slots
@@ -61,16 +56,16 @@ def read_blocks(layout: Layout, y, f_info) -> _State:
     products `f_info.jac.mv` (one probe per shared variable, one per nuisance slot for all
     logs at once: their rows do not overlap)."""
     L = layout.n_logs
-    flat, unravel = ravel_pytree(_shared(y))
+    flat, unravel = ravel_pytree(y.shared)
     P = flat.shape[0]
-    no_nuisance = {key: jnp.zeros_like(y[key]) for key in _NUISANCES}
-    probes = [{**unravel(jnp.zeros_like(flat).at[i].set(1.0)), **no_nuisance} for i in range(P)]
-    for kind, key in enumerate(_NUISANCES):
+    no_shared = unravel(jnp.zeros_like(flat))
+    no_y0, no_offset = jnp.zeros_like(y.y0), jnp.zeros_like(y.offset)
+    probes = [y.with_parts(unravel(jnp.zeros_like(flat).at[i].set(1.0)), no_y0, no_offset) for i in range(P)]
+    for kind, nuisance in enumerate((no_y0, no_offset)):  # the layout's order: y0, then offset
         pos, used = layout.arrays(kind)
         for j in range(pos.shape[1]):
-            v = jnp.zeros_like(y[key]).at[pos[used[:, j], j]].set(1.0)
-            zeros = {kk: jnp.zeros_like(y[kk]) for kk in _NUISANCES if kk != key}
-            probes.append({**unravel(jnp.zeros_like(flat)), key: v, **zeros})
+            v = nuisance.at[pos[used[:, j], j]].set(1.0)
+            probes.append(y.with_parts(no_shared, *((v, no_offset) if kind == 0 else (no_y0, v))))
     r = f_info.residual.reshape(L, -1)
     template = jax.tree_util.tree_map(jnp.zeros_like, y)
     if not probes:
@@ -86,15 +81,15 @@ def read_blocks(layout: Layout, y, f_info) -> _State:
 class BlockDampedNewtonDescent(optx.AbstractDescent):
     """The damped Newton (Levenberg-Marquardt) step, `lambda = 1 / step_size` as in
     `optx.DampedNewtonDescent`, solved block by block (module docstring). The variables `y`
-    are a dict with the nuisances under `"y0"` and `"offset"` (vector order of `layout`) and
-    the shared variables under any other keys."""
+    are a variables record (`AbstractVariables`: nuisances `y.y0`, `y.offset` in the vector
+    order of `layout`, the rest `y.shared`)."""
 
     layout: Layout
 
     def init(self, y, f_info_struct):
         L = self.layout.n_logs
         n = f_info_struct.residual.shape[0] // L
-        P = ravel_pytree(_shared(y))[0].shape[0]
+        P = ravel_pytree(y.shared)[0].shape[0]
         k = sum(self.layout.arrays(i)[0].shape[1] for i in range(2))
         dtype = f_info_struct.residual.dtype
         template = jax.tree_util.tree_map(jnp.zeros_like, y)
@@ -117,15 +112,15 @@ class BlockDampedNewtonDescent(optx.AbstractDescent):
 
 def _to_tree(template, d_shared, d_local, layout: Layout):
     """The flat step `(d_shared, d_local)` in the variables' structure."""
-    _, unravel = ravel_pytree(_shared(template))
-    out = dict(unravel(d_shared))
+    _, unravel = ravel_pytree(template.shared)
+    parts = []
     col = 0
-    for kind, key in enumerate(_NUISANCES):
+    for kind, zeros in enumerate((template.y0, template.offset)):
         pos, used = layout.arrays(kind)
         k = pos.shape[1]
-        out[key] = template[key].at[pos[used]].set(d_local[:, col : col + k][used]) if k else template[key]
+        parts.append(zeros.at[pos[used]].set(d_local[:, col : col + k][used]) if k else zeros)
         col += k
-    return out
+    return template.with_parts(unravel(d_shared), *parts)
 
 
 def damped_block_solve(r, S, U, used, lam):

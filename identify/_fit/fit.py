@@ -18,6 +18,7 @@ import flexdyn as fd
 from .._data import noise_floor as nf
 from .._model.parameters import Parameter, names_at_bounds, x_from_theta, x_from_z
 from .._model.problem import Problem, check_same_parameters, guesses_of
+from .._model.variables import Variables
 from .jacobian import _covariance_at
 from .levenberg_marquardt import _check_budgets, _check_damping, _solve
 from .quality import (
@@ -182,7 +183,7 @@ def fit(
     stages.extend(kept.stages)
     say("  computing standard errors (exact Jacobian at the optimum) ...")
     z, sigma, step, lin = kept.z, kept.sigma, kept.step, kept.lin
-    x = x_from_z(problem, z["phys"])
+    x = x_from_z(problem, z.phys)
     cov, blocks = _covariance_at(problem, x, z, sigma, step, *lin)
     result = _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, kept.ms, blocks)
     return dataclasses.replace(result, sigma_estimated=tuple(estimate_noise))
@@ -208,7 +209,7 @@ class _Attempt(NamedTuple):
 
     bounded: bool  # a parameter ended on a bound
     score: float  # `identify.noise_floor.score` of its residuals
-    z: dict
+    z: Variables
     sigma: object  # the noise levels it ended with
     step: object
     lin: tuple  # the linearisation and horizon (`_grow`)
@@ -238,7 +239,7 @@ def _attempts(
         if attempt:
             say(f"  {why}: growing the horizon again from the first stage's optimum #{attempt + 1}")
         z, sigma, step, lin, stages = _grow(problem, z, problem.sigma, horizons, schedule, say, tau_first)
-        x = x_from_z(problem, z["phys"])
+        x = x_from_z(problem, z.phys)
         bounded = bool(names_at_bounds(problem, np.asarray(x)))
         ms = _residual_ms(problem, z, sigma, step, lin)
         quality = nf.goodness(problem.channels, ms, *floors)

@@ -20,6 +20,7 @@ from .._data import noise_floor as nf
 from .._data.channels import state_names
 from .._model.parameters import Parameter, x_from_theta, x_from_z, z_from_x
 from .._model.problem import Problem, check_same_parameters, guesses_of
+from .._model.variables import Variables
 from .jacobian import _covariance_at
 from .levenberg_marquardt import _check_budgets, _check_damping, _solve
 from .quality import (
@@ -179,7 +180,7 @@ def fit_independent(
         _finish(
             singles[k],
             parameters,
-            {key: v[k] for key, v in fitted.z.items()},
+            fitted.z.take(k),
             x[k],
             fitted.sigma[k],
             fitted.step[k],
@@ -194,15 +195,15 @@ def fit_independent(
     return [dataclasses.replace(r, batch_size=L, sigma_estimated=tuple(estimate_noise)) for r in results]
 
 
-def _initial_batch(problem: Problem, singles: list[Problem], x0) -> dict:
+def _initial_batch(problem: Problem, singles: list[Problem], x0) -> Variables:
     """The batch's variables `z` at the common guess `x0` (natural coordinates), one row per
     log: each log's free initial-state entries at its known values, its offsets 0."""
     L = len(singles)
-    return {
-        "phys": jnp.tile(jnp.asarray(z_from_x(problem, x0)), (L, 1)),
-        "y0": jnp.stack([jnp.asarray([q.y0_known[0, s] for _, s in q.y0_free], dtype=float) for q in singles]),
-        "offset": jnp.tile(jnp.zeros(len(singles[0].offset_free)), (L, 1)),
-    }
+    return Variables(
+        offset=jnp.tile(jnp.zeros(len(singles[0].offset_free)), (L, 1)),
+        phys=jnp.tile(jnp.asarray(z_from_x(problem, x0)), (L, 1)),
+        y0=jnp.stack([jnp.asarray([q.y0_known[0, s] for _, s in q.y0_free], dtype=float) for q in singles]),
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -227,7 +228,7 @@ class _BatchFit(NamedTuple):
     `(B, C)`, constant steps `(B,)` and linearisation (on the host, `_solve`) of the last
     stage, and each log's stage records (`FitResult.stages`). `B`: the logs, padded."""
 
-    z: dict
+    z: Variables  # batch-first
     sigma: jax.Array
     step: jax.Array
     lin: list
@@ -300,7 +301,7 @@ def _residual_ms_per_log(batch: _Batch, fitted: _BatchFit) -> list:
     return [
         _residual_ms(
             single,
-            {key: v[k] for key, v in z.items()},
+            z.take(k),
             sigma[k],
             step[k],
             (tuple(a[k] for a in lin), batch.horizons[-1]),
@@ -332,13 +333,15 @@ def _restart_poor_logs(
         f"growing the horizon again from the median of the other {len(good)} log(s)' parameters"
     )
     z, sigma = fitted.z, fitted.sigma
-    phys = np.asarray(z["phys"]).copy()
+    phys = np.asarray(z.phys).copy()
     phys[poor] = np.median(phys[good], axis=0)
-    y0 = np.asarray(z["y0"]).copy()
-    y0[poor] = np.asarray(z_start["y0"])[poor]
-    off = np.asarray(z["offset"]).copy()
-    off[poor] = np.asarray(z_start["offset"])[poor]
-    z2 = {key: jax.device_put(v, z[key].sharding) for key, v in (("phys", phys), ("y0", y0), ("offset", off))}
+    y0 = np.asarray(z.y0).copy()
+    y0[poor] = np.asarray(z_start.y0)[poor]
+    off = np.asarray(z.offset).copy()
+    off[poor] = np.asarray(z_start.offset)[poor]
+    z2 = jax.tree_util.tree_map(
+        lambda new, old: jax.device_put(new, old.sharding), Variables(offset=off, phys=phys, y0=y0), z
+    )
     # the poor logs start again from the problem's noise levels too (their re-estimated
     # ones are their poor residuals')
     redo = np.zeros(sigma.shape[0], bool)
@@ -350,14 +353,15 @@ def _restart_poor_logs(
     say(f"  kept the new fit of {len(better)} of {len(poor)} log(s)")
     if not better:
         return fitted, ms
-    pick = np.zeros(z["phys"].shape[0], bool)
+    pick = np.zeros(z.phys.shape[0], bool)
     pick[better] = True
-    z = {
-        key: jax.device_put(
-            np.where(pick.reshape(-1, *[1] * (np.ndim(v) - 1)), np.asarray(again.z[key]), np.asarray(v)), v.sharding
-        )
-        for key, v in z.items()
-    }
+    z = jax.tree_util.tree_map(
+        lambda v, v2: jax.device_put(
+            np.where(pick.reshape(-1, *[1] * (np.ndim(v) - 1)), np.asarray(v2), np.asarray(v)), v.sharding
+        ),
+        z,
+        again.z,
+    )
     step = jnp.where(jnp.asarray(pick), again.step, fitted.step)
     sigma = jnp.where(jnp.asarray(pick)[:, None], again.sigma, sigma)
     lin = [np.where(pick.reshape(-1, *[1] * (a.ndim - 1)), a2, a) for a, a2 in zip(fitted.lin, again.lin)]
@@ -371,7 +375,7 @@ def _covariances(batch: _Batch, fitted: _BatchFit) -> tuple[jax.Array, list]:
     """Each log's natural coordinates `(L, P)` and `_covariance_at` (covariance and blocks)
     at its optimum; a `RuntimeError` names the logs whose simulation failed there."""
     singles, z = batch.singles, fitted.z
-    x = jnp.stack([x_from_z(singles[k], z["phys"][k]) for k in range(len(singles))])
+    x = jnp.stack([x_from_z(singles[k], z.phys[k]) for k in range(len(singles))])
     covariances, failed = [], []
     for k, single in enumerate(singles):
         try:
@@ -379,7 +383,7 @@ def _covariances(batch: _Batch, fitted: _BatchFit) -> tuple[jax.Array, list]:
                 _covariance_at(
                     single,
                     x[k],
-                    {key: v[k] for key, v in z.items()},
+                    z.take(k),
                     fitted.sigma[k],
                     fitted.step[k],
                     tuple(a[k] for a in fitted.lin),

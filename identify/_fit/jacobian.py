@@ -73,7 +73,7 @@ def _natural_blocks(problem: Problem, z, lin, horizon):
     mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
     if horizon is not None and not np.array_equal(np.asarray(used_mask(problem, float(horizon))), mask):
         return None  # the horizon's samples are not all of them
-    zp = np.asarray(z["phys"])
+    zp = np.asarray(z.phys)
     two_sided = np.isfinite(np.asarray(problem.lower)) & np.isfinite(np.asarray(problem.upper))
     if np.any(two_sided & (np.abs(zp) > SIGMOID_Z_MAX)):
         return None
@@ -85,7 +85,7 @@ def _natural_blocks(problem: Problem, z, lin, horizon):
     used = mask.reshape(L, n)
     failed = [used[l].any() and np.all(r[l][used[l]] == FAILED_RESIDUAL) for l in range(L)]
     if any(failed):
-        raise _failed_at_optimum(problem, x_from_z(problem, z["phys"]), failed)
+        raise _failed_at_optimum(problem, x_from_z(problem, z.phys), failed)
     return r, S / scale, U, _nuisance_slots(problem), used
 
 
@@ -110,7 +110,7 @@ def jacobian_blocks_at(problem: Problem, x, z, sigma, step):
     coordinates, as numpy arrays `(r, S, U, slots, used)` (`identify.covariance.blocked`:
     `r` `(L, n)`, `S` `(L, n, P)` shared columns, `U` `(L, n, k)` per-log nuisance columns,
     `slots` their positions among the nuisances, `used` which residuals count)."""
-    jac = _jacobian_blocks(problem, x, z["y0"], z["offset"], sigma, step)
+    jac = _jacobian_blocks(problem, x, z.y0, z.offset, sigma, step)
     if not bool(jnp.all(jac.ok)):
         raise _failed_at_optimum(problem, x, ~np.asarray(jac.ok))
     L, n, _ = jac.shared.shape

@@ -22,12 +22,12 @@ from .trust_region import ScaledTrustRegion
 
 def _unpack(args):
     problem, sigma, horizon, step = args
-    return problem, lambda v: theta_from_x(problem, x_from_z(problem, v["phys"])), sigma, horizon, step
+    return problem, lambda phys: theta_from_x(problem, x_from_z(problem, phys)), sigma, horizon, step
 
 
 def _residual_fn(z, args):
     problem, theta_of, sigma, horizon, step = _unpack(args)
-    return _residuals_from(problem, theta_of(z), z["y0"], z["offset"], sigma, horizon, step)[0]
+    return _residuals_from(problem, theta_of(z.shared), z.y0, z.offset, sigma, horizon, step)[0]
 
 
 class _BudgetedLM(optx.AbstractLeastSquaresSolver):

@@ -53,8 +53,8 @@ def _residual_ms(problem: Problem, z, sigma, step, lin=None) -> np.ndarray:
         if horizon is None or np.array_equal(np.asarray(used_mask(problem, float(horizon))), mask):
             r = r_lin
     if r is None:
-        theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
-        r, _ = _residuals_from(problem, theta, z["y0"], z["offset"], sigma, None, step)
+        theta = theta_from_x(problem, x_from_z(problem, z.phys))
+        r, _ = _residuals_from(problem, theta, z.y0, z.offset, sigma, None, step)
     res = np.asarray(r).reshape(mask.shape) * np.asarray(sigma)
     return np.sum(np.where(mask, res, 0.0) ** 2, axis=1) / np.maximum(mask.sum(axis=1), 1)
 
@@ -84,8 +84,8 @@ def _reversed_channels(problem: Problem, z, sigma, step, channels) -> dict:
     Such a fit ends with parameters on their bounds and a simulation that barely moves (a
     payload of kilograms), so the whole traces do not correlate and the first push is what
     tells. One simulation, only on a poor fit."""
-    theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
-    r, _ = _residuals_from(problem, theta, z["y0"], z["offset"], sigma, None, step)
+    theta = theta_from_x(problem, x_from_z(problem, z.phys))
+    r, _ = _residuals_from(problem, theta, z.y0, z.offset, sigma, None, step)
     meas_ = np.asarray(problem.measured)
     pred = np.asarray(r).reshape(meas_.shape) * np.asarray(sigma) + meas_
     t, valid, present = np.asarray(problem.t), np.asarray(problem.valid), np.asarray(problem.present)
@@ -244,8 +244,8 @@ def _noise_range_text(channels, sigma, estimated) -> str:
 
 
 def _reestimate_sigma(problem: Problem, z, sigma, channels, step):
-    theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
-    r, _ = _residuals_from(problem, theta, z["y0"], z["offset"], sigma, None, step)
+    theta = theta_from_x(problem, x_from_z(problem, z.phys))
+    r, _ = _residuals_from(problem, theta, z.y0, z.offset, sigma, None, step)
     r = np.asarray(r).reshape(problem.measured.shape) * np.asarray(sigma)
     mask = np.asarray(problem.valid[:, :, None] & problem.present[:, None, :])
     new = np.asarray(sigma).copy()

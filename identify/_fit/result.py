@@ -20,6 +20,7 @@ from .._model.residuals import (
     predict_jit,
     sensor_offsets,
 )
+from .._model.variables import Variables
 from . import covariance
 from .covariance import Covariance
 from .quality import (
@@ -56,7 +57,7 @@ class FitResult:
     singular_values: np.ndarray
     wall_time: float
     problem: Problem = dataclasses.field(repr=False)
-    z: dict = dataclasses.field(repr=False)
+    z: Variables = dataclasses.field(repr=False)
     step: object = dataclasses.field(repr=False, default=None)
     # channel -> {'residual_rms', 'noise_floor', 'ratio', 'poor'} (`identify.noise_floor`):
     # does the fitted model explain the data down to a noise floor estimated without it?
@@ -373,10 +374,10 @@ def _finish(
     states = state_names(problem.chain)
     init, offs = {}, {}
     for k, (l, s) in enumerate(problem.y0_free):
-        init.setdefault(problem.log_names[l], {})[states[s]] = (float(z["y0"][k]), float(se_nat[p + k]))
+        init.setdefault(problem.log_names[l], {})[states[s]] = (float(z.y0[k]), float(se_nat[p + k]))
     q = p + len(problem.y0_free)
     for k, (l, c) in enumerate(problem.offset_free):
-        offs.setdefault(problem.log_names[l], {})[problem.channels[c]] = (float(z["offset"][k]), float(se_nat[q + k]))
+        offs.setdefault(problem.log_names[l], {})[problem.channels[c]] = (float(z.offset[k]), float(se_nat[q + k]))
     at_bounds = names_at_bounds(problem, xs)
     quality = nf.goodness(problem.channels, residual_ms, *noise_floors(problem))
     poor = [c for c, q in quality.items() if q["poor"]]
@@ -419,9 +420,9 @@ def fitted_outputs(result: FitResult) -> dict:
     """Per log: `{'t', 'measured': {ch: ...}, 'simulated': {ch: ...}, 'residual': {ch: ...}}`
     (SI; simulated includes the fitted sensor offsets), for plots and residual tests."""
     problem, z = result.problem, result.z
-    theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
-    pred, _ = predict_jit(problem, theta, initial_states_of(problem, z["y0"]), None, result.step)
-    off = sensor_offsets(problem, z["offset"])
+    theta = theta_from_x(problem, x_from_z(problem, z.phys))
+    pred, _ = predict_jit(problem, theta, initial_states_of(problem, z.y0), None, result.step)
+    off = sensor_offsets(problem, z.offset)
     pred = np.asarray(pred + off[:, None, :])
     meas, valid, present = np.asarray(problem.measured), np.asarray(problem.valid), np.asarray(problem.present)
     out = {}

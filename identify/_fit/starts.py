@@ -4,6 +4,7 @@ distinct optima and frequency-domain initialisation of stiffnesses.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -13,6 +14,7 @@ import numpy as np
 
 from .._model.parameters import theta_from_x, x_from_theta, z_from_x
 from .._model.problem import Problem, guesses_of
+from .._model.variables import Variables
 from .frequency_init import STIFFNESS, initialise_stiffness
 from .levenberg_marquardt import _solve
 from .stage import Stage
@@ -24,20 +26,20 @@ from .steps import _Grid, _grid_step, _span_horizon, _stage_step
 DISTINCT_COST = 1e-4
 
 
-def initial_variables(problem: Problem, x0) -> dict:
+def initial_variables(problem: Problem, x0) -> Variables:
     """`fit`'s variables `z` at the natural coordinates `x0`: `phys` (the sigmoid/log
     coordinates of `z_from_x`), `y0` (the free initial-state entries at their known values)
     and `offset` (the free sensor offsets, 0)."""
-    return {
-        "phys": jnp.asarray(z_from_x(problem, x0)),
-        "y0": jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float),
-        "offset": jnp.zeros(len(problem.offset_free)),
-    }
+    return Variables(
+        offset=jnp.zeros(len(problem.offset_free)),
+        phys=jnp.asarray(z_from_x(problem, x0)),
+        y0=jnp.asarray([problem.y0_known[l, s] for l, s in problem.y0_free], dtype=float),
+    )
 
 
 def multi_start(
     problem: Problem,
-    z: dict,
+    z: Variables,
     x0: np.ndarray,
     extra: list,
     horizon: float,
@@ -67,7 +69,7 @@ def multi_start(
     runs = [
         _solve(
             problem,
-            {"phys": jnp.asarray(z_from_x(problem, x)), "y0": z["y0"], "offset": z["offset"]},
+            dataclasses.replace(z, phys=jnp.asarray(z_from_x(problem, x))),
             sigma,
             jnp.asarray(horizon),
             step,
@@ -141,7 +143,7 @@ def _frequency_initialise(problem: Problem, x0: np.ndarray, say, safety: float =
     offset = jnp.zeros(len(problem.offset_free))
 
     def simulate(thetas, span):
-        z = {"phys": jnp.asarray(_z_rows(problem, thetas)[0]), "y0": y0, "offset": offset}
+        z = Variables(offset=offset, phys=jnp.asarray(_z_rows(problem, thetas)[0]), y0=y0)
         _, ok, outputs = _grid_step(problem, z, _span_horizon(problem, span), safety)
         return np.asarray(outputs)[None], np.asarray(ok)[None]
 
@@ -158,20 +160,22 @@ def _frequency_initialise_independent(problem: Problem, singles, stacked, z, x0,
     limits = _stiffness_limits(problem)
     if limits is None:
         return z
-    n_logs, n_batch = len(singles), z["phys"].shape[0]
+    n_logs, n_batch = len(singles), z.phys.shape[0]
 
     def batch_phys(thetas):
         rows = _z_rows(problem, thetas)
         rows = np.concatenate([rows, np.repeat(rows[-1:], n_batch - n_logs, axis=0)])
-        return jax.device_put(jnp.asarray(rows, dtype=z["phys"].dtype), z["phys"].sharding)
+        return jax.device_put(jnp.asarray(rows, dtype=z.phys.dtype), z.phys.sharding)
 
     def simulate(thetas, span):
-        _, ok, outputs = grid(stacked, {**z, "phys": batch_phys(thetas)}, _span_horizon(problem, span), safety)
+        _, ok, outputs = grid(
+            stacked, dataclasses.replace(z, phys=batch_phys(thetas)), _span_horizon(problem, span), safety
+        )
         return np.asarray(outputs)[:n_logs], np.asarray(ok)[:n_logs]
 
     theta = np.asarray(theta_from_x(problem, jnp.asarray(x0)))
     thetas = initialise_stiffness(singles, np.tile(theta, (n_logs, 1)), limits, simulate, say)
-    return {**z, "phys": batch_phys(thetas)}
+    return dataclasses.replace(z, phys=batch_phys(thetas))
 
 
 def _extra_starts(problem: Problem, parameters, extra_starts) -> list:

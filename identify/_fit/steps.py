@@ -32,8 +32,8 @@ def _grid_step(problem: Problem, z, horizon, safety: float):
     adaptive solver (the problem's rtol/atol) takes at the current parameters; whether
     every log's solve succeeded; the simulated outputs `(L, T, C)` (what
     `_frequency_initialise` compares with the logs)."""
-    theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
-    outputs, ok, n = predict(problem, theta, initial_states_of(problem, z["y0"]), horizon, stats=True)
+    theta = theta_from_x(problem, x_from_z(problem, z.phys))
+    outputs, ok, n = predict(problem, theta, initial_states_of(problem, z.y0), horizon, stats=True)
     # The span from the onset: an early stage's solve starts there, and the last stage's
     # takes a handful of steps for the rest before it (at rest the error estimate is 0 and
     # the steps grow tenfold each), so the mean step over the whole log would be the
@@ -121,8 +121,8 @@ def _solve_flags(problem: Problem, theta, y0s, horizon):
 def _simulation_failure(problem: Problem, z, horizon) -> SimulationFailed:
     """Why the logs' simulation at `z` over `horizon` failed: which log, why, and at which
     parameter values (one more solve, only after a failure)."""
-    theta = np.asarray(theta_from_x(problem, x_from_z(problem, z["phys"])))
-    ok, limit = _solve_flags(problem, jnp.asarray(theta), initial_states_of(problem, z["y0"]), jnp.asarray(horizon))
+    theta = np.asarray(theta_from_x(problem, x_from_z(problem, z.phys)))
+    ok, limit = _solve_flags(problem, jnp.asarray(theta), initial_states_of(problem, z.y0), jnp.asarray(horizon))
     logs = {}
     for name, ok_l, limit_l in zip(problem.log_names, np.asarray(ok), np.asarray(limit)):
         if not ok_l:
@@ -207,8 +207,8 @@ def _grid_errors(problem: Problem, z, horizon, steps, reference, sigma, bar):
     first that passes; `bar` = inf simulates the first step only). The steps are simulated
     one after another (a `scan`: under `vmap` every one would take as many steps as the
     finest; under `fit_independent`'s vmap the skip is a select, both sides computed)."""
-    theta = theta_from_x(problem, x_from_z(problem, z["phys"]))
-    y0s = initial_states_of(problem, z["y0"])
+    theta = theta_from_x(problem, x_from_z(problem, z.phys))
+    y0s = initial_states_of(problem, z.y0)
     mask = used_mask(problem, horizon)
 
     def one(h):

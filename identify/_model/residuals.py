@@ -388,10 +388,10 @@ def log_blocked(unpack: Callable) -> Callable:
     """A residual function `fn(v, args)` for optimistix's least squares whose linearisation
     is the block-arrow Jacobian (`log_jacobian`), computed once per linearisation.
 
-    `v` is a dict with the nuisances under `"y0"` and `"offset"` (in `problem.y0_free` /
-    `problem.offset_free` order) and the shared variables under any other keys;
+    `v` is a variables record (`variables.AbstractVariables`: its nuisances `v.y0`,
+    `v.offset` in `problem.y0_free` / `problem.offset_free` order, the rest `v.shared`);
     `unpack(args)` returns `(problem, theta_of, sigma, horizon, step)`, `theta_of` mapping
-    the dict of shared variables to the physical parameters. The value is `residuals(...)`.
+    `v.shared` to the physical parameters. The value is `residuals(...)`.
 
     Levenberg-Marquardt (`optx.LevenbergMarquardt`) takes `jax.linearize` of the residuals
     at every trial point and keeps the linear map lazy: `jax.linearize` through a
@@ -403,13 +403,10 @@ def log_blocked(unpack: Callable) -> Callable:
     and the linear map is a product with the stored blocks. Only `v` may be differentiated;
     `args` are constants of the fit."""
 
-    def shared_of(v):
-        return {k: x for k, x in v.items() if k not in ("y0", "offset")}
-
     @eqx.filter_custom_jvp
     def wrapped(v, args):
         problem, theta_of, sigma, horizon, step = unpack(args)
-        return residuals(problem, theta_of(shared_of(v)), v["y0"], v["offset"], sigma, horizon, step)[0]
+        return residuals(problem, theta_of(v.shared), v.y0, v.offset, sigma, horizon, step)[0]
 
     @wrapped.def_jvp
     def wrapped_jvp(primals, tangents):
@@ -418,7 +415,7 @@ def log_blocked(unpack: Callable) -> Callable:
         if any(t is not None for t in jax.tree_util.tree_leaves(targs)):
             raise NotImplementedError("log_blocked: only the first argument (the variables) may be differentiated")
         problem, theta_of, sigma, horizon, step = unpack(args)
-        jac = log_jacobian(problem, theta_of, shared_of(v), v["y0"], v["offset"], sigma, horizon, step)
+        jac = log_jacobian(problem, theta_of, v.shared, v.y0, v.offset, sigma, horizon, step)
 
         def flat(primal, tangent):
             # the tangent in `ravel_pytree`'s order; None (not differentiated) is zero
@@ -427,10 +424,9 @@ def log_blocked(unpack: Callable) -> Callable:
             parts = [jnp.zeros_like(p) if t is None else t for p, t in zip(leaves, parts)]
             return jnp.concatenate([jnp.reshape(t, (-1,)) for t in parts]) if parts else jnp.zeros((0,), jac.r.dtype)
 
-        t_shared = flat(shared_of(v), {k: tv[k] for k in shared_of(v)}) if tv is not None else None
-        if t_shared is None:
+        if tv is None:
             return jac.r.reshape(-1), jnp.zeros_like(jac.r.reshape(-1))
-        return jac.r.reshape(-1), jac.apply(t_shared, flat(v["y0"], tv["y0"]), flat(v["offset"], tv["offset"]))
+        return jac.r.reshape(-1), jac.apply(flat(v.shared, tv.shared), flat(v.y0, tv.y0), flat(v.offset, tv.offset))
 
     return wrapped
 

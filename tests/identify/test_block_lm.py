@@ -18,6 +18,7 @@ import identify._fit.jacobian as jacobian_module
 import identify._fit.levenberg_marquardt as levenberg_marquardt_module
 import identify._model.parameters as parameters_module
 from identify._fit.block_lm import BlockLevenbergMarquardt, Layout, damped_block_solve
+from identify._model.variables import Variables
 
 
 def _dense(r, S, U, used):
@@ -60,7 +61,7 @@ def test_block_levenberg_marquardt_takes_optimistix_steps(multilog_problem):
     steps: near the optimum a trial's actual cost reduction is round-off, ~1e-12 of the
     cost, and the trust region's accept/reject decision there goes either way.)"""
     p, x, y0, off = multilog_problem
-    z0 = {"phys": jnp.asarray(parameters_module.z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
+    z0 = Variables(offset=off, phys=jnp.asarray(parameters_module.z_from_x(p, np.asarray(x))), y0=y0)
     args = (p, p.sigma, None, 2e-3)
     fn = levenberg_marquardt_module._residual_fn_lm
     block_lm = BlockLevenbergMarquardt(1e-4, 1e-10, Layout.of(p), norm=optx.rms_norm)
@@ -135,9 +136,9 @@ def test_a_fit_of_many_logs_recovers_the_truth():
         assert abs(offset - offsets[l]) < 4 * se, (l, offset, offsets[l], se)
     # its standard errors came block by block (identify.covariance.blocked); the dense
     # Jacobian's SVD at the same optimum gives the same ones
-    x = parameters_module.x_from_z(problem, res.z["phys"])
+    x = parameters_module.x_from_z(problem, res.z.phys)
     sigma = jnp.asarray([res.sigma[c] for c in problem.channels])
-    r, J, ok = jacobian_module._jacobian_natural(problem, x, res.z["y0"], res.z["offset"], sigma, res.step)
+    r, J, ok = jacobian_module._jacobian_natural(problem, x, res.z.y0, res.z.offset, sigma, res.step)
     dense = jacobian_module._dense_covariance(problem, r, J)
     assert bool(ok)
     np.testing.assert_allclose(res.std_errors, res.values * dense.std_errors[:2], rtol=1e-8)

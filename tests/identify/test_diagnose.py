@@ -656,7 +656,9 @@ def test_an_unconverged_fit_short_of_its_screening_prediction_is_continued(monke
 
     for module in (joint_model_module, continuous_module):  # each binds the name
         monkeypatch.setattr(module, "_fit_batch", fake_fit_batch)
-    vs = {"zb": jnp.zeros((3, 2))}
+    vs = joint_model_module.JointVariables(
+        offset=jnp.zeros((3, 0)), xe=jnp.zeros((3, 2)), y0=jnp.zeros((3, 0)), zb=jnp.zeros((3, 2))
+    )
     idx = jnp.arange(3)[:, None]
     best = {lab: b for b, lab in enumerate(labels)}
     args = (None, vs, costs.copy(), steps.copy(), best, owners, idx, idx, None, None, max_steps, (6, 1.0), cur, N)

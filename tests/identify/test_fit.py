@@ -47,6 +47,7 @@ import identify._fit.steps as steps_module
 import identify._model.parameters as parameters_module
 import identify._model.residuals as residuals_module
 from identify._fit.stage import Stage
+from identify._model.variables import Variables
 
 # ---------------------------------------------------------------------------
 # The 4-parameter scenario
@@ -165,7 +166,7 @@ def test_recovery_accuracy_and_ci(arm):
             fresh = fresh_covariance(result)
             assert_standard_errors_match(result, fresh)
             # and the fallback without that linearisation (block Jacobian computed afresh)
-            x = parameters_module.x_from_z(result.problem, result.z["phys"])
+            x = parameters_module.x_from_z(result.problem, result.z.phys)
             sigma = np.asarray([result.sigma[c] for c in result.problem.channels])
             fallback, _ = jacobian_module._covariance_at(result.problem, x, result.z, sigma, result.step)
             np.testing.assert_allclose(fallback.std_errors, fresh.std_errors, rtol=1e-8)
@@ -946,13 +947,13 @@ def test_standard_errors_fall_back_to_a_fresh_jacobian_when_the_last_solve_saw_p
     params = [identify.Parameter(n, v, v * 1e-2, v * 1e2) for n, v in TRUTH.items()]
     problem = identify.make_problem(arm.chain, params, [arm.log(1)], noise=arm.noise)
     n = problem.t.shape[1] * len(problem.channels)
-    z = {"phys": np.zeros(len(params)), "y0": np.zeros(0), "offset": np.zeros(0)}
+    z = Variables(offset=np.zeros(0), phys=np.zeros(len(params)), y0=np.zeros(0))
     lin = (np.ones((1, n)), np.ones((1, n, len(params))), np.zeros((1, n, 0)))
     full = float(problem.t[0, -1] - problem.t[0, 0])
     assert jacobian_module._natural_blocks(problem, z, lin, full) is not None
     assert jacobian_module._natural_blocks(problem, z, lin, 0.5 * full) is None
     # a parameter pressed against a bound: d x / d z from the logistic has lost digits
-    near_bound = {**z, "phys": np.array([0.0, 16.0, 0.0, 0.0])}
+    near_bound = dataclasses.replace(z, phys=np.array([0.0, 16.0, 0.0, 0.0]))
     assert jacobian_module._natural_blocks(problem, near_bound, lin, full) is None
     failed = (np.full((1, n), residuals_module.FAILED_RESIDUAL), *lin[1:])
     with pytest.raises(RuntimeError, match="the simulation at the fitted parameters failed"):
@@ -1032,7 +1033,10 @@ def test_a_fit_that_ends_in_a_wrong_basin_restarts_from_the_next_start(arm, monk
     def first_attempt_in_the_wrong_basin(problem, z, sigma, horizons, *rest):
         if not attempts:
             x = parameters_module.x_from_theta(problem, [WRONG_BASIN[n] for n in problem.names])
-            z, horizons = {**z, "phys": jnp.asarray(parameters_module.z_from_x(problem, x))}, horizons[-1:]
+            z, horizons = (
+                dataclasses.replace(z, phys=jnp.asarray(parameters_module.z_from_x(problem, x))),
+                horizons[-1:],
+            )
         attempts.append(1)
         return grow(problem, z, sigma, horizons, *rest)
 
@@ -1551,7 +1555,7 @@ def test_the_reversed_sign_check_survives_a_noisy_torque_column(arm, flipped):
         )
         problem = identify.make_problem(arm.chain, params, [noisy], noise=arm.noise)
         x = parameters_module.x_from_theta(problem, [wrong[n] for n in problem.names])
-        z = {"phys": jnp.asarray(parameters_module.z_from_x(problem, x)), "y0": jnp.zeros(0), "offset": jnp.zeros(0)}
+        z = Variables(offset=jnp.zeros(0), phys=jnp.asarray(parameters_module.z_from_x(problem, x)), y0=jnp.zeros(0))
         named.append(quality_module._reversed_channels(problem, z, problem.sigma, None, ["theta1", "tip1"]))
     if flipped:
         assert all(list(n) == ["theta1"] for n in named), named

@@ -457,9 +457,7 @@ def test_a_lightly_damped_curvature_peak_is_matched_by_the_refinement():
     params = [identify.Parameter("link1.EI", 1.5, 0.1, 20.0), identify.Parameter("joint1.damping", 1e-3, 1e-6, 0.1)]
     problem = identify.make_problem(chain, params, [log], noise=noise)
     said = []
-    x0 = starts_module._frequency_initialise(
-        problem, parameters_module.x_from_theta(problem, [1.5, 1e-3]), said.append
-    )
+    x0 = starts_module._frequency_initialise(problem, parameters_module.x_from_theta(problem, [1.5, 1e-3]), said.append)
     print(said)
     assert math.exp(x0[0]) == pytest.approx(2.3, rel=0.01), said
     assert not any("WARNING" in m for m in said), said

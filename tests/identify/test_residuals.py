@@ -9,6 +9,8 @@ padding and the columns' order are all exercised.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,6 +20,7 @@ import pytest
 import identify._fit.levenberg_marquardt as levenberg_marquardt_module
 import identify._model.parameters as parameters_module
 from identify._model.residuals import log_blocked, log_jacobian, residuals
+from identify._model.variables import Variables
 
 
 def _theta_of(p):
@@ -63,21 +66,20 @@ def test_log_blocked_linearises_to_the_jacobian(multilog_problem):
     is the forward-mode Jacobian, column by column; differentiating the arguments is an
     error, not a wrong answer."""
     p, x, y0, off = multilog_problem
-    z = {"phys": parameters_module.z_from_x(p, np.asarray(x)), "y0": y0, "offset": off}
-    z["phys"] = jnp.asarray(z["phys"])
+    z = Variables(offset=off, phys=jnp.asarray(parameters_module.z_from_x(p, np.asarray(x))), y0=y0)
     args = (p, p.sigma, None, 2e-3)
     fn = log_blocked(levenberg_marquardt_module._unpack)
     plain = levenberg_marquardt_module._residual_fn
     np.testing.assert_array_equal(fn(z, args), plain(z, args))
     r, lin = jax.linearize(lambda z_: fn(z_, args), z)
     J_ref = jax.jacfwd(lambda z_: plain(z_, args))(z)
-    flat_ref = np.concatenate([J_ref["phys"], J_ref["y0"], J_ref["offset"]], axis=1)
+    flat_ref = np.concatenate([J_ref.phys, J_ref.y0, J_ref.offset], axis=1)
     sizes = {"phys": 2, "y0": 3, "offset": 3}
     col = 0
     for key, n in sizes.items():
         for i in range(n):
-            tangent = {k: jnp.zeros(m) for k, m in sizes.items()}
-            tangent[key] = tangent[key].at[i].set(1.0)
+            tangent = Variables(**{k: jnp.zeros(m) for k, m in sizes.items()})
+            tangent = dataclasses.replace(tangent, **{key: getattr(tangent, key).at[i].set(1.0)})
             np.testing.assert_allclose(lin(tangent), flat_ref[:, col], rtol=1e-12, atol=1e-12 * np.abs(flat_ref).max())
             col += 1
     with pytest.raises(NotImplementedError, match="only the first argument"):
@@ -88,15 +90,15 @@ def test_levenberg_marquardt_takes_the_same_steps(multilog_problem):
     """Levenberg-Marquardt through the block rule takes the iterates of the plain residual
     function (whose linear map JAX builds itself) and reaches the same optimum."""
     p, x, y0, off = multilog_problem
-    z0 = {"phys": jnp.asarray(parameters_module.z_from_x(p, np.asarray(x))), "y0": y0, "offset": off}
+    z0 = Variables(offset=off, phys=jnp.asarray(parameters_module.z_from_x(p, np.asarray(x))), y0=y0)
     args = (p, p.sigma, None, 2e-3)
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
     blocked = optx.least_squares(log_blocked(levenberg_marquardt_module._unpack), solver, z0, args=args, max_steps=60)
     plain = optx.least_squares(levenberg_marquardt_module._residual_fn, solver, z0, args=args, max_steps=60)
     assert int(blocked.stats["num_steps"]) == int(plain.stats["num_steps"])
-    for k in z0:
-        np.testing.assert_allclose(blocked.value[k], plain.value[k], rtol=1e-8, atol=1e-12)
-    theta = parameters_module.theta_from_x(p, parameters_module.x_from_z(p, blocked.value["phys"]))
+    for k in ("offset", "phys", "y0"):
+        np.testing.assert_allclose(getattr(blocked.value, k), getattr(plain.value, k), rtol=1e-8, atol=1e-12)
+    theta = parameters_module.theta_from_x(p, parameters_module.x_from_z(p, blocked.value.phys))
     np.testing.assert_allclose(theta[0], 3e-3, rtol=0.05)  # the data's own damping
 
 
@@ -111,9 +113,10 @@ def test_nuisances_only(multilog_problem):
     assert J.shape == (r_ref.size, 6) and J.dtype == np.float64
     np.testing.assert_allclose(J, J_ref[:, 2:], rtol=1e-12, atol=1e-12 * np.abs(J_ref).max())
     fn = log_blocked(lambda args: (p, lambda shared: theta, p.sigma, None, 2e-3))
-    v = {"y0": y0, "offset": off}
+    v = Variables(offset=off, phys=jnp.zeros(0), y0=y0)  # nothing shared
     _, lin = jax.linearize(lambda v_: fn(v_, None), v)
-    np.testing.assert_allclose(lin({"y0": jnp.zeros(3), "offset": jnp.array([0.0, 1.0, 0.0])}), J_ref[:, 6], rtol=1e-15)
+    tangent = Variables(offset=jnp.array([0.0, 1.0, 0.0]), phys=jnp.zeros(0), y0=jnp.zeros(3))
+    np.testing.assert_allclose(lin(tangent), J_ref[:, 6], rtol=1e-15)
 
 
 @pytest.mark.parametrize(
