@@ -8,6 +8,7 @@ from pathlib import Path
 from .columns import MIN_SAMPLES
 from .experiment import Experiment
 from .experiment_sections import _build_rig, _free_parameters, _log_entry, _measurement, _noise, _starts
+from .files import absolute, file_problem
 from .toml_reader import ExperimentError, _Reader, _show
 
 _TOP_KEYS = ("experiment", "rig", "parameters", "starts", "noise", "logs", "sensors", "actuators")
@@ -29,12 +30,15 @@ def load_experiment(path) -> Experiment:
     in a log file (both `ValueError`); nothing is written.
     """
     path = Path(path)
-    if not path.is_file():
-        raise ExperimentError(f"{path.resolve()}: experiment file does not exist")
+    problem = file_problem(path)
+    if problem is not None:
+        raise ExperimentError(f"{absolute(path)}: experiment file {problem}; expected a TOML file")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows editors) is not TOML
     except UnicodeDecodeError as e:
         raise ExperimentError(f"{path}: expected a UTF-8 text file ({e})") from None
+    except OSError as e:
+        raise ExperimentError(f"{path}: experiment file cannot be read ({e.strerror})") from None
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import inspect
 import re
 from collections.abc import Mapping
-from pathlib import Path
 
 import flexdyn as fd
 
@@ -15,6 +14,7 @@ from . import measurement as meas, units as u
 from .channels import channel_problem, channel_unit, state_names
 from .columns import LogError, check_calibration
 from .experiment import ROLES, FreeParameter, LogSpec
+from .files import absolute, expand_user, file_problem, resolved as resolved_path
 from .logs import load_log
 from .toml_reader import ExperimentError, _dotted_key_error, _key_text, _Reader, _show, _unknown_parameter
 
@@ -358,10 +358,13 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
     if "file" not in spec:
         raise r.error(key, 'missing file = "..." (the log, relative to this experiment file)')
     file = r.string(spec["file"], key + ("file",))
-    resolved = (r.path.parent / Path(file).expanduser()).resolve()
-    if not resolved.is_file():
-        what = "is a directory" if resolved.is_dir() else "does not exist"
-        raise r.error(key + ("file",), f"log file {resolved} {what} (paths are relative to {r.path.parent.resolve()})")
+    written = r.path.parent / expand_user(file)
+    problem = file_problem(written)
+    if problem is not None:
+        raise r.error(
+            key + ("file",), f"log file {absolute(written)} {problem} (paths are relative to {absolute(r.path.parent)})"
+        )
+    resolved = resolved_path(written)
     name = r.string(spec.get("name", resolved.stem), key + ("name",))
     role = spec.get("role", "fit")
     if role not in ROLES:

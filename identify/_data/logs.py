@@ -19,6 +19,7 @@ import numpy as np
 from . import units as u
 from .columns import GAP_FACTOR, MIN_SAMPLES, Calibration, LogError, _parse_mapping, check_calibration
 from .csv_log import _read_csv
+from .files import absolute, file_problem
 from .mat_log import _read_mat
 
 #: Sampling rates of a rig's logs (Hz): outside, a log's summary asks about the time
@@ -169,9 +170,9 @@ def load_log(
     for ch, c in (calibration or {}).items():
         spec = {k: v for k, v in dataclasses.asdict(c).items() if v is not None} if isinstance(c, Calibration) else c
         cals[ch] = check_calibration(ch, spec, f"{path}: calibration.{ch}")
-    if not path.is_file():
-        what = "is a directory" if path.is_dir() else "does not exist"
-        raise LogError(f"{path.resolve()}: log file {what}; expected a .csv or .mat file")
+    problem = file_problem(path)
+    if problem is not None:
+        raise LogError(f"{absolute(path)}: log file {problem}; expected a .csv or .mat file")
     suffix = path.suffix.lower()
     wanted = None if columns is None else _parse_mapping(path, columns, context)
     for ch in cals:

@@ -41,7 +41,7 @@ def _key_lines(text: str) -> dict[tuple, int]:
     lines: dict[tuple, int] = {}
     counts: dict[tuple, int] = {}
     table: tuple = ()
-    for no, line in enumerate(text.splitlines(), start=1):
+    for no, line in enumerate(text.split("\n"), start=1):  # TOML's newlines only: not splitlines()'s U+2028, \f, ...
         stripped = line.split("#", 1)[0] if '"' not in line and "'" not in line else line
         m = _TABLE_RE.match(stripped)
         if m:

@@ -2,6 +2,7 @@
 logs from TOML, and a clear error (file, line, key path, expectation) for each mistake."""
 
 import math
+import os
 import re
 import textwrap
 
@@ -247,6 +248,56 @@ def test_toml_syntax_error(tmp_path):
 def test_missing_experiment_file(tmp_path):
     with pytest.raises(ExperimentError, match=msg(str(tmp_path / "none.toml"), "does not exist")):
         load_experiment(tmp_path / "none.toml")
+
+
+def special_paths(tmp_path):
+    """A directory, a named pipe (where the system has them) and a symbolic link loop, with
+    what a message says each is."""
+    (tmp_path / "folder.toml").mkdir(parents=True)
+    out = [(tmp_path / "folder.toml", "is a directory")]
+    if hasattr(os, "mkfifo"):
+        os.mkfifo(tmp_path / "pipe.toml")
+        out.append((tmp_path / "pipe.toml", "is not a regular file (a named pipe (FIFO))"))
+    (tmp_path / "loop.toml").symlink_to(tmp_path / "loop.toml")
+    out.append((tmp_path / "loop.toml", "is a symbolic link loop"))
+    return out
+
+
+def test_an_experiment_path_that_is_not_a_file_says_what_it_is(tmp_path):
+    """Review: a directory or a named pipe was reported as "does not exist", and a symbolic
+    link loop escaped as RuntimeError. A pipe is never opened (reading it would block)."""
+    for path, what in special_paths(tmp_path):
+        with pytest.raises(ExperimentError, match=msg(str(path), f"experiment file {what}", "expected a TOML file")):
+            load_experiment(path)
+
+
+def test_a_log_path_that_is_not_a_file_says_what_it_is(tmp_path):
+    for path, what in special_paths(tmp_path / "logs"):
+        body = RIG + LOG.replace("logs/drop.csv", f"logs/{path.name}")
+        exp = experiment(tmp_path, body)
+        with pytest.raises(ExperimentError, match=msg("exp.toml, line 7: logs[1].file", f"{path.name} {what}")):
+            load_experiment(exp)
+    exp = experiment(tmp_path, RIG + LOG.replace("logs/drop.csv", "~no_such_user_here/drop.csv"))
+    with pytest.raises(ExperimentError, match=msg("logs[1].file", "~no_such_user_here/drop.csv does not exist")):
+        load_experiment(exp)
+
+
+def test_a_byte_order_mark_before_the_toml_is_skipped(tmp_path):
+    """Review: a UTF-8 byte-order mark (Windows editors write one) gave "Invalid statement
+    (line 1, column 1)"."""
+    path = experiment(tmp_path, RIG + LOG)
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    assert load_experiment(path).logs[0].name == "drop"
+
+
+@pytest.mark.parametrize("separator", ["\u2028", "\u2029", "\x85"])
+def test_a_unicode_line_separator_in_a_comment_keeps_the_line_numbers(tmp_path, separator):
+    """str.splitlines() splits at U+2028 and other separators that TOML does not: the
+    messages' line numbers after such a comment were one too many."""
+    body = f"# rig 3{separator}bench 2\n" + RIG + LOG + 'role = "test"\n'
+    path = experiment(tmp_path, body)
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 10: logs[1].role", 'expected "fit"')):
+        load_experiment(path)
 
 
 def test_unknown_key_typo(tmp_path):

@@ -2,6 +2,7 @@
 kind of malformed log (file, line, column or variable, and what was expected)."""
 
 import math
+import os
 import re
 import warnings
 
@@ -482,6 +483,25 @@ def test_missing_file_and_unknown_type(tmp_path):
     path.write_bytes(b"PK")
     with pytest.raises(LogError, match=msg("log.xlsx", "unknown log type '.xlsx'", ".csv", ".mat")):
         load_log(path, COLUMNS)
+
+
+def test_a_log_path_that_is_not_a_file_says_what_it_is(tmp_path):
+    """Review: a directory or a named pipe read as "does not exist", a symbolic link loop
+    escaped as RuntimeError; a pipe is never opened (reading it would block)."""
+    (tmp_path / "dir.csv").mkdir()
+    (tmp_path / "loop.csv").symlink_to(tmp_path / "loop.csv")
+    (tmp_path / "dangling.csv").symlink_to(tmp_path / "gone.csv")
+    cases = [
+        ("dir.csv", "is a directory"),
+        ("loop.csv", "is a symbolic link loop"),
+        ("dangling.csv", "is a broken symbolic link"),
+    ]
+    if hasattr(os, "mkfifo"):
+        os.mkfifo(tmp_path / "pipe.csv")
+        cases.append(("pipe.csv", "is not a regular file (a named pipe (FIFO))"))
+    for name, what in cases:
+        with pytest.raises(LogError, match=msg(str(tmp_path / name), f"log file {what}", "expected a .csv or .mat")):
+            load_log(tmp_path / name, COLUMNS)
 
 
 # ---------------------------------------------------------------------------
