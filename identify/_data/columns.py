@@ -330,21 +330,3 @@ def _warn_if_turns(path, where: str, channel: str, si: np.ndarray, unit: str) ->
             UserWarning,
             stacklevel=4,
         )
-
-
-def _warn_if_cut_off(path, text: str, lines: list[str], line_numbers: list[int]) -> None:
-    """Warn when the file ends without a newline in a data row shorter than every other:
-    the mark of a write interrupted mid-number (`1.9950,-51.` reads as -51.0 deg, whatever
-    digits the sample had left). A file that merely lacks the final newline has a last row
-    as long as the others."""
-    last = line_numbers[-1]
-    if text.endswith(("\n", "\r")) or last != len(lines) or len(line_numbers) < 3:
-        return
-    others = min(len(lines[n - 1].strip()) for n in line_numbers[:-1])
-    if len(lines[last - 1].strip()) < others:
-        warnings.warn(
-            f"{path}, line {last}: the file ends without a newline in a row shorter than every other "
-            f"({lines[last - 1].strip()!r}): it may have been cut off mid-write; check that row, or delete it",
-            UserWarning,
-            stacklevel=2,
-        )

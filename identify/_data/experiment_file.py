@@ -20,7 +20,19 @@ _EXPERIMENT_KEYS = ("name", "description", "strict", "min_samples")
 _RIG_KEYS = ("base", "options", "set", "gravity", "links", "joints", "hubs", "payload")
 
 
-_LOG_KEYS = ("file", "name", "role", "columns", "calibration", "initial", "fit_initial", "offsets", "strict", "set")
+_LOG_KEYS = (
+    "file",
+    "name",
+    "role",
+    "columns",
+    "calibration",
+    "decimal",
+    "initial",
+    "fit_initial",
+    "offsets",
+    "strict",
+    "set",
+)
 
 
 def load_experiment(path) -> Experiment:

@@ -13,9 +13,10 @@ import flexdyn as fd
 from . import measurement as meas, units as u
 from .channels import channel_problem, channel_unit, state_names
 from .columns import LogError, check_calibration
+from .csv_numbers import DECIMALS
 from .experiment import ROLES, FreeParameter, LogSpec
 from .files import absolute, expand_user, file_problem, resolved as resolved_path
-from .logs import load_log
+from .logs import MAT_SUFFIXES, load_log
 from .toml_reader import ExperimentError, _dotted_key_error, _key_text, _Reader, _show, _unknown_parameter
 
 #: Named rigs (`rig.base`) and the functions that build them.
@@ -372,6 +373,11 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
     log_strict = spec.get("strict", strict)
     if not isinstance(log_strict, bool):
         raise r.error(key + ("strict",), f"expected true or false, got {_show(log_strict)}")
+    decimal = spec.get("decimal", ".")
+    if decimal not in DECIMALS:
+        raise r.error(key + ("decimal",), f'expected "." or "," (the decimal mark), got {_show(decimal)}')
+    if decimal != "." and resolved.suffix.lower() in MAT_SUFFIXES:
+        raise r.error(key + ("decimal",), "applies to CSV logs; a .mat file holds binary numbers")
 
     columns = dict(r.table(spec.get("columns", {}), key + ("columns",)))
     if "columns" in spec and "time" not in columns:
@@ -402,6 +408,7 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
             min_samples=min_samples,
             name=name,
             context=context,
+            decimal=decimal,
         )
     except LogError as e:
         # a problem with one entry of the column mapping points at that entry's line

@@ -145,6 +145,7 @@ def load_log(
     min_samples: int = MIN_SAMPLES,
     name: str | None = None,
     context: str = "columns",
+    decimal: str = ".",
 ) -> Log:
     """Read a CSV or MATLAB `.mat` log into SI units, with checks.
 
@@ -161,6 +162,9 @@ def load_log(
     - `min_samples`: fewest samples accepted.
     - `name`: label of the log (default: the file's stem).
     - `context`: how the mapping is named in messages (e.g. `'logs[2].columns'`).
+    - `decimal`: a CSV log's decimal mark, `"."` or `","` (cells then separated by
+      semicolons or tabs). A comma is never taken for a decimal mark by guess: `1,234`
+      may be 1.234 or 1234.
 
     Raises `LogError` (a `ValueError`) naming the file, line and column (or variable and
     sample) and what was expected.
@@ -184,9 +188,11 @@ def load_log(
                 f"{path}: a .mat log needs a column mapping (.mat variables carry no units); expected "
                 'columns = { time = "t [s]", theta1 = "enc [deg]", ... } naming each variable and its unit'
             )
+        if decimal != ".":
+            raise LogError(f"{path}: decimal = {decimal!r} applies to CSV logs; a .mat file holds binary numbers")
         t, t_relative, channels, sources, ignored = _read_mat(path, wanted, cals, strict, context)
     elif suffix in CSV_SUFFIXES:
-        t, t_relative, channels, sources, ignored = _read_csv(path, wanted, cals, strict, context)
+        t, t_relative, channels, sources, ignored = _read_csv(path, wanted, cals, strict, context, decimal)
     else:
         raise LogError(f"{path}: unknown log type {path.suffix!r}; expected {', '.join(CSV_SUFFIXES + MAT_SUFFIXES)}")
     n = t.shape[0]

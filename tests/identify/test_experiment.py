@@ -876,3 +876,26 @@ calibration = { curvature1 = { neutral_axis_distance = "0.5 mm" } }
     exp = load_experiment(experiment(tmp_path, body, log=False))
     ue = np.asarray([10.0 * math.cos(0.01 * k) + 1 for k in range(20)])
     np.testing.assert_allclose(exp.logs[0].log.outputs["curvature1"], ue * 1e-6 / 0.5e-3, rtol=1e-6)
+
+
+def test_a_log_with_decimal_commas_says_so_in_its_entry(tmp_path):
+    """A comma is read as a decimal mark only where the log's entry says `decimal = ","`:
+    `1,234` could be 1.234 or 1234 (review: it was read as 1.234 by guess)."""
+    path = write_log(tmp_path / "logs" / "eu.csv")
+    text = path.read_text()
+    path.write_text(text.replace(",", ";").replace(".", ","))
+    body = RIG + LOG.replace("drop.csv", "eu.csv")
+    with pytest.raises(
+        LogError,
+        match=msg("eu.csv, line 2, column 1 ('time [s]')", "got '0,0000': a decimal comma (0.0000)?", 'decimal = ","'),
+    ):
+        load_experiment(experiment(tmp_path, body, log=False))
+    exp = load_experiment(experiment(tmp_path, body + 'decimal = ","\n', log=False))
+    np.testing.assert_allclose(exp.logs[0].log.t, 0.01 * np.arange(20), rtol=0, atol=1e-15)
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 9: logs[1].decimal", 'expected "." or ","', "';'")):
+        load_experiment(experiment(tmp_path, body + 'decimal = ";"\n', log=False))
+    mat = tmp_path / "logs" / "run.mat"
+    scipy.io.savemat(mat, {"t": 0.01 * np.arange(20), "enc": np.zeros(20)})
+    body = RIG + '[[logs]]\nfile = "logs/run.mat"\ncolumns = { time = "t [s]", theta1 = "enc [deg]" }\ndecimal = ","\n'
+    with pytest.raises(ExperimentError, match=msg("exp.toml, line 8: logs[1].decimal: applies to CSV logs")):
+        load_experiment(experiment(tmp_path, body, log=False))

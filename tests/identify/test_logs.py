@@ -143,9 +143,56 @@ def test_header_mapping_by_default_and_absolute_time(tmp_path):
 def test_semicolon_with_decimal_comma(tmp_path):
     rows = [[f"{0.01 * k:.2f}".replace(".", ","), "1,5", "2"] for k in range(10)]
     path = write_csv(tmp_path / "eu.csv", ["time [s]", "theta1 [deg]", "tip1 [mm]"], rows, delimiter=";")
-    log = load_log(path, COLUMNS)
+    log = load_log(path, COLUMNS, decimal=",")
     np.testing.assert_allclose(log.t, 0.01 * np.arange(10), atol=1e-15)
     np.testing.assert_allclose(log.outputs["theta1"], math.radians(1.5))
+
+
+def test_a_comma_in_a_number_is_never_read_by_guess(tmp_path):
+    """Review: `1,234` in a `;`-separated file was read as 1.234 without a word, a thousands
+    separator taken for a decimal comma. A decimal comma is read only where the log says so
+    (`decimal = ","`); a thousands separator is never read, with either decimal mark."""
+    rows = [[f"{0.01 * k:.2f}", "1.5", "2"] for k in range(10)]
+    rows[3][1] = "1,234"
+    path = write_csv(tmp_path / "eu.csv", HEADER, rows, delimiter=";")
+    with pytest.raises(
+        LogError,
+        match=msg(
+            "eu.csv, line 5, column 2 ('theta1 [deg]'): expected a number, got '1,234': a decimal comma (1.234) or a "
+            "thousands separator (1234)?",
+            'decimal = "," in its [[logs]] entry',
+        ),
+    ):
+        load_log(path, COLUMNS)
+    with pytest.raises(LogError, match=msg("eu.csv, line 2, column 1", "got '0.00'", "decimal commas", "'.'")):
+        load_log(path, COLUMNS, decimal=",")  # (the file writes decimal points)
+    for cell, decimal, fix in [("1,234.5", ".", "'1234.5'"), ("1.234,5", ",", "'1234,5'"), ("1 234", ".", "'1234'")]:
+        rows = [[f"{0.01 * k:.2f}".replace(".", decimal), "1", "2"] for k in range(10)]
+        rows[6][2] = cell
+        path = write_csv(tmp_path / "sep.csv", HEADER, rows, delimiter=";")
+        with pytest.raises(LogError, match=msg("sep.csv, line 8, column 3", f"got {cell!r}", "thousands", fix)):
+            load_log(path, COLUMNS, decimal=decimal)
+    path = write_csv(tmp_path / "commas.csv", HEADER, good_rows())
+    with pytest.raises(LogError, match=msg("commas.csv, line 1", 'decimal = ","', "separated by commas", "semicolons")):
+        load_log(path, COLUMNS, decimal=",")
+    with pytest.raises(LogError, match=msg("commas.csv", "decimal = ';'", 'expected "." or ","')):
+        load_log(path, COLUMNS, decimal=";")
+
+
+def test_an_underscore_in_a_number_is_an_error(tmp_path):
+    """Review: `-16_6.9411` was read as -166.9411 (Python's float takes underscores between
+    digits)."""
+    rows = good_rows()
+    rows[7][1] = "-16_6.9411"
+    path = write_csv(tmp_path / "under.csv", HEADER, rows)
+    with pytest.raises(
+        LogError,
+        match=msg(
+            "under.csv, line 9, column 2 ('theta1 [deg]'): expected a number, got '-16_6.9411': an underscore is "
+            "not part of a number"
+        ),
+    ):
+        load_log(path, COLUMNS)
 
 
 def test_volts_with_calibration(tmp_path):
@@ -679,7 +726,7 @@ def test_an_excel_separator_line_sets_the_separator(tmp_path):
     rows = [[f"{0.01 * k:.2f}".replace(".", ","), "1,5", "2"] for k in range(10)]
     path = write_csv(tmp_path / "excel.csv", ["time [s]", "theta1 [deg]", "tip1 [mm]"], rows, delimiter=";")
     path.write_text("sep=;\n" + path.read_text())
-    log = load_log(path, COLUMNS)
+    log = load_log(path, COLUMNS, decimal=",")
     np.testing.assert_allclose(log.t, 0.01 * np.arange(10), atol=1e-15)
     np.testing.assert_allclose(log.outputs["theta1"], math.radians(1.5))
 
@@ -705,6 +752,40 @@ def test_a_file_without_a_header_row_says_so(tmp_path):
 def test_space_separated_cells_are_named_as_such(tmp_path):
     path = write_csv(tmp_path / "spaces.txt", HEADER, good_rows(), delimiter=" ")
     with pytest.raises(LogError, match=msg("spaces.txt, line 1", "separated by spaces", "commas, semicolons or tabs")):
+        load_log(path, COLUMNS)
+
+
+def test_a_byte_order_mark_before_the_header_is_skipped(tmp_path):
+    path = tmp_path / "bom.csv"
+    text = "\n".join(["sep=;", ";".join(HEADER)] + [";".join(r) for r in good_rows()]) + "\n"
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    assert len(load_log(path, COLUMNS)) == 20
+
+
+@pytest.mark.parametrize("separator", ["\f", "\v", "\u2028", "\u2029", "\x85", "\x1c"])
+def test_a_line_separator_inside_a_comment_does_not_end_the_line(tmp_path, separator):
+    """Review: str.splitlines() splits at a form feed, U+2028 and other separators: the tail
+    of a comment holding one (pasted from a word processor) became the header row."""
+    path = tmp_path / "sep.csv"
+    lines = [f"# rig 3{separator}gauge 2", ",".join(HEADER)] + [",".join(r) for r in good_rows()]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    assert len(load_log(path, COLUMNS)) == 20
+    rows = good_rows()
+    rows[4][2] = "n/a"  # line 7: the line numbers count only \n, \r\n and \r
+    path.write_text("\n".join(lines[:2] + [",".join(r) for r in rows]) + "\n", encoding="utf-8")
+    with pytest.raises(LogError, match=msg("sep.csv, line 7, column 3", "'n/a'")):
+        load_log(path, COLUMNS)
+
+
+@pytest.mark.parametrize("newline", ["\n", "\r\n", "\r"])
+def test_line_ends_of_every_system(tmp_path, newline):
+    path = tmp_path / "ends.csv"
+    rows = good_rows()
+    path.write_bytes(newline.join(["# a", ",".join(HEADER)] + [",".join(r) for r in rows]).encode() + b"\n")
+    assert len(load_log(path, COLUMNS)) == 20
+    rows[15][1] = "x"
+    path.write_bytes(newline.join(["# a", ",".join(HEADER)] + [",".join(r) for r in rows]).encode() + b"\n")
+    with pytest.raises(LogError, match=msg("ends.csv, line 18, column 2", "'x'")):
         load_log(path, COLUMNS)
 
 
@@ -783,3 +864,87 @@ def test_a_loaded_log_converts_to_log_data(tmp_path):
     params = [identify.Parameter("joint1.damping", 1e-3)]
     with pytest.raises(TypeError, match=r"got Log: convert it with identify.LogData.from_log"):
         identify.make_problem(fd.rigs.rigid_pendulum(), params, [log], {"theta1": 1e-3})
+
+
+# ---------------------------------------------------------------------------
+# Large logs: the fast reader, the careful one, and the memory check
+# ---------------------------------------------------------------------------
+
+
+def chunked_log(tmp_path, rows, header=("time [s]", "theta1 [deg]", "status", "tip1 [mm]"), newline="\n"):
+    path = tmp_path / "big.csv"
+    path.write_bytes(newline.join([",".join(header)] + rows).encode() + newline.encode())
+    return path
+
+
+def mixed_rows(n=400):
+    """Plain rows and, here and there, what only the careful reader reads: comments, blank
+    lines, quoted cells, white space around a row."""
+    rows = [f"{0.005 * k:.3f},{np.sin(k):.9f},ok,{1e-3 * k:.6e}" for k in range(n)]
+    rows[50] = "# a comment inside the rows"
+    rows[120] = ""
+    rows[200] = f'{0.005 * 200:.3f},1.5,"quoted, with a comma",2.5'
+    rows[300] = f"  {0.005 * 300:.3f},1.5,ok,2.5  "
+    return rows
+
+
+@pytest.mark.parametrize("newline", ["\n", "\r\n"])
+def test_the_fast_reader_reads_what_the_careful_one_reads(tmp_path, monkeypatch, newline):
+    """The rows are read in chunks (here of 300 bytes): `np.loadtxt` for plain ones, the
+    careful line-by-line reader for the rest; the results agree bit for bit, line numbers
+    included."""
+    from identify._data import csv_log, csv_rows
+
+    monkeypatch.setattr(csv_rows, "CHUNK_BYTES", 300)
+    careful = []
+    monkeypatch.setattr(csv_rows, "_careful", lambda *a, _f=csv_rows._careful: careful.append(1) or _f(*a))
+    path = chunked_log(tmp_path, mixed_rows(), newline=newline)
+    fast = load_log(path)
+    n_chunks = len(careful)
+    slow = csv_log._read_csv(path, None, {}, False, "columns", fast=False)
+    assert len(careful) > 3 * n_chunks  # (the fast reader read most chunks)
+    assert len(fast) == 398 and fast.ignored == ("status",)
+    np.testing.assert_array_equal(fast.t, slow[0])
+    np.testing.assert_array_equal(fast.outputs["theta1"], slow[2]["theta1"])
+    np.testing.assert_array_equal(fast.outputs["tip1"], slow[2]["tip1"])
+    rows = mixed_rows()
+    rows[350] = rows[350].replace("ok,", "ok,1_")  # line 352, in a chunk the fast reader refuses
+    rows[360] = rows[360].replace(",ok", ",ok,more")
+    with pytest.raises(LogError, match=msg("big.csv, line 352, column 4 ('tip1 [mm]')", "underscore")):
+        load_log(chunked_log(tmp_path, rows, newline=newline))
+    rows = mixed_rows()
+    rows[380] = rows[380].replace(",ok", ",ok,more")
+    with pytest.raises(LogError, match=msg("big.csv, line 382: 5 cells; expected 4 like the header on line 1")):
+        load_log(chunked_log(tmp_path, rows, newline=newline))
+    rows = mixed_rows()
+    rows[390] = f"{0.005 * 389:.3f},0,ok,0"
+    with pytest.raises(LogError, match=msg("big.csv, line 392, column 1", "duplicate time stamp", "line 391")):
+        load_log(chunked_log(tmp_path, rows, newline=newline))
+
+
+def test_decimal_commas_through_the_fast_reader(tmp_path, monkeypatch):
+    from identify._data import csv_rows
+
+    monkeypatch.setattr(csv_rows, "CHUNK_BYTES", 300)
+    rows = [f"{0.005 * k:.3f};{np.sin(k):.9f};{1e-3 * k:.6e}".replace(".", ",") for k in range(300)]
+    path = tmp_path / "eu.csv"
+    path.write_text("\n".join(["time [s];theta1 [deg];tip1 [mm]"] + rows) + "\n")
+    log = load_log(path, decimal=",")
+    np.testing.assert_array_equal(log.t, [float(f"{0.005 * k:.3f}") for k in range(300)])
+    np.testing.assert_array_equal(log.outputs["tip1"], [float(f"{1e-3 * k:.6e}") * 1e-3 for k in range(300)])
+    rows[250] = rows[250].replace(",", ".", 1)
+    path.write_text("\n".join(["time [s];theta1 [deg];tip1 [mm]"] + rows) + "\n")
+    with pytest.raises(LogError, match=msg("eu.csv, line 252, column 1", "decimal commas")):
+        load_log(path, decimal=",")
+
+
+def test_a_log_too_large_for_the_memory_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    from identify._data import csv_rows
+
+    monkeypatch.setattr(csv_rows, "available_memory", lambda: 10_000)
+    monkeypatch.setattr(csv_rows, "CHUNK_BYTES", 300)
+    path = chunked_log(tmp_path, mixed_rows())
+    with pytest.raises(
+        LogError, match=msg("big.csv: about", "rows x 3 mapped column(s) need about", "GB", "split the log")
+    ):
+        load_log(path)
