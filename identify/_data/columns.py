@@ -23,6 +23,12 @@ MIN_SAMPLES = 10
 GAP_FACTOR = 1.5
 
 
+#: A gap longer than both of these is an error (`_check_gaps`): this multiple of the median
+#: interval, and this many seconds.
+LONG_GAP_FACTOR = 1000
+LONG_GAP_S = 1.0
+
+
 class LogError(ValueError):
     """A log file (or its description in an experiment file) is not usable. The message
     names the file, the line and column or variable, and what was expected.
@@ -298,8 +304,8 @@ def _check_samples(path, channel: str, values: np.ndarray, where: Callable[[int]
 
 
 def _check_time(path, t: np.ndarray, where: Callable[[int], str], shown: np.ndarray):
-    """Strictly increasing `t` (relative times, compared exactly); `shown`: the same times
-    as in the file (s), for the message."""
+    """Strictly increasing `t` (relative times, compared exactly) without a long gap
+    (`_check_gaps`); `shown`: the same times as in the file (s), for the message."""
     dt = np.diff(t)
     bad = dt <= 0
     if bad.any():
@@ -308,6 +314,30 @@ def _check_time(path, t: np.ndarray, where: Callable[[int], str], shown: np.ndar
         raise LogError(
             f"{path}, {where(j)}: {what} (t = {shown[j]:.9g} after t = {shown[j - 1]:.9g} at {where(j - 1)}); "
             "expected strictly increasing times"
+        )
+    _check_gaps(path, t, where, shown)
+
+
+def _check_gaps(path, t: np.ndarray, where: Callable[[int], str], shown: np.ndarray):
+    """No interval of the (increasing) relative times `t` (s) longer than `LONG_GAP_FACTOR`
+    median intervals and `LONG_GAP_S` seconds. The fit integrates the model from sample to
+    sample, across a gap too, as if it had been measured: a gap of a few dropped samples
+    costs nothing, but one of 1000 intervals (5 s at 200 Hz; an hour between two runs saved
+    in one file) is an unmeasured stretch the model must bridge with an unknown input. Two
+    runs are two logs. The seconds keep a fast log's (10 kHz) short hiccup acceptable."""
+    if t.shape[0] < 2:
+        return
+    dt = np.diff(t)
+    median = float(np.median(dt))
+    long = (dt > LONG_GAP_FACTOR * median) & (dt > LONG_GAP_S)
+    if long.any():
+        j = int(np.argmax(long)) + 1
+        raise LogError(
+            f"{path}, {where(j)}: a gap of {dt[j - 1]:.6g} s in the time stamps (t = {shown[j - 1]:.9g} s at "
+            f"{where(j - 1)}, then t = {shown[j]:.9g} s), {dt[j - 1] / median:.3g} times the median interval "
+            f"{median:.6g} s: the fit would integrate the model across it as if it had been measured. Split the log "
+            f"into two logs at this sample (a [[logs]] entry each); shorter gaps (up to {LONG_GAP_FACTOR} median "
+            f"intervals, or up to {LONG_GAP_S:g} s) are read"
         )
 
 

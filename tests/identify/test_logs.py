@@ -339,6 +339,51 @@ def test_non_uniform_sampling_and_gap_accepted(tmp_path):
     assert "largest 0.41 s at t = 0.09 s" in str(s)
 
 
+def test_a_gap_of_an_hour_is_an_error_naming_both_sides(tmp_path):
+    """Review: an hour's gap in a 200 Hz log passed `identify check` with a note, and the fit
+    would integrate the model across it. A gap longer than 1000 median intervals and 1 s is
+    an error naming the lines and times on both sides; dropped samples stay a note."""
+    t = np.concatenate([np.arange(2000) * 0.005, 3609.995 + np.arange(2000) * 0.005])
+    rows = [[f"{ti:.3f}", "0", "0"] for ti in t]
+    path = write_csv(tmp_path / "hour.csv", HEADER, rows)
+    with pytest.raises(
+        LogError,
+        match=msg(
+            "hour.csv, line 2002, column 1 ('time [s]'): a gap of 3600 s in the time stamps (t = 9.995 s at line "
+            "2001, column 1 ('time [s]'), then t = 3609.995 s), 7.2e+05 times the median interval 0.005 s",
+            "integrate the model across it",
+            "Split the log into two logs at this sample",
+        ),
+    ):
+        load_log(path, COLUMNS)
+    mat = tmp_path / "hour.mat"
+    scipy.io.savemat(mat, {"t": t, "enc": np.zeros_like(t)})
+    with pytest.raises(LogError, match=msg("hour.mat", "variable 't', sample 2001", "a gap of 3600 s", "Split")):
+        load_log(mat, {"time": "t [s]", "theta1": "enc [deg]"})
+
+
+@pytest.mark.parametrize(
+    ("dt", "gap", "refused"),
+    [
+        (0.005, 0.5, False),  # 100 intervals: dropped samples
+        (0.005, 4.9, False),  # 980 intervals
+        (0.005, 5.2, True),  # 1040 intervals, 5.2 s
+        (1e-4, 0.5, False),  # 5000 intervals of a 10 kHz log, but 0.5 s
+        (1e-4, 1.5, True),
+        (1.0, 120.0, False),  # a 1 Hz log: 120 intervals
+    ],
+)
+def test_only_a_gap_long_in_intervals_and_in_seconds_is_refused(tmp_path, dt, gap, refused):
+    t = np.concatenate([np.arange(50) * dt, 49 * dt + gap + np.arange(50) * dt])
+    rows = [[f"{ti:.6f}", "0", "0"] for ti in t]
+    path = write_csv(tmp_path / "gap.csv", HEADER, rows)
+    if refused:
+        with pytest.raises(LogError, match=msg("gap.csv, line 52, column 1", f"a gap of {gap:g} s")):
+            load_log(path, COLUMNS)
+    else:
+        assert load_log(path, COLUMNS).sampling.n_gaps == 1
+
+
 def test_mat_log(tmp_path):
     t, a, b = samples(15)
     path = tmp_path / "run.mat"
