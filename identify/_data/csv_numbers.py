@@ -25,11 +25,16 @@ _NUMBER = {mark: _grammar(mark) for mark in DECIMALS}
 
 def parse_number(text: str, decimal: str) -> float:
     """The value of a cell (surrounding white space ignored) with decimal mark `decimal`;
-    `ValueError` if it is not a number of the grammar."""
+    `ValueError` if it is not a number of the grammar. (The grammar is Python's float
+    literal, `nan` and `inf` in ASCII without underscores: `float` reads the rest.)"""
     s = text.strip()
-    if not _NUMBER[decimal].fullmatch(s):
+    if decimal == ",":
+        if "." in s:
+            raise ValueError(s)
+        s = s.replace(",", ".")
+    if "_" in s or not s.isascii():
         raise ValueError(s)
-    return float(s.replace(",", ".") if decimal == "," else s)
+    return float(s)
 
 
 def is_number(text: str) -> bool:

@@ -198,16 +198,16 @@ def _fast(chunk: bytes, columns: Columns) -> _Chunk | None:
 def _careful(path: Path, chunk: bytes, first_line: int, at_end: bool, columns: Columns) -> _Chunk:
     """The chunk read line by line; `LogError` names the first bad row or cell."""
     lines = split_lines(decode(chunk))
-    header, n = columns.header, len(columns.header)
+    header, n, delimiter = columns.header, len(columns.header), columns.delimiter
     values, numbers, lengths = [], [], []
     for i, text in enumerate(lines):
         if skipped(text):
             continue
         no = first_line + i
-        try:
-            row = next(csv.reader([text], delimiter=columns.delimiter))
+        try:  # (without quotes, the csv module splits at the delimiter)
+            row = next(csv.reader([text], delimiter=delimiter)) if '"' in text else text.split(delimiter)
         except csv.Error as e:
-            raise LogError(f"{path}, line {no}: {e}; expected cells separated by {columns.delimiter!r}") from None
+            raise LogError(f"{path}, line {no}: {e}; expected cells separated by {delimiter!r}") from None
         if len(row) != n:
             cut = at_end and i == len(lines) - 1 and not chunk.endswith((b"\n", b"\r"))
             raise LogError(

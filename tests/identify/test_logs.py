@@ -993,3 +993,33 @@ def test_a_log_too_large_for_the_memory_is_refused_before_it_is_read(tmp_path, m
         LogError, match=msg("big.csv: about", "rows x 3 mapped column(s) need about", "GB", "split the log")
     ):
         load_log(path)
+
+
+TRICKY_CELLS = [
+    "1", "-1.5", "+.5", "5.", "1e5", "1.5E-3", "-0.000", "nan", "-NaN", "inf", "-Infinity", "1_0", "-16_6.9411",
+    "0x10", "1,5", "1,234.5", "1.234,5", "1 234", "1'234", "١٢", "１２", "1e", "e5", ".", "+", "--1", "1.5f",
+    "nan(1)", "1d5", " 2.5 ", "\t3", "",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("decimal", [".", ","])
+def test_one_number_grammar_for_both_readers(decimal):
+    """The careful reader's `parse_number`, the grammar its messages use, and `np.loadtxt`
+    (the fast reader, after a decimal comma is turned into a point) agree on every cell:
+    which reader reads a chunk never changes a value or what is refused."""
+    from identify._data.csv_numbers import _NUMBER, parse_number
+
+    for cell in TRICKY_CELLS:
+        try:
+            value = parse_number(cell, decimal)
+        except ValueError:
+            value = None
+        assert (value is not None) == bool(_NUMBER[decimal].fullmatch(cell.strip())), cell
+        if decimal == "," and "." in cell:
+            continue  # (the fast reader leaves such a chunk to the careful one)
+        try:
+            fast = float(np.loadtxt([f"0;{cell.replace(',', '.') if decimal == ',' else cell}"], delimiter=";")[1])
+        except ValueError:
+            fast = None
+        if fast is not None:
+            assert value is not None and (value == fast or (math.isnan(value) and math.isnan(fast))), cell
