@@ -186,18 +186,26 @@ def _units_of(dim: str) -> str:
     return " ".join(f"[{k}]" for k, (d, _) in u.UNITS.items() if d == dim)
 
 
-def _to_si(values: np.ndarray, unit: str, cal: Calibration | None, channel: str) -> np.ndarray:
-    values = values * u.unit_factor(unit)
+def _to_si(
+    values: np.ndarray, unit: str, cal: Calibration | None, channel: str, *, out: np.ndarray | None = None
+) -> np.ndarray:
+    """`values` in `unit` (volts or a strain with `cal`) converted to the channel's SI unit,
+    into `out` (`values` itself converts in place: a large log keeps one copy)."""
+    si = np.multiply(values, u.unit_factor(unit), out=out)
     if cal is not None:
         if cal.scale is not None:
-            values = cal.scale * values + cal.offset
+            si *= cal.scale
+            si += cal.offset
             if cal.unit is not None:
-                values = values * u.unit_factor(u.normalise_unit(cal.unit))
+                si *= u.unit_factor(u.normalise_unit(cal.unit))
         if cal.neutral_axis_distance is not None:  # strain -> curvature (`Calibration`)
-            values = values / cal.neutral_axis_distance
+            si /= cal.neutral_axis_distance
         if cal.gear_ratio is not None:  # motor side -> link side (`Calibration`)
-            values = values * cal.gear_ratio if channel.startswith("torque") else values / cal.gear_ratio
-    return values
+            if channel.startswith("torque"):
+                si *= cal.gear_ratio
+            else:
+                si /= cal.gear_ratio
+    return si
 
 
 def _calibration_note(cal: Calibration | None) -> str:

@@ -53,13 +53,13 @@ def _read_open_csv(path: Path, stream, wanted, cals, strict, context, decimal: s
 
     channels, sources, time_column = {}, {}, None
     for k, (c, (w, unit, cal)) in enumerate(used.items()):
-        raw = values[:, k]
+        raw = values[k]
         _check_samples(path, w.channel, raw, where_for(c))
-        channels[w.channel] = _to_si(raw, unit, cal, w.channel)
-        _warn_if_turns(path, f"column {c} ({header[c - 1]!r})", w.channel, channels[w.channel], unit)
-        sources[w.channel] = f"column {c} {header[c - 1]!r}" + _calibration_note(cal)
         if w.channel == "time":
             t_relative, time_column = _relative_time(raw, unit), c
+        channels[w.channel] = _to_si(raw, unit, cal, w.channel, out=raw)  # (the file's values are not kept)
+        _warn_if_turns(path, f"column {c} ({header[c - 1]!r})", w.channel, channels[w.channel], unit)
+        sources[w.channel] = f"column {c} {header[c - 1]!r}" + _calibration_note(cal)
     t = channels.pop("time")
     if t.shape[0] >= 2:
         _check_time(path, t_relative, where_for(time_column), t)
