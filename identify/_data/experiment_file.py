@@ -19,7 +19,21 @@ _EXPERIMENT_KEYS = ("name", "description", "strict", "min_samples")
 _RIG_KEYS = ("base", "options", "set", "gravity", "links", "joints", "hubs", "payload")
 
 
-_LOG_KEYS = ("file", "name", "role", "columns", "calibration", "initial", "fit_initial", "offsets", "strict", "set")
+_LOG_KEYS = (
+    "file",
+    "name",
+    "role",
+    "columns",
+    "calibration",
+    "initial",
+    "fit_initial",
+    "offsets",
+    "strict",
+    "set",
+    "stamp",
+    "time_base",
+    "rate_hz",
+)
 
 
 def load_experiment(path) -> Experiment:
@@ -73,7 +87,7 @@ def load_experiment(path) -> Experiment:
         seen[entry.name] = k
     same: dict[tuple, int] = {}
     for k, entry in enumerate(logs, start=1):
-        read = (entry.file, tuple(sorted(entry.columns.items())))
+        read = (entry.file, repr(sorted(entry.columns.items())))  # (a bag's columns are tables)
         if read in same:
             raise r.error(
                 ("logs", k, "file"),
