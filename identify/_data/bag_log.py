@@ -164,7 +164,9 @@ def _read_messages(path: Path, reader, sources, needed, timing: BagTiming, conte
                 else:
                     values[s.channel].append(field_number(message, s.path))
             except FieldError as e:
-                raise LogError(f"{at}, field {s.field!r} (mapped by {context}.{s.channel}): {e}") from None
+                raise LogError(
+                    f"{at}, field {s.field!r} (mapped by {context}.{s.channel}): {e}", channel=s.channel
+                ) from None
     out = {}
     for topic in needed:
         if not stamps[topic]:
@@ -178,7 +180,8 @@ def _read_messages(path: Path, reader, sources, needed, timing: BagTiming, conte
             j = int(np.argmax(bad))
             raise LogError(
                 f"{path}: topic {s.topic!r}, message {j + 1} of {len(raw[s.channel])}, field {s.field!r}: "
-                f"{raw[s.channel][j]} in {s.channel}; expected a finite number"
+                f"{raw[s.channel][j]} in {s.channel}; expected a finite number",
+                channel=s.channel,
             )
     return out, kinds, raw
 

@@ -691,6 +691,12 @@ def test_experiment_file_mistakes_name_their_line(tmp_path):
         ),
     ):
         load_experiment(path)
+    path.write_text(path.read_text().replace('"/strian", field = "data"', '"/strain", field = "dta"'))
+    with pytest.raises(
+        LogError,
+        match=msg("topic '/strain', message 1 of 12, field 'dta'", "[", "exp.toml, line 11: logs[1].columns.tip1]"),
+    ):
+        load_experiment(path)
     # a CSV log takes no time base
     (tmp_path / "log.csv").write_text("time [s],theta1 [rad]\n" + "".join(f"{0.01 * k},0\n" for k in range(12)))
     with pytest.raises(ExperimentError, match=msg("line 7: logs[1].rate_hz: applies to ROS bags")):
