@@ -362,7 +362,7 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
     file = r.string(spec["file"], key + ("file",))
     resolved = (r.path.parent / Path(file).expanduser()).resolve()
     bag = is_bag(resolved)
-    if not resolved.is_file() and not bag:
+    if not resolved.exists() or (resolved.is_dir() and not bag):
         what = "is a directory without a metadata.yaml (not a ROS 2 bag)" if resolved.is_dir() else "does not exist"
         raise r.error(key + ("file",), f"log file {resolved} {what} (paths are relative to {r.path.parent.resolve()})")
     name = r.string(spec.get("name", resolved.stem), key + ("name",))

@@ -183,7 +183,7 @@ def load_log(
         spec = {k: v for k, v in dataclasses.asdict(c).items() if v is not None} if isinstance(c, Calibration) else c
         cals[ch] = check_calibration(ch, spec, f"{path}: calibration.{ch}")
     bag = is_bag(path)
-    if not path.is_file() and not bag:
+    if not path.exists() or (path.is_dir() and not bag):
         what = "is a directory without a metadata.yaml (not a ROS 2 bag)" if path.is_dir() else "does not exist"
         raise LogError(f"{path.resolve()}: log file {what}; expected a .csv or .mat file or a ROS bag")
     suffix = path.suffix.lower()

@@ -582,6 +582,8 @@ def test_not_a_bag(tmp_path):
     (tmp_path / "run.mcap").write_bytes(b"not an mcap file at all")
     with pytest.raises(LogError, match=msg(str(tmp_path / "run.mcap"), "not a readable ROS bag")):
         load(tmp_path / "run.mcap", THETA)
+    with pytest.raises(LogError, match=msg(str(tmp_path / "gone.mcap"), "log file does not exist")):
+        load(tmp_path / "gone.mcap", THETA)
     (tmp_path / "folder").mkdir()
     with pytest.raises(LogError, match=msg("folder", "is a directory without a metadata.yaml (not a ROS 2 bag)")):
         load(tmp_path / "folder", THETA)
@@ -701,3 +703,21 @@ def test_experiment_file_mistakes_name_their_line(tmp_path):
     (tmp_path / "log.csv").write_text("time [s],theta1 [rad]\n" + "".join(f"{0.01 * k},0\n" for k in range(12)))
     with pytest.raises(ExperimentError, match=msg("line 7: logs[1].rate_hz: applies to ROS bags")):
         load_experiment(experiment(tmp_path, 'file = "log.csv"\nrate_hz = 100\n'))
+
+
+def test_a_topic_of_several_message_types(tmp_path):
+    """ROS 1 lets two publishers put different types on one topic; which one a channel
+    means would be a guess."""
+    bag = tmp_path / "mixed.bag"
+    store = TYPESTORES["ros1"]
+    with Writer1(bag) as writer:
+        a = writer.add_connection("/strain", "std_msgs/msg/Float64", typestore=store)
+        b = writer.add_connection("/strain", "std_msgs/msg/Float32", typestore=store)
+        for k in range(12):
+            writer.write(a, T0 + k * 10 * MS, store.serialize_ros1(float64("ros1", k), "std_msgs/msg/Float64"))
+        value = store.types["std_msgs/msg/Float32"](data=1.0)
+        writer.write(b, T0 + 5 * MS, store.serialize_ros1(value, "std_msgs/msg/Float32"))
+    with pytest.raises(
+        LogError, match=msg(str(bag), "topic '/strain' (mapped by columns.tip1) holds messages of several types")
+    ):
+        load(bag, {"tip1": {"topic": "/strain", "field": "data", "unit": "mm"}})
