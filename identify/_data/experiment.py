@@ -49,7 +49,8 @@ class LogSpec:
 
     - `file`: the log's path, resolved against the experiment file's folder.
     - `role`: `'fit'` or `'validation'` (held out of the fit).
-    - `columns`: channel -> `'column [unit]'` as written (empty if the CSV header was used).
+    - `columns`: channel -> `'column [unit]'` as written (empty if the CSV header was used);
+      for a ROS bag, channel -> `{topic, field, joint, unit}`.
     - `calibration`: channel -> `Calibration` for voltage, strain-gauge and motor-side columns.
     - `initial`: known initial-state entries, coordinate or `<coordinate>_rate` -> SI value
       (entries not listed are 0, except rotor angles/rates of elastic joints, which default
@@ -65,7 +66,7 @@ class LogSpec:
     name: str
     file: Path
     role: str
-    columns: dict[str, str]
+    columns: dict[str, str | dict]
     calibration: dict[str, Calibration]
     initial: dict[str, float]
     fit_initial: tuple[str, ...]

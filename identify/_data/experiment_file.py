@@ -32,6 +32,9 @@ _LOG_KEYS = (
     "offsets",
     "strict",
     "set",
+    "stamp",
+    "time_base",
+    "rate_hz",
 )
 
 
@@ -89,7 +92,7 @@ def load_experiment(path) -> Experiment:
         seen[entry.name] = k
     same: dict[tuple, int] = {}
     for k, entry in enumerate(logs, start=1):
-        read = (entry.file, tuple(sorted(entry.columns.items())))
+        read = (entry.file, repr(sorted(entry.columns.items())))  # (a bag's columns are tables)
         if read in same:
             raise r.error(
                 ("logs", k, "file"),

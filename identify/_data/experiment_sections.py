@@ -11,11 +11,13 @@ from collections.abc import Mapping
 import flexdyn as fd
 
 from . import measurement as meas, units as u
+from .bag_columns import STAMPS
+from .bag_log import is_bag
 from .channels import channel_problem, channel_unit, state_names
 from .columns import LogError, check_calibration
 from .csv_numbers import DECIMALS
 from .experiment import ROLES, FreeParameter, LogSpec
-from .files import absolute, expand_user, file_problem, resolved as resolved_path
+from .files import absolute, expand_user, input_problem, resolved as resolved_path
 from .logs import MAT_SUFFIXES, load_log
 from .toml_reader import ExperimentError, _dotted_key_error, _key_text, _Reader, _show, _unknown_parameter
 
@@ -360,7 +362,8 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
         raise r.error(key, 'missing file = "..." (the log, relative to this experiment file)')
     file = r.string(spec["file"], key + ("file",))
     written = r.path.parent / expand_user(file)
-    problem = file_problem(written)
+    bag = is_bag(written)
+    problem = input_problem(written, bag)
     if problem is not None:
         raise r.error(
             key + ("file",), f"log file {absolute(written)} {problem} (paths are relative to {absolute(r.path.parent)})"
@@ -379,14 +382,27 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
     if decimal != "." and resolved.suffix.lower() in MAT_SUFFIXES:
         raise r.error(key + ("decimal",), "applies to CSV logs; a .mat file holds binary numbers")
 
+    timing = _bag_timing(r, spec, key, bag)
     columns = dict(r.table(spec.get("columns", {}), key + ("columns",)))
-    if "columns" in spec and "time" not in columns:
+    if bag and "columns" not in spec:
+        raise r.error(
+            key,
+            f"{resolved.name} is a ROS bag, whose messages carry no units; expected columns = {{ theta1 = {{ topic = "
+            '"/joint_states", joint = "shoulder", field = "position", unit = "rad" }, ... } (see "ROS bags" in '
+            "docs/experiment-format.md)",
+        )
+    if not bag and "columns" in spec and "time" not in columns:
         raise r.error(key + ("columns",), 'no time column; expected time = "<column> [s]" among the columns')
     for channel, source in columns.items():
         why = channel_problem(chain, channel)
         if why is not None:
             raise r.error(key + ("columns", channel), why)
-        if not isinstance(source, str):
+        if bag and channel != "time" and not isinstance(source, Mapping):  # (a bag's time: load_log says why not)
+            raise r.error(
+                key + ("columns", channel),
+                f'expected a table {{ topic = "...", field = "...", unit = "..." }} (a ROS bag), got {_show(source)}',
+            )
+        if not bag and not isinstance(source, str):
             raise r.error(key + ("columns", channel), f"expected a string 'column [unit]', got {_show(source)}")
     calibration = {}
     for channel, cal in r.table(spec.get("calibration", {}), key + ("calibration",)).items():
@@ -409,6 +425,7 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
             name=name,
             context=context,
             decimal=decimal,
+            **timing,
         )
     except LogError as e:
         # a problem with one entry of the column mapping points at that entry's line
@@ -476,6 +493,31 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
         measured=tuple(measured),
         set=_log_set(r, chain, spec.get("set", {}), key + ("set",)),
     )
+
+
+def _bag_timing(r: _Reader, spec: Mapping, key: tuple, bag: bool) -> dict:
+    """A log entry's `stamp`, `time_base` and `rate_hz` (ROS bags only), checked, as
+    keywords of `load_log`."""
+    given = {name: spec[name] for name in ("stamp", "time_base", "rate_hz") if name in spec}
+    if given and not bag:
+        raise r.error(key + (next(iter(given)),), "applies to ROS bags (a bag folder, .db3, .mcap or .bag file) only")
+    if "stamp" in given and given["stamp"] not in STAMPS:
+        raise r.error(
+            key + ("stamp",),
+            f'expected "header" (each message\'s header.stamp) or "receive" (when the bag recorded it), got '
+            f"{_show(given['stamp'])}",
+        )
+    if "time_base" in given:
+        r.string(given["time_base"], key + ("time_base",))
+    if "rate_hz" in given:
+        rate = r.number(given["rate_hz"], key + ("rate_hz",))
+        if rate <= 0:
+            raise r.error(key + ("rate_hz",), f"expected a sampling rate > 0 (Hz), got {rate!r}")
+        if "time_base" in given:
+            raise r.error(
+                key + ("rate_hz",), "time_base is given too; expected one of them (a topic's stamps, or a uniform rate)"
+            )
+    return given
 
 
 def _log_set(r: _Reader, chain: fd.Chain, table, key: tuple) -> dict[str, float]:

@@ -58,3 +58,11 @@ def expand_user(path: str) -> Path:
     """`~` and `~user` expanded; a `~user` with no such user stays as written (then it does not
     exist), where `Path.expanduser` raises `RuntimeError`."""
     return Path(os.path.expanduser(path))
+
+
+def input_problem(path: Path, bag: bool) -> str | None:
+    """`file_problem`, with a folder accepted where it is a ROS 2 bag (`bag`)."""
+    problem = file_problem(path)
+    if problem == "is a directory":
+        return None if bag else "is a directory without a metadata.yaml (not a ROS 2 bag)"
+    return problem

@@ -1,11 +1,11 @@
-"""Measured logs: CSV and MATLAB `.mat` files, read into SI arrays with checks.
+"""Measured logs: CSV, MATLAB `.mat` files and ROS bags, read into SI arrays with checks.
 
 A log is a set of sampled channels (see `identify.units` for the vocabulary):
 the sample times, measured outputs (`theta1`, `tip1`, ...) and applied inputs
 (`torque1`, ...). `load_log` reads one file, converts every channel to SI and
 checks it; anything wrong raises `LogError` naming the file, the line and column
-(CSV) or the variable and sample (.mat), and what was expected. Nothing is ever
-written. The file format is documented in `docs/experiment-format.md`.
+(CSV), the variable and sample (.mat) or the topic, field and message (bag), and what
+was expected. Nothing is ever written. The file format is documented in `docs/experiment-format.md`.
 """
 
 from __future__ import annotations
@@ -17,9 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from . import units as u
+from .bag_columns import BagTiming, parse_bag_mapping
+from .bag_log import BAG_SUFFIXES, _read_bag, is_bag
 from .columns import GAP_FACTOR, MIN_SAMPLES, Calibration, LogError, _parse_mapping, check_calibration
 from .csv_log import _read_csv
-from .files import absolute, file_problem
+from .files import absolute, input_problem
 from .mat_log import _read_mat
 
 #: Sampling rates of a rig's logs (Hz): outside, a log's summary asks about the time
@@ -138,7 +140,7 @@ class Log:
 
 def load_log(
     path,
-    columns: Mapping[str, str] | None = None,
+    columns: Mapping[str, str | Mapping] | None = None,
     *,
     calibration: Mapping[str, Calibration | Mapping] | None = None,
     strict: bool = False,
@@ -146,43 +148,63 @@ def load_log(
     name: str | None = None,
     context: str = "columns",
     decimal: str = ".",
+    stamp: str | None = None,
+    time_base: str | None = None,
+    rate_hz: float | None = None,
 ) -> Log:
-    """Read a CSV or MATLAB `.mat` log into SI units, with checks.
+    """Read a CSV, MATLAB `.mat` or ROS bag log into SI units, with checks.
 
     **Arguments:**
-    - `path`: the file (`.csv`, `.txt`, `.tsv`: text with a header row; `.mat`: MATLAB v5/v7).
+    - `path`: the file (`.csv`, `.txt`, `.tsv`: text with a header row; `.mat`: MATLAB v5/v7;
+      a ROS 2 bag folder, `.db3` or `.mcap` file, or a ROS 1 `.bag`).
     - `columns`: channel -> `'column [unit]'` (CSV header name or .mat variable, with its
       unit in brackets; for CSV the unit may be left out when the header has it). For CSV,
       None maps every column whose name is a channel (`time [s]`, `theta1 [deg]`, ...).
+      For a bag, channel -> `{topic, field, unit}` (`field` a path such as `data` or
+      `wrench.force.z`), with `joint` for a `sensor_msgs/msg/JointState`, and no `time`.
     - `calibration`: channel -> `Calibration` (or `{scale, offset, unit}`) for `[V]` columns;
       `{neutral_axis_distance}` for a strain gauge's, `{gear_ratio}` for a motor-side
       angle or torque (`Calibration`).
-    - `strict`: if True, columns or variables that no channel uses are an error (default:
-      they are ignored and listed in `Log.ignored`).
+    - `strict`: if True, columns, variables or topics that no channel uses are an error
+      (default: they are ignored and listed in `Log.ignored`).
     - `min_samples`: fewest samples accepted.
     - `name`: label of the log (default: the file's stem).
     - `context`: how the mapping is named in messages (e.g. `'logs[2].columns'`).
     - `decimal`: a CSV log's decimal mark, `"."` or `","` (cells then separated by
       semicolons or tabs). A comma is never taken for a decimal mark by guess: `1,234`
       may be 1.234 or 1234.
+    - `stamp`, `time_base`, `rate_hz` (bags only): each message's time is its header stamp
+      (`'header'`) or when the bag recorded it (`'receive'`; default: the header where the
+      message has one); topics are linearly interpolated onto the stamps of topic
+      `time_base` or a uniform `rate_hz` (Hz), inside the span all of them cover (needed when
+      the channels come from more than one topic).
 
     Raises `LogError` (a `ValueError`) naming the file, line and column (or variable and
-    sample) and what was expected.
+    sample, or topic, field and message) and what was expected.
     """
     path = Path(path)
     cals = {}
     for ch, c in (calibration or {}).items():
         spec = {k: v for k, v in dataclasses.asdict(c).items() if v is not None} if isinstance(c, Calibration) else c
         cals[ch] = check_calibration(ch, spec, f"{path}: calibration.{ch}")
-    problem = file_problem(path)
+    bag = is_bag(path)
+    problem = input_problem(path, bag)
     if problem is not None:
-        raise LogError(f"{absolute(path)}: log file {problem}; expected a .csv or .mat file")
+        raise LogError(f"{absolute(path)}: log file {problem}; expected a .csv or .mat file or a ROS bag")
     suffix = path.suffix.lower()
-    wanted = None if columns is None else _parse_mapping(path, columns, context)
+    timing = BagTiming(stamp, time_base, rate_hz)
+    if not bag and timing != BagTiming():
+        raise LogError(f"{path}: stamp, time_base and rate_hz apply to ROS bags only, not to a {suffix} file")
+    if bag:
+        wanted = parse_bag_mapping(path, columns, context)
+    else:
+        wanted = None if columns is None else _parse_mapping(path, columns, context)
     for ch in cals:
         if wanted is not None and ch not in {w.channel for w in wanted}:
             raise LogError(f"{path}: calibration.{ch}: no column is mapped to {ch}")
-    if suffix in MAT_SUFFIXES:
+    if bag:
+        t, t_relative, channels, sources, ignored = _read_bag(path, wanted, cals, strict, context, timing)
+    elif suffix in MAT_SUFFIXES:
         if wanted is None:
             raise LogError(
                 f"{path}: a .mat log needs a column mapping (.mat variables carry no units); expected "
@@ -194,7 +216,8 @@ def load_log(
     elif suffix in CSV_SUFFIXES:
         t, t_relative, channels, sources, ignored = _read_csv(path, wanted, cals, strict, context, decimal)
     else:
-        raise LogError(f"{path}: unknown log type {path.suffix!r}; expected {', '.join(CSV_SUFFIXES + MAT_SUFFIXES)}")
+        known = ", ".join(CSV_SUFFIXES + MAT_SUFFIXES + BAG_SUFFIXES)
+        raise LogError(f"{path}: unknown log type {path.suffix!r}; expected {known} or a ROS 2 bag folder")
     n = t.shape[0]
     if n < max(min_samples, 2):
         raise LogError(

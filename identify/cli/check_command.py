@@ -12,6 +12,7 @@ def _set_up_checks(exp) -> list[str]:
     first link hang (against the logs' angle zero), any log whose sampling rate
     questions its time column's unit, initial values held at a noisy first sample, and the
     columns each log leaves unused."""
+    from .._data.bag_log import is_bag
     from .._data.experiment import gravity_text
 
     lines = [gravity_text(exp.chain.gravity)]
@@ -21,7 +22,8 @@ def _set_up_checks(exp) -> list[str]:
             lines.append(f"warning: log {spec.name!r}: {spec.log.sampling.rate:.6g} Hz, {hint}")
         lines.extend(f"warning: {w}" for w in spec.warnings())
         if spec.log.ignored:
-            lines.append(f"log {spec.name!r}: columns not used: {', '.join(map(repr, spec.log.ignored))}")
+            unused = "topics" if is_bag(spec.file) else "columns"
+            lines.append(f"log {spec.name!r}: {unused} not used: {', '.join(map(repr, spec.log.ignored))}")
     return lines
 
 

@@ -44,7 +44,7 @@ def check_output_folder(out: Path, inputs: list[Path], force: bool, suffix: str 
     """Raise `_Refused` unless we may write our files into `out`. `inputs`: the
     experiment file and its logs."""
     for p in inputs:
-        if _same(out, p.parent):
+        if _same(out, p.parent) or (p.is_dir() and _same(out, p)):  # (a ROS 2 bag is a folder)
             raise _Refused(
                 f"refusing to write into {out}: it holds an input of the experiment ({p.name}). "
                 f"Choose another folder with --out (by default the command writes ./<experiment stem>-{suffix} "
