@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -33,8 +34,6 @@ def _compile_estimate(exp) -> float:
 
 def _cores() -> int:
     """The CPU cores this process may run on."""
-    import os
-
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - macOS, Windows
@@ -93,7 +92,10 @@ def _fit_into(args, exp, folder: OutputFolder, start: float, say) -> int:
     report, interrupted = _follow_ups(exp, result, progress, say)
     t_post = time.perf_counter() - t0
     t0 = time.perf_counter()
-    written, interrupted = _write_fit(report, folder, args, interrupted)
+    try:
+        written, interrupted = _write_fit(report, folder, args, interrupted)
+    except OSError as e:  # the folder went away or the disk filled during the fit
+        written = [_rescue(report, args, folder.path, e)]
     t_files = time.perf_counter() - t0
     _print_safely(lambda: print_results(report))
     print()
@@ -247,6 +249,23 @@ def _commit_json(folder: OutputFolder, doc: dict, problems: list[str], interrupt
     doc["files"] = sorted({p.name for p in stage.iterdir() if p.is_file()} | {RESULT_FILE})
     _write_json(stage / RESULT_FILE, doc)
     return folder.commit(RESULT_FILE, "interrupted, partly written" if interrupted else "complete")
+
+
+def _rescue(report, args, out: Path, error: OSError) -> Path:
+    """`result.json` written to the system's temporary folder when `out` cannot take it."""
+    import tempfile
+
+    doc = report.to_dict(options={"stages": args.stages}, command=["identify", "fit", *map(str, _argv_tail(args))])
+    doc["problems"] = [*doc["problems"], f"not written into {out}: {error}"]
+    fd, name = tempfile.mkstemp(prefix=f"identify-{Path(report.experiment.path).stem}-", suffix=".json")
+    os.close(fd)
+    _write_json(Path(name), doc)
+    print(
+        f"identify fit: could not write into {out} ({error}); the result is saved as {name}",
+        file=sys.stderr,
+        flush=True,
+    )
+    return Path(name)
 
 
 def _write_json(path: Path, doc: dict) -> None:

@@ -162,7 +162,12 @@ class OutputFolder:
         out = Path(out)
         check_output_folder(out, inputs, force, suffix)
         created = _make(out)
-        _probe(out)
+        try:
+            _probe(out)
+        except _Refused:
+            if created:
+                out.rmdir()
+            raise
         lock = _lock(out / LOCK_FILE)
         if lock is None:
             raise _Refused(

@@ -716,3 +716,22 @@ def test_a_killed_previous_run_is_said_and_its_leftovers_cleared(fitted, capsys)
     assert f"note: the previous run into {out} was killed (running (pid 999999" in printed
     assert not list(out.glob(".identify-staging-*"))
     assert "status: complete" in (out / MARKER).read_text()
+
+
+def test_a_folder_that_cannot_take_the_result_after_the_fit_loses_nothing(fitted, monkeypatch, capsys):
+    """The folder removed or the disk full during the fit: the result goes to the system's
+    temporary folder, and the command says where."""
+    import identify.cli.fit_command as fit_command
+
+    def disk_full(*args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(fit_command, "_write_fit", disk_full)
+    out = fitted["work"] / "disk-full"
+    assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    saved = re.search(r"the result is saved as (\S+\.json)", err)
+    assert saved and "No space left on device" in err, err
+    doc = json.loads(Path(saved.group(1)).read_text())
+    assert doc["converged"] is True and "No space left on device" in doc["problems"][-1]
+    Path(saved.group(1)).unlink()

@@ -129,3 +129,14 @@ def test_ctrl_c_waits_for_the_renames():
             os.kill(os.getpid(), signal.SIGINT)
             done.append("renamed")
     assert done == ["renamed"]
+
+
+def test_a_folder_that_cannot_be_written_is_refused_at_the_claim(tmp_path, monkeypatch):
+    """(A read-only folder, as a user other than root meets it: `test_cli` checks it for real.)"""
+
+    def denied(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(folder_module.tempfile, "mkstemp", denied)
+    with pytest.raises(_Refused, match=r"cannot write into .*out: Permission denied. Choose another folder"):
+        OutputFolder.claim(tmp_path / "out", [], force=False)
