@@ -455,7 +455,7 @@ def _causes(state: SearchState, ext_values: dict, chain: fd.Chain, signals: Sign
                 warnings=cat.implausible(
                     wc.name,
                     {n: p["value"] for n, p in params.items()},
-                    torque_scale=cat.characteristic_torque(chain, signals.torque_rms),
+                    torque_scale=cat.characteristic_torque(chain, signals.torque_peak),
                     log_duration=min(float(np.ptp(np.asarray(log.t, float))) for log in fit_logs),
                     lowest_mode_hz=min(positive_modes) if positive_modes else None,
                 ),

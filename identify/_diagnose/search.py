@@ -169,16 +169,10 @@ def _signals(base: FitResult, fit_logs, held_out_logs, modal) -> Signals:
     )
     t0 = np.asarray(fit_logs[0].t, float)
     dt_sample = float(np.median(np.diff(t0)))
-    torque_rms = float(
-        np.sqrt(
-            np.mean(
-                np.concatenate(
-                    [np.asarray(log.torque, float).ravel() ** 2 for log in fit_logs if log.torque is not None]
-                    or [np.zeros(1)]
-                )
-            )
-        )
+    torques = np.concatenate(
+        [np.asarray(log.torque, float).ravel() for log in fit_logs if log.torque is not None] or [np.zeros(1)]
     )
+    torque_rms, torque_peak = float(np.sqrt(np.mean(torques**2))), float(np.max(np.abs(torques)))
     rate_rms = 1.0
     for c in channels:
         if c.startswith("theta") or c.startswith("alpha"):
@@ -209,7 +203,9 @@ def _signals(base: FitResult, fit_logs, held_out_logs, modal) -> Signals:
             for check in ev.stiffening_checks_of(fitted_chain, fitted_outputs(base), key="simulated")
             if check["flagged"]
         }
-    return Signals(driven, dt_sample, torque_rms, rate_rms, offsets_fitted, positive_modes, max_f, stiffening_links)
+    return Signals(
+        driven, dt_sample, torque_rms, torque_peak, rate_rms, offsets_fitted, positive_modes, max_f, stiffening_links
+    )
 
 
 def _candidates(base: FitResult, parameters, signals: Signals, catalogue, exclude) -> tuple[list, dict]:
