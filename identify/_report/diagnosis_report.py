@@ -166,6 +166,8 @@ def markdown(diag, title: str = "") -> str:
     """`report.md`: causes, held-out gains, the extended model, evidence, candidates round by
     round, notes and detection limits, the baseline fit and the plots."""
     lines = [f"# Diagnosis{': ' + title if title else ''}", ""]
+    if diag.interrupted:
+        lines += [f"**Interrupted:** {diag.interrupted}. The causes below are those accepted before it.", ""]
     lines.append(f"**Held-out data:** {diag.split}.")
     lines.append("")
     for section in (_causes, _held_out_gain, _extended_model, _evidence, _candidates, _closing):

@@ -102,6 +102,13 @@ def _diagnose_into(args, exp, folder: OutputFolder, catalogue, start: float, say
     print(f"total {time.perf_counter() - start:.1f} s. Report: {out / 'report.md'} (open it; plots beside it)")
     for p in [*written, log_path]:
         print(f"  {p}")
+    if diag.interrupted:
+        print(
+            f"identify diagnose: exit status {INTERRUPTED}: {diag.interrupted}; the report of what was accepted "
+            "before it is written",
+            file=sys.stderr,
+        )
+        return INTERRUPTED
     if not diag.baseline_converged:  # on stderr and in the exit status, not only in the report
         print(
             f"identify diagnose: exit status {NOT_CONVERGED}: the baseline fit did not converge "
@@ -128,4 +135,5 @@ def _write_diagnosis(args, exp, folder: OutputFolder, diag) -> list[Path]:
         write_report(diag, folder.staging(), title=exp.name, extra=extra)
     for w in caught:
         print(f"identify diagnose: warning: {w.message}", file=sys.stderr, flush=True)
-    return folder.commit(JSON_FILE, keep=(PROGRESS_FILE,))
+    status = "interrupted, the report of what was accepted before it" if diag.interrupted else "complete"
+    return folder.commit(JSON_FILE, status, keep=(PROGRESS_FILE,))

@@ -154,6 +154,7 @@ class OutputFolder:
         #: what the marker said before this run claimed the folder (e.g. a killed run's "running")
         self.previous = previous
         self._staging: Path | None = None
+        self._ended = False  # committed or abandoned
 
     @classmethod
     def claim(cls, out: Path, inputs: list[Path], force: bool, suffix: str = "fit") -> OutputFolder:
@@ -236,11 +237,13 @@ class OutputFolder:
             self.mark(f"{status} ({_now()})")
             shutil.rmtree(self.staging(), ignore_errors=True)
             self._staging = None
+            self._ended = True
         return moved
 
     def abandon(self, status: str) -> None:
         """End a run that wrote nothing: remove the folder if this run created it and it
         holds nothing else, otherwise mark it with `status` (the previous result stays)."""
+        self._ended = True
         if self._staging is not None:
             shutil.rmtree(self._staging, ignore_errors=True)
             self._staging = None
@@ -264,5 +267,11 @@ class OutputFolder:
     def __enter__(self) -> OutputFolder:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.release()
+    def __exit__(self, kind, error, traceback) -> None:
+        """A run that ends by an exception before committing is abandoned (`abandon`)."""
+        try:
+            if kind is not None and not self._ended:
+                how = "interrupted" if issubclass(kind, KeyboardInterrupt) else f"failed ({kind.__name__})"
+                self.abandon(f"{how}, nothing written")
+        finally:
+            self.release()

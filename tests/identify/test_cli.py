@@ -445,6 +445,7 @@ def test_diagnose_exits_3_when_its_baseline_fit_did_not_converge(tmp_path, monke
     @dataclasses.dataclass
     class StandIn:
         baseline: object
+        interrupted: object = None
         baseline_converged = property(module.Diagnosis.baseline_converged.fget)
 
         def summary(self):
@@ -735,3 +736,37 @@ def test_a_folder_that_cannot_take_the_result_after_the_fit_loses_nothing(fitted
     doc = json.loads(Path(saved.group(1)).read_text())
     assert doc["converged"] is True and "No space left on device" in doc["problems"][-1]
     Path(saved.group(1)).unlink()
+
+
+def test_a_diagnosis_interrupted_in_its_rounds_writes_what_it_accepted(tmp_path, monkeypatch, capsys):
+    """Found on a real rig: a diagnosis stopped by a time limit or Ctrl-C left no report
+    although a cause was already accepted. The library returns what was accepted, marked
+    `interrupted` (tests/identify/test_diagnose_interrupted.py); the command writes it,
+    says so and exits 130."""
+    import dataclasses
+    import importlib
+    from types import SimpleNamespace
+
+    report = importlib.import_module("identify._report.diagnosis_report")
+
+    @dataclasses.dataclass
+    class StandIn:
+        baseline: object
+        interrupted: object
+        baseline_converged = True
+
+        def summary(self):
+            return f"INTERRUPTED: {self.interrupted}"
+
+    def write(diag, out, **kw):
+        (Path(out) / "diagnosis.json").write_text(json.dumps({"interrupted": diag.interrupted}))
+        return [Path(out) / "diagnosis.json"]
+
+    text = "interrupted (Ctrl-C) in round 2, after 1 cause(s) accepted; the search did not finish"
+    monkeypatch.setattr(_workflow_module, "diagnose", lambda experiment, **options: StandIn(SimpleNamespace(), text))
+    monkeypatch.setattr(report, "write_report", write)
+    out = tmp_path / "out"
+    assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(out), "--quiet"]) == 130
+    assert json.loads((out / "diagnosis.json").read_text())["interrupted"] == text
+    assert "status: interrupted, the report of what was accepted before it" in (out / MARKER).read_text()
+    assert f"exit status 130: {text}; the report of what was accepted before it is written" in capsys.readouterr().err
