@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 import flexdyn as fd
+from flexdyn._checks import runtime_check_message
 
 from ._data import channels as ch
 from ._data.experiment import Experiment, LogSpec
@@ -198,6 +199,13 @@ class FitReport:
     validation_outputs: dict = dataclasses.field(default_factory=dict)
     validation_residuals: dict = dataclasses.field(default_factory=dict)
     validation_nuisances: dict = dataclasses.field(default_factory=dict)
+    #: the follow-ups that could not be computed, each "step: error" (the fit itself is kept)
+    problems: list = dataclasses.field(default_factory=list)
+
+    @classmethod
+    def of_fit(cls, exp: Experiment, result: FitResult, problem: str) -> FitReport:
+        """The report of a fit whose follow-ups were not computed (`problem` says why)."""
+        return cls(exp, result, {}, {}, [], "", [], problems=[problem])
 
     def to_dict(self, *, options: dict, command: list) -> dict:
         """`result.json`'s content (docs/experiment-format.md): the fit's `to_dict` with the experiment,
@@ -226,6 +234,7 @@ class FitReport:
         doc["clustered_uncertainty"] = None if self.robust is None else self.robust.to_dict()
         doc["per_log_agreement"] = None if self.agreement is None else self.agreement.to_dict()
         doc["modal_configuration"] = self.modal_configuration
+        doc["problems"] = list(self.problems)
         doc["options"] = options
         doc["command"] = command
         doc["versions"] = package_versions()
@@ -269,17 +278,36 @@ def fit_report(exp: Experiment, result: FitResult, *, progress=None, say=print) 
     """The follow-ups of a joint fit that `identify fit` reports: outputs and residual
     tests, natural frequencies, model checks, cluster-robust intervals, the validation
     logs (`validate`) and, for per-log parameters, their agreement (`between_logs`).
-    `say` prints what is being computed; `progress` goes to the validation fits."""
-    outputs = fitted_outputs(result)
-    residuals = residual_report(result)
-    freqs, where = fd.natural_frequencies(result.chain)
-    robust, robust_note = _robust_intervals(exp, result, say)
+    `say` prints what is being computed; `progress` goes to the validation fits.
+
+    A follow-up that fails (a simulation failing on a validation log, say) is left out and
+    named in `FitReport.problems` with its error: the finished fit is never lost to it."""
+    problems = []
+
+    def attempt(step: str, compute, default):
+        try:
+            return compute()
+        except Exception as e:  # noqa: BLE001 (any failure: reported, the fit kept)
+            problems.append(f"{step} not computed: {type(e).__name__}: {runtime_check_message(e) or e}")
+            say(f"warning: {problems[-1]}")
+            return default
+
+    outputs = attempt("fitted outputs", lambda: fitted_outputs(result), {})
+    residuals = attempt("residual tests", lambda: residual_report(result), {})
+    freqs, where = attempt("natural frequencies", lambda: fd.natural_frequencies(result.chain), ([], ""))
+    robust, robust_note = attempt("cluster-robust intervals", lambda: _robust_intervals(exp, result, say), (None, None))
     val_outputs, val_residuals, val_nuisances = {}, {}, {}
     if exp.validation_logs:
         own = "".join(f", {p.name}" for p in exp.free if p.per_log)
         say(f"checking the fit on the validation log(s) (their initial state, offsets{own} re-estimated) ...")
-        val_outputs, val_residuals, val_nuisances = validate(exp, result, progress)
-    checks = evidence.stiffening_checks_of(result.chain, {**outputs, **val_outputs}, key="simulated")
+        val_outputs, val_residuals, val_nuisances = attempt(
+            "validation", lambda: validate(exp, result, progress), ({}, {}, {})
+        )
+    checks = attempt(
+        "model checks",
+        lambda: evidence.stiffening_checks_of(result.chain, {**outputs, **val_outputs}, key="simulated"),
+        [],
+    )
     agreement, agreement_note = None, None
     if result.problem.per_log and result.converged and len(exp.fit_logs) >= 2:
         try:  # do the per-log values differ beyond their intervals?
@@ -301,4 +329,5 @@ def fit_report(exp: Experiment, result: FitResult, *, progress=None, say=print) 
         val_outputs,
         val_residuals,
         val_nuisances,
+        problems,
     )

@@ -153,7 +153,9 @@ def implausible(
 ) -> list[str]:
     """Sentences saying which fitted values of a named cause (`values`: parameter name ->
     SI value) are outside the plausible ranges above; empty when all are plausible.
-    `torque_scale` (N m): `characteristic_torque` of the rig and its logs;
+    `torque_scale` (N m): `characteristic_torque` of the rig and the logs' peak torque
+    (dry friction above it would hold the rig still; above the RMS torque it need not: a
+    hub standing still between moves is what friction does);
     `log_duration` (s): the shortest log's; `lowest_mode_hz`: the baseline's lowest
     positive natural frequency (None if it has none)."""
     out = []

@@ -88,6 +88,9 @@ class Diagnosis:
     per_log: dict = dataclasses.field(default_factory=dict)
     # which logs of `per_log` are held out
     held_out_logs: tuple = ()
+    # where an interrupted search stopped (`diagnose_logs`: Ctrl-C during its rounds); None
+    # when it finished. The causes are then those accepted before it.
+    interrupted: str | None = None
 
     def marginal_text(self, c) -> str:
         """What a cause's marginal held-out gain (`Cause.marginal`) means."""
@@ -161,6 +164,8 @@ class Diagnosis:
 
     def summary(self) -> str:
         lines = [f"held-out data: {self.split}", ""]
+        if self.interrupted:
+            lines[:0] = [f"INTERRUPTED: {self.interrupted}: what follows is what was accepted before it", ""]
         if self.causes:
             lines.append("accepted causes:")
             for c in self.causes:
@@ -244,6 +249,7 @@ class Diagnosis:
     def to_dict(self) -> dict:
         return {
             "split": self.split,
+            "interrupted": self.interrupted,
             "baseline": self.baseline.to_dict(),
             "evidence": self.evidence,
             "rounds": [[dataclasses.asdict(s) for s in scores] for scores in self.rounds],
@@ -455,7 +461,7 @@ def _causes(state: SearchState, ext_values: dict, chain: fd.Chain, signals: Sign
                 warnings=cat.implausible(
                     wc.name,
                     {n: p["value"] for n, p in params.items()},
-                    torque_scale=cat.characteristic_torque(chain, signals.torque_rms),
+                    torque_scale=cat.characteristic_torque(chain, signals.torque_peak),
                     log_duration=min(float(np.ptp(np.asarray(log.t, float))) for log in fit_logs),
                     lowest_mode_hz=min(positive_modes) if positive_modes else None,
                 ),

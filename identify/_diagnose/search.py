@@ -7,6 +7,7 @@ assembly of the `Diagnosis`, and the search from an accepted structural model st
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import jax.numpy as jnp
@@ -62,7 +63,12 @@ def diagnose_logs(
     baseline's free `Parameter`s; `noise` maps channels to known standard deviations;
     `measurement` is the baseline's sensor and actuator model (default: ideal).
     `catalogue` names the entries to try; `exclude` lists candidate labels not to try
-    (`name:where`, e.g. `coulomb_friction:joint1`)."""
+    (`name:where`, e.g. `coulomb_friction:joint1`).
+
+    Ctrl-C (`KeyboardInterrupt`) during the search rounds ends the search there: the
+    diagnosis of what was accepted before it is returned, with `Diagnosis.interrupted`
+    saying where it stopped (a diagnosis of hours must not be lost to a job's time limit).
+    Before the rounds (the baseline fit, the set-up) it propagates: there is nothing to report."""
     start = time.perf_counter()
     say = progress or (lambda msg: None)
     _check_arguments(catalogue, exclude, held_out_logs)
@@ -94,11 +100,9 @@ def diagnose_logs(
     baseline = _baseline_model(superset, held, base, say)
     state = SearchState(current=baseline, step=base.step, notes=notes)
     structural = _structural_setting(base, parameters, superset, fit_logs, held_out_logs, signals, rtol, options)
-    for rnd in range(max_effects):
-        state.round = rnd
-        if not _round(superset, held, options, structural, state, cands, signals):
-            break
-    diag = assemble(
+    interrupted = _rounds(superset, held, options, structural, state, cands, signals)
+    diag = _assembled(
+        interrupted,
         split=split,
         options=options,
         base=base,
@@ -112,7 +116,7 @@ def diagnose_logs(
         fit_logs=fit_logs,
         not_tried=not_tried,
     )
-    if state.stack_on is not None:
+    if state.stack_on is not None and interrupted is None:
         inner = _search_on(
             state,
             cands,
@@ -129,6 +133,36 @@ def diagnose_logs(
         )
         diag = _stacked(diag, inner)
     return _with_totals(diag, time.perf_counter() - start)
+
+
+def _rounds(superset, held, options, structural, state: SearchState, cands, signals) -> str | None:
+    """The search rounds (`_round`), until one accepts nothing or `max_effects` are named;
+    after Ctrl-C, where the search stopped (else None)."""
+    for rnd in range(options.max_effects):
+        state.round = rnd
+        try:
+            if not _round(superset, held, options, structural, state, cands, signals):
+                return None
+        except KeyboardInterrupt:
+            text = (
+                f"interrupted (Ctrl-C) in round {rnd + 1}, after {len(state.accepted)} cause(s) accepted; "
+                "the search did not finish"
+            )
+            options.say(f"  {text}: reporting what was accepted before it")
+            return text
+    return None
+
+
+def _assembled(interrupted: str | None, **parts) -> Diagnosis:
+    """`assemble(**parts)`, marked `interrupted`; a diagnosis that cannot be assembled after an
+    interruption (its state left half-way) ends as the interruption it is."""
+    if interrupted is None:
+        return assemble(**parts)
+    try:
+        diag = assemble(**parts)
+    except Exception:  # noqa: BLE001 (a round stopped mid-way: nothing consistent to report)
+        raise KeyboardInterrupt from None
+    return dataclasses.replace(diag, interrupted=interrupted)
 
 
 def _check_arguments(catalogue, exclude, held_out_logs) -> None:
@@ -169,16 +203,10 @@ def _signals(base: FitResult, fit_logs, held_out_logs, modal) -> Signals:
     )
     t0 = np.asarray(fit_logs[0].t, float)
     dt_sample = float(np.median(np.diff(t0)))
-    torque_rms = float(
-        np.sqrt(
-            np.mean(
-                np.concatenate(
-                    [np.asarray(log.torque, float).ravel() ** 2 for log in fit_logs if log.torque is not None]
-                    or [np.zeros(1)]
-                )
-            )
-        )
+    torques = np.concatenate(
+        [np.asarray(log.torque, float).ravel() for log in fit_logs if log.torque is not None] or [np.zeros(1)]
     )
+    torque_rms, torque_peak = float(np.sqrt(np.mean(torques**2))), float(np.max(np.abs(torques)))
     rate_rms = 1.0
     for c in channels:
         if c.startswith("theta") or c.startswith("alpha"):
@@ -209,7 +237,9 @@ def _signals(base: FitResult, fit_logs, held_out_logs, modal) -> Signals:
             for check in ev.stiffening_checks_of(fitted_chain, fitted_outputs(base), key="simulated")
             if check["flagged"]
         }
-    return Signals(driven, dt_sample, torque_rms, rate_rms, offsets_fitted, positive_modes, max_f, stiffening_links)
+    return Signals(
+        driven, dt_sample, torque_rms, torque_peak, rate_rms, offsets_fitted, positive_modes, max_f, stiffening_links
+    )
 
 
 def _candidates(base: FitResult, parameters, signals: Signals, catalogue, exclude) -> tuple[list, dict]:

@@ -28,6 +28,7 @@ class Signals:
     driven: list[int]  # the joints with a non-zero torque in some log
     sample_interval: float  # the fit logs' median sample interval, s
     torque_rms: float  # RMS applied torque over the fit logs, N m
+    torque_peak: float  # largest |applied torque| over the fit logs, N m
     rate_rms: float  # RMS rate of the first link angle channel, rad/s (1 without one)
     offsets_fitted: set[str]  # channels whose offset every fit log estimates
     positive_modes: list[float]  # the baseline's modal frequencies above 0, Hz

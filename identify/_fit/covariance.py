@@ -321,7 +321,8 @@ def digits(value: float, spread: float) -> int:
     value, spread = abs(float(value)), abs(float(spread))
     if not (value > 0 and spread > 0 and np.isfinite(value) and np.isfinite(spread)):
         return 4
-    return int(min(12, max(4, math.floor(math.log10(value / spread)) + 2)))
+    # (the difference of logarithms: the quotient itself can underflow to 0 or overflow)
+    return int(min(12, max(4, math.floor(math.log10(value) - math.log10(spread)) + 2)))
 
 
 def interval_text(lo: float, hi: float, std_error: float | None = None) -> str:

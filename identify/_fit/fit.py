@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import flexdyn as fd
+from flexdyn._checks import runtime_check_message
 
 from .._data import noise_floor as nf
 from .._model.parameters import Parameter, names_at_bounds, x_from_theta, x_from_z
@@ -168,7 +169,7 @@ def fit(
             say=say,
         )
         stages.append(stage)
-    attempts = _attempts(
+    attempts, failed = _attempts(
         problem,
         candidates,
         horizons,
@@ -186,7 +187,7 @@ def fit(
     x = x_from_z(problem, z.phys)
     cov, blocks = _covariance_at(problem, x, z, sigma, step, *lin)
     result = _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, kept.ms, blocks)
-    return dataclasses.replace(result, sigma_estimated=tuple(estimate_noise))
+    return dataclasses.replace(result, sigma_estimated=tuple(estimate_noise), failed_restarts=[failed] * bool(failed))
 
 
 class _Schedule(NamedTuple):
@@ -232,13 +233,22 @@ def _attempts(
     """Grow the horizon from the best start (`candidates[0]`); while that ends on a bound of
     a parameter or (`restart_poor_fit`) with a residual far above the model-free noise
     floor (a wrong basin), from the next-best ones, until an attempt ends the same
-    misfit as an earlier one (`_same_misfit`). Returns the attempts made, in order."""
+    misfit as an earlier one (`_same_misfit`), or until a restart's simulation fails (a
+    restart may walk into a stiff region; the attempts that finished are kept). Returns the
+    attempts made, in order, and the failed restart's message (or None)."""
     floors = noise_floors(problem)
     attempts, why = [], ""
     for attempt, z in enumerate(candidates):
         if attempt:
             say(f"  {why}: growing the horizon again from the first stage's optimum #{attempt + 1}")
-        z, sigma, step, lin, stages = _grow(problem, z, problem.sigma, horizons, schedule, say, tau_first)
+        try:
+            z, sigma, step, lin, stages = _grow(problem, z, problem.sigma, horizons, schedule, say, tau_first)
+        except RuntimeError as e:  # (SimulationFailed; a solver's run-time check)
+            if not attempts:
+                raise
+            failed = f"the restart from the first stage's optimum #{attempt + 1} failed ({_one_line(e)})"
+            say(f"  {failed}: keeping the attempt(s) before it")
+            return attempts, failed
         x = x_from_z(problem, z.phys)
         bounded = bool(names_at_bounds(problem, np.asarray(x)))
         ms = _residual_ms(problem, z, sigma, step, lin)
@@ -274,7 +284,13 @@ def _attempts(
                 )
                 + ": the misfit is more likely the model's or the data's than the start's"
             )
-    return attempts
+    return attempts, None
+
+
+def _one_line(e: Exception) -> str:
+    """An error's message in one line, without the JAX and Equinox stacks around a run-time check."""
+    text = runtime_check_message(e) or str(e)
+    return " ".join(text.split())[:400]
 
 
 def _best_attempt(attempts: list[_Attempt], say: Callable) -> _Attempt:

@@ -78,6 +78,9 @@ class FitResult:
     # the channels whose `sigma` the fit re-estimated from its residuals (`estimate_noise`);
     # the others' were given (`make_problem`'s `noise`, or its default)
     sigma_estimated: tuple = ()
+    # restarts (`fit`'s `max_restarts`) whose simulation failed, each with its error: the
+    # result is the best attempt that finished
+    failed_restarts: list = dataclasses.field(default_factory=list)
 
     @property
     def value(self) -> dict:
@@ -265,6 +268,8 @@ class FitResult:
                 "note: the intervals above assume white residuals; with model error in the residual they are "
                 "too narrow (identify.clustered_uncertainty assumes only independent logs)"
             )
+        for text in self.failed_restarts:
+            lines.append(f"note: {text}; the result is the best attempt that finished")
         for w in self.identifiability:
             lines.append(
                 f"warning: the data cannot separate {w['combination']} (singular value ratio {w['ratio']:.2g})"
@@ -317,6 +322,7 @@ class FitResult:
             },
             "noise_sigma": self.sigma,
             "noise_sigma_estimated": list(self.sigma_estimated),
+            "failed_restarts": list(self.failed_restarts),
             # the SI unit of every per-channel value here (noise_sigma, fit_quality's
             # residual_rms and noise_floor; `identify fit` adds residual RMS in the same units)
             "channel_units": {c: ch.channel_unit(c) for c in self.sigma},

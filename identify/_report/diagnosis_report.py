@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import matplotlib
@@ -165,6 +166,8 @@ def markdown(diag, title: str = "") -> str:
     """`report.md`: causes, held-out gains, the extended model, evidence, candidates round by
     round, notes and detection limits, the baseline fit and the plots."""
     lines = [f"# Diagnosis{': ' + title if title else ''}", ""]
+    if diag.interrupted:
+        lines += [f"**Interrupted:** {diag.interrupted}. The causes below are those accepted before it.", ""]
     lines.append(f"**Held-out data:** {diag.split}.")
     lines.append("")
     for section in (_causes, _held_out_gain, _extended_model, _evidence, _candidates, _closing):
@@ -363,13 +366,31 @@ def _closing(diag) -> list[str]:
 
 
 def write_report(diag, folder, title: str = "", extra: dict | None = None) -> list[Path]:
-    """Write `diagnosis.json`, `report.md` and the plots into `folder` (created)."""
+    """Write `diagnosis.json`, `report.md` and the plots into `folder` (created); returns
+    the paths written. `diagnosis.json` first; the report or a plot that cannot be made
+    is left out with a `RuntimeWarning` naming it and the error (the diagnosis is kept)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     doc = diag.to_dict()
     doc.update(extra or {})
     (folder / JSON_FILE).write_text(json.dumps(jsonable(doc), indent=1) + "\n")
-    (folder / REPORT_FILE).write_text(markdown(diag, title) + "\n")
-    plots = [plot_traces(diag, folder), plot_residuals(diag, folder), plot_spectra(diag, folder)]
-    plots += [plot_envelopes(diag, folder), plot_scores(diag, folder)]
-    return [folder / JSON_FILE, folder / REPORT_FILE, *plots]
+    written = [folder / JSON_FILE]
+    writers = [(REPORT_FILE, lambda: _write_markdown(diag, title, folder / REPORT_FILE))]
+    writers += [
+        (name, lambda plot=plot: plot(diag, folder))
+        for name, plot in zip(
+            PLOT_FILES, (plot_traces, plot_residuals, plot_spectra, plot_envelopes, plot_scores), strict=True
+        )
+    ]
+    for name, write in writers:
+        try:
+            written.append(write())
+        except Exception as e:  # noqa: BLE001 (a figure must not cost the diagnosis)
+            (folder / name).unlink(missing_ok=True)  # (it may be partial)
+            warnings.warn(f"{folder / name} not written: {type(e).__name__}: {e}", RuntimeWarning, stacklevel=2)
+    return written
+
+
+def _write_markdown(diag, title: str, path: Path) -> Path:
+    path.write_text(markdown(diag, title) + "\n")
+    return path

@@ -48,7 +48,10 @@ only noted: there it is often the missing effect's symptom).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -165,22 +168,49 @@ def main(argv=None) -> int:
         args = _parser().parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2, already printed)
         return int(e.code or 0) if not isinstance(e.code, str) else 2
-    with warnings.catch_warnings():  # (restores `showwarning` on the way out)
+    with warnings.catch_warnings(), _terminate_as_interrupt():  # (both restored on the way out)
         warnings.showwarning = _show_warning
         # (the commands import the library, and with it JAX, only once parsed: `--help` stays fast)
-        if args.command == "fit":
-            from .fit_command import run_fit
+        try:
+            return _run(args)
+        except KeyboardInterrupt:  # (outside the commands' own handling: loading, compiling)
+            print(f"identify {args.command}: interrupted; nothing was written", file=sys.stderr, flush=True)
+            return 130
 
-            return run_fit(args)
-        if args.command == "diagnose":
-            from .diagnose_command import run_diagnose
 
-            return run_diagnose(args)
-        if args.command == "check":
-            from .check_command import run_check
+def _run(args) -> int:
+    """The command of `args`."""
+    if args.command == "fit":
+        from .fit_command import run_fit
 
-            return run_check(args)
+        return run_fit(args)
+    if args.command == "diagnose":
+        from .diagnose_command import run_diagnose
+
+        return run_diagnose(args)
+    if args.command == "check":
+        from .check_command import run_check
+
+        return run_check(args)
     return 2  # pragma: no cover (argparse requires a command)
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM (a batch job's time limit, `kill`) handled as Ctrl-C: the commands then keep
+    and write what they finished, as they do after Ctrl-C."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):

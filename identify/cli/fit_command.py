@@ -3,102 +3,16 @@
 from __future__ import annotations
 
 import json
-import math
+import os
 import sys
 import time
 from pathlib import Path
 
 from .._report.json import package_versions
 from .check_command import _set_up_checks
-from .output import (
-    MARKER,
-    NOT_CONVERGED,
-    RESULT_FILE,
-    _experiment_and_folder,
-    _Refused,
-    _write_marker,
-    check_output_folder,
-    printers,
-)
-
-
-def _residual_lines(report: dict, outputs: dict, roles: dict) -> list[str]:
-    """The residual table: per log and channel the residual's RMS, its ratio to the noise
-    floor of the measured samples alone (`identify.noise_floor`: ~1 where the model
-    explains the data; the fit's own noise estimate would read ~1 whatever the misfit),
-    whiteness and correlation with the input. `outputs`: `fitted_outputs` of the logs."""
-    from .._data.noise_floor import series_floor
-    from .._data.units import display_unit
-
-    lines = [
-        f"{'log':<24} {'channel':<10} {'RMS':>14} {'RMS/floor':>9}  {'whiteness (Ljung-Box p)':<26} input correlation"
-    ]
-    for name, per_channel in report.items():
-        label = name + (" [val]" if roles.get(name) == "validation" else "")
-        for c, item in per_channel.items():
-            scale, unit = display_unit(c)
-            w = item["whiteness"]
-            white = f"{'white' if w['white'] else 'NOT white'} (p = {w['p_value']:.2g})"
-            ic = item["input_correlation"]
-            if not ic:
-                inp = "n/a (no input)"
-            else:
-                bad = [k for k, v in ic.items() if not v["independent"]]
-                inp = "correlated with " + ", ".join(bad) if bad else "independent of " + ", ".join(ic)
-            entry = outputs.get(name, {})
-            floor = series_floor(entry["t"], entry["measured"][c]) if c in entry.get("measured", {}) else 0.0
-            ratio = item["rms"] / floor if floor > 0 else float("nan")
-            rms = f"{scale * item['rms']:.4g} {unit}"
-            lines.append(f"{label:<24} {c:<10} {rms:>14} {ratio:>9.3g}  {white:<26} {inp}")
-    lines.append(
-        "(RMS/floor: the residual against the noise of the measured samples alone, identify.noise_floor; "
-        "a model that explains the data reaches ~1)"
-    )
-    coloured = [
-        f"{name} {c}"
-        for name, per_channel in report.items()
-        if roles.get(name) != "validation"
-        for c, item in per_channel.items()
-        if not item["whiteness"]["white"]
-    ]
-    if coloured:
-        lines.append(
-            f"note: the residuals of {', '.join(coloured)} (fit logs) are not white: the fitted intervals assume "
-            "white residuals and are then too narrow; the cause may be an effect the model misses (identify "
-            'diagnose), a filtered sensor, or an initial value held at a noisy first sample ("measured" without '
-            "fit_initial)"
-        )
-    return lines
-
-
-def _nuisance_lines(result, validation_nuisances: dict) -> list[str]:
-    from .._data.units import display_unit, state_display_unit
-    from .._model.problem import parameter_unit
-
-    lines = []
-    names = list(dict.fromkeys([*result.initial_states, *result.offsets, *validation_nuisances]))
-    for name in names:
-        parts = []
-        for entry, (v, se) in result.initial_states.get(name, {}).items():
-            scale, unit = state_display_unit(entry)
-            parts.append(f"initial {entry} = {scale * v:.4g} +- {scale * se:.2g} {unit}")
-        for c, (v, se) in result.offsets.get(name, {}).items():
-            scale, unit = display_unit(c)
-            parts.append(f"offset {c} = {scale * v:.4g} +- {scale * se:.2g} {unit}")
-        val = validation_nuisances.get(name)
-        if val is not None:
-            for entry, v in val["initial_states"].items():
-                scale, unit = state_display_unit(entry)
-                parts.append(f"initial {entry} = {scale * v:.4g} {unit}")
-            for c, v in val["offsets"].items():
-                scale, unit = display_unit(c)
-                parts.append(f"offset {c} = {scale * v:.4g} {unit}")
-            for p, v in val.get("parameters", {}).items():
-                parts.append(f"{p} = {v:.4g} {parameter_unit(result.problem, p)}")
-            name = name + " [val]"
-        if parts:
-            lines.append(f"  {name}: " + "; ".join(parts))
-    return lines
+from .fit_text import print_results
+from .folder import OutputFolder, write_atomic
+from .output import INTERRUPTED, NOT_CONVERGED, RESULT_FILE, _experiment_and_folder, _Refused, printers
 
 
 def _failure_text(e: Exception) -> str:
@@ -120,8 +34,6 @@ def _compile_estimate(exp) -> float:
 
 def _cores() -> int:
     """The CPU cores this process may run on."""
-    import os
-
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - macOS, Windows
@@ -129,33 +41,35 @@ def _cores() -> int:
 
 
 def run_fit(args) -> int:
-    """`identify fit EXPERIMENT`: fit, print the results, write `result.json` and plots.
-    Exit status 0, 1 (the fit failed), 2 (bad arguments or folder), `NOT_CONVERGED`."""
+    """`identify fit EXPERIMENT`: fit, write `result.json` and plots, print the results.
+    Exit status 0, 1 (the fit failed), 2 (bad arguments or folder), `NOT_CONVERGED`, 130
+    (interrupted). The output folder is claimed before the fit (`OutputFolder`); once the
+    fit is done its result is written whatever fails or is interrupted after it."""
     start = time.perf_counter()
-
     say, error = printers("fit", args.quiet)
-
     if args.stages < 1:
         return error(f"--stages expects an integer >= 1, got {args.stages}")
     if args.max_restarts < 0:
         return error(f"--max-restarts expects an integer >= 0, got {args.max_restarts}")
     try:
         exp, inputs, out = _experiment_and_folder(args, "fit")
+        folder = OutputFolder.claim(out, inputs, args.force)
     except _Refused as e:
         return error(str(e))
+    with folder:
+        if folder.killed_before:
+            say(f"note: the previous run into {out} was killed ({folder.previous}); its files are replaced")
+        return _fit_into(args, exp, folder, start, say)
 
-    from .._workflow import fit_experiment, fit_report
+
+def _fit_into(args, exp, folder: OutputFolder, start: float, say) -> int:
+    """`run_fit` once its output `folder` is claimed."""
+    from .._workflow import fit_experiment
 
     _say_set_up(exp, args, say)
-    last = [time.perf_counter()]
-
-    def progress(msg: str):
-        now = time.perf_counter()
-        say(f"[{now - start:6.1f} s, +{now - last[0]:5.1f} s] {msg.strip()}")
-        last[0] = now
-
+    progress = _progress(start, say)
     if args.independent:
-        return _independent_fits(args, exp, inputs, out, start, say, progress)
+        return _independent_fits(args, exp, folder, start, say, progress)
     try:
         result = fit_experiment(
             exp,
@@ -166,29 +80,79 @@ def run_fit(args) -> int:
             progress=progress,
         )
     except (RuntimeError, ValueError) as e:
+        folder.abandon("failed: the fit failed, nothing written")
         print(f"identify fit: the fit failed: {_failure_text(e)}", file=sys.stderr, flush=True)
         return 1
+    except KeyboardInterrupt:
+        folder.abandon("interrupted during the fit, nothing written")
+        print("identify fit: interrupted during the fit; nothing was written", file=sys.stderr, flush=True)
+        return INTERRUPTED
     say(f"[{time.perf_counter() - start:6.1f} s] fit done ({result.wall_time:.1f} s incl. compilation and covariance)")
     t0 = time.perf_counter()
-    report = fit_report(exp, result, progress=progress, say=say)
+    report, interrupted = _follow_ups(exp, result, progress, say)
     t_post = time.perf_counter() - t0
-    _print_results(report)
     t0 = time.perf_counter()
     try:
-        check_output_folder(out, inputs, args.force)  # again: the fit took a while
-    except _Refused as e:
-        return error(str(e))
-    written = _write_files(report, out, args)
+        written, interrupted = _write_fit(report, folder, args, interrupted)
+    except OSError as e:  # the folder went away or the disk filled during the fit
+        written = [_rescue(report, args, folder.path, e)]
     t_files = time.perf_counter() - t0
+    _print_safely(lambda: print_results(report))
     print()
     say(
         f"timings: fit {result.wall_time:.1f} s (compilation included), residual tests, modal analysis and "
         f"validation {t_post:.1f} s, files {t_files:.1f} s; total {time.perf_counter() - start:.1f} s"
     )
+    _say_written(folder.path, written)
+    return _exit_status(result, report, interrupted)
+
+
+def _progress(start: float, say):
+    """The progress printer: each line with the time since `start` and since the last line."""
+    last = [time.perf_counter()]
+
+    def progress(msg: str):
+        now = time.perf_counter()
+        say(f"[{now - start:6.1f} s, +{now - last[0]:5.1f} s] {msg.strip()}")
+        last[0] = now
+
+    return progress
+
+
+def _follow_ups(exp, result, progress, say):
+    """`(report, interrupted)`: `fit_report` of the finished fit; after Ctrl-C, the fit alone."""
+    from .._workflow import FitReport, fit_report
+
+    try:
+        return fit_report(exp, result, progress=progress, say=say), False
+    except KeyboardInterrupt:
+        print("identify fit: interrupted after the fit; writing the fit alone", file=sys.stderr, flush=True)
+        return FitReport.of_fit(exp, result, "interrupted (Ctrl-C) before the fit's follow-ups were computed"), True
+
+
+def _print_safely(show) -> None:
+    """Run `show` (printing); a failure is a warning, never the end of the run."""
+    try:
+        show()
+    except Exception as e:  # noqa: BLE001 (formatting must not cost the written result)
+        print(
+            f"identify fit: warning: the summary could not be printed ({type(e).__name__}: {e}); "
+            "the results are in result.json",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
+def _say_written(out: Path, written: list[Path]) -> None:
     print(f"Results written to {out}/:")
     for p in written:
-        if p.name != MARKER:
-            print(f"  {p}")
+        print(f"  {p}")
+
+
+def _exit_status(result, report, interrupted: bool) -> int:
+    if interrupted:
+        print(f"identify fit: exit status {INTERRUPTED}: interrupted; what was done is written", file=sys.stderr)
+        return INTERRUPTED
     if not result.converged:  # a script must not read this as success
         print(
             f"identify fit: exit status {NOT_CONVERGED}: the fit did not converge"
@@ -223,113 +187,99 @@ def _say_set_up(exp, args, say) -> None:
     )
 
 
-def _print_results(report) -> None:
-    """The fitted parameters, warnings, intervals, nuisances, natural frequencies, model
-    checks and the residual table."""
-    import numpy as np
-
-    from .._data.noise_floor import declared_noise_warnings
-
-    exp, result = report.experiment, report.result
-    print()
-    print(f"Fitted parameters ({exp.name}):")
-    print(result.summary())
-    for line in declared_noise_warnings(exp.noise, result.fit_quality):
-        print(f"warning: {line}")
-    if not result.identifiability:
-        sv = np.asarray(result.singular_values)
-        ratio = float(sv[-1] / sv[0]) if sv.size and sv[0] > 0 else float("nan")
-        print(f"identifiability: no warnings (smallest/largest singular value of the Jacobian {ratio:.2g})")
-    if not result.converged:
-        last = result.stages[-1].outcome
-        if last != "successful":
-            print(f"WARNING: the fit did not converge (last stage: {last}); try more --stages")
-        else:  # the solver stopped at a bound: not an interior optimum
-            print(
-                f"WARNING: the fit ended with {', '.join(result.at_bounds)} on a bound, so it is not an optimum of "
-                "the model: widen the bounds, or check the model (gravity, units: see the warnings above)"
-            )
-    if report.robust_note is not None:
-        print()
-        print(report.robust_note)
-    if report.agreement is not None or report.agreement_note is not None:
-        print()
-        print(report.agreement.summary() if report.agreement is not None else report.agreement_note)
-    if report.robust is not None:
-        print()
-        print(report.robust.summary())
-        print(
-            "(the intervals above assume white residuals; these assume only that the logs are independent: "
-            "read these when the residual tests below fail, as on real rigs)"
-        )
-    _print_model(report)
-
-
-def _print_model(report) -> None:
-    """Per-log nuisances, natural frequencies, model checks and the residual table."""
-    result = report.result
-    nuisance = _nuisance_lines(result, report.validation_nuisances)
-    if nuisance:
-        print()
-        own = " (validation logs: also their own per-log parameters)" if result.problem.per_log else ""
-        print(f"Per-log nuisances{own}:")
-        print("\n".join(nuisance))
-    print()
-    freqs = report.natural_frequencies
-    nf = ", ".join(f"{f:.4g}" for f in freqs if f > 0) or "none (rigid-body modes only)"
-    kept = ", ".join(n for n, _ in result.problem.per_log)
-    kept = f"; {kept} at the rig's value, not a log's" if kept else ""
-    print(f"Natural frequencies of the fitted model ({report.modal_configuration}{kept}): {nf} Hz")
-    unstable = [f for f in freqs if f < 0]
-    if unstable:  # (`fd.Modes`: a negative frequency is an unstable mode)
-        print(
-            f"WARNING: the fitted model is not stable about that configuration: {len(unstable)} mode(s) diverge "
-            f"(growth rate {', '.join(f'{-2 * math.pi * f:.4g}' for f in unstable)} 1/s); a slender link hanging "
-            "under gravity needs `geometric_stiffening = true`"
-        )
-    for check in report.model_checks:
-        print(f"{'WARNING: ' if check['flagged'] else ''}model check: {check['message']}")
-    print()
-    print("Residuals (fitted - measured; [val] = validation log, not used by the fit):")
-    roles = {spec.name: spec.role for spec in report.experiment.logs}
-    combined = {**report.residuals, **report.validation_residuals}
-    print("\n".join(_residual_lines(combined, {**report.outputs, **report.validation_outputs}, roles)))
-
-
-def _write_files(report, out: Path, args) -> list[Path]:
-    """`result.json` and the plots into `out`, with the folder's marker; the paths written."""
+def _write_fit(report, folder: OutputFolder, args, interrupted: bool) -> tuple[list[Path], bool]:
+    """`result.json` first, then the plots, staged and committed into `folder`
+    (`OutputFolder.commit`). A plot that fails is a warning (in `result.json`'s
+    `problems`); Ctrl-C while plotting skips the remaining plots. Returns the paths
+    written and whether the run was interrupted."""
     from .._report import fit_plots as plots
-    from .._report.json import jsonable
 
     result, exp = report.result, report.experiment
-    _write_marker(out)
+    stage = folder.staging()
     doc = report.to_dict(options={"stages": args.stages}, command=["identify", "fit", *map(str, _argv_tail(args))])
-    (out / RESULT_FILE).write_text(json.dumps(jsonable(doc), indent=1) + "\n")
-    written = [out / MARKER, out / RESULT_FILE]
-    written += plots.write_plots(
-        result,
-        {**report.outputs, **report.validation_outputs},
-        {**report.residuals, **report.validation_residuals},
-        out,
-        natural_frequencies=report.natural_frequencies,
-        where=report.modal_configuration,
-        roles={spec.name: spec.role for spec in exp.logs},
-        title=exp.name,
-    )
+    _write_json(stage / RESULT_FILE, doc)  # first: whatever happens next, the fit is on disk
+    outputs = {**report.outputs, **report.validation_outputs}
+    tasks = []
+    if outputs:
+        tasks.append(
+            lambda: plots.write_plots(
+                result,
+                outputs,
+                {**report.residuals, **report.validation_residuals},
+                stage,
+                natural_frequencies=report.natural_frequencies,
+                where=report.modal_configuration,
+                roles={spec.name: spec.role for spec in exp.logs},
+                title=exp.name,
+            )
+        )
     if result.problem.per_log:  # each log's own values, and their common value when compared
-        written += plots.plot_per_log(result, report.agreement, out)
-    return written
+        tasks.append(lambda: plots.plot_per_log(result, report.agreement, stage))
+    problems, interrupted = _run_plots(tasks, stage, interrupted)
+    return _commit_json(folder, doc, problems, interrupted), interrupted
 
 
-def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
-    """`identify fit --independent`: every fit log on its own, then `between_logs`."""
-    from .._fit.result import fitted_outputs
-    from .._fit.uncertainty import between_logs
-    from .._report import fit_plots as plots
+def _run_plots(tasks, stage: Path, interrupted: bool) -> tuple[list[str], bool]:
+    """Run the plotting `tasks` (writing into `stage`); each failure becomes a problem line
+    and its files are removed; Ctrl-C stops them."""
+    problems = []
+    for task in tasks:
+        if interrupted:
+            problems.append("plots not written: interrupted (Ctrl-C)")
+            break
+        before = set(stage.iterdir())
+        try:
+            task()
+        except (Exception, KeyboardInterrupt) as e:  # a plot must not cost the written result
+            for p in set(stage.iterdir()) - before:  # (this task's files: one may be partial)
+                p.unlink()
+            interrupted |= isinstance(e, KeyboardInterrupt)
+            why = "interrupted (Ctrl-C)" if isinstance(e, KeyboardInterrupt) else f"{type(e).__name__}: {e}"
+            problems.append(f"plots not written: {why}")
+            print(f"identify fit: warning: {problems[-1]}", file=sys.stderr, flush=True)
+    return problems, interrupted
+
+
+def _commit_json(folder: OutputFolder, doc: dict, problems: list[str], interrupted: bool) -> list[Path]:
+    """The staged result file rewritten with the plots' `problems`, the list of the run's
+    `files` and whether it was `interrupted`, then everything committed into `folder`."""
+    stage = folder.staging()
+    doc["problems"] = [*doc.get("problems", []), *problems]
+    doc["interrupted"] = interrupted
+    doc["files"] = sorted({p.name for p in stage.iterdir() if p.is_file()} | {RESULT_FILE})
+    _write_json(stage / RESULT_FILE, doc)
+    return folder.commit(RESULT_FILE, "interrupted, partly written" if interrupted else "complete")
+
+
+def _rescue(report, args, out: Path, error: OSError) -> Path:
+    """`result.json` written to the system's temporary folder when `out` cannot take it."""
+    import tempfile
+
+    doc = report.to_dict(options={"stages": args.stages}, command=["identify", "fit", *map(str, _argv_tail(args))])
+    doc["problems"] = [*doc["problems"], f"not written into {out}: {error}"]
+    fd, name = tempfile.mkstemp(prefix=f"identify-{Path(report.experiment.path).stem}-", suffix=".json")
+    os.close(fd)
+    _write_json(Path(name), doc)
+    print(
+        f"identify fit: could not write into {out} ({error}); the result is saved as {name}",
+        file=sys.stderr,
+        flush=True,
+    )
+    return Path(name)
+
+
+def _write_json(path: Path, doc: dict) -> None:
     from .._report.json import jsonable
-    from .._workflow import experiment_document, fit_experiment_independent, residual_report
+
+    write_atomic(path, json.dumps(jsonable(doc), indent=1) + "\n")
+
+
+def _independent_fits(args, exp, folder: OutputFolder, start, say, progress) -> int:
+    """`identify fit --independent`: every fit log on its own, then `between_logs`."""
+    from .._workflow import fit_experiment_independent
 
     if len(exp.fit_logs) < 2:
+        folder.abandon("failed: --independent needs at least 2 fit logs")
         print("identify fit: --independent needs at least 2 fit logs; this experiment has 1", file=sys.stderr)
         return 2
     if exp.validation_logs:
@@ -343,52 +293,27 @@ def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
             progress=progress,
         )
     except (RuntimeError, ValueError) as e:
+        folder.abandon("failed: the fits failed, nothing written")
         print(f"identify fit: the fits failed: {_failure_text(e)}", file=sys.stderr, flush=True)
         return 1
+    except KeyboardInterrupt:
+        folder.abandon("interrupted during the fits, nothing written")
+        print("identify fit: interrupted during the fits; nothing was written", file=sys.stderr, flush=True)
+        return INTERRUPTED
     say(f"[{time.perf_counter() - start:6.1f} s] {len(results)} independent fits done")
-    try:
-        between = between_logs(results)
-    except ValueError as e:  # fewer than 2 converged logs
-        between, between_note = None, str(e)
+    written, between, interrupted = _write_independent(args, exp, folder, results)
     print()
     print(f"Independent fits ({exp.name}): each fit log on its own")
     for r in results:
         print()
-        print(r.summary())
+        _print_safely(lambda r=r: print(r.summary()))
     print()
-    print(between.summary() if between is not None else f"no comparison between the logs: {between_note}")
-
-    try:
-        check_output_folder(out, inputs, args.force)  # again: the fits took a while
-    except _Refused as e:
-        print(f"identify fit: {e}", file=sys.stderr, flush=True)
-        return 2
-    _write_marker(out)
-    outputs, reports = {}, {}
-    for r in results:
-        outputs.update(fitted_outputs(r))
-        reports.update(residual_report(r))
-    doc = {
-        "mode": "independent",
-        "experiment": experiment_document(exp),
-        "logs": {", ".join(r.problem.log_names): r.to_dict() for r in results},
-        "between_logs": None if between is None else between.to_dict(),
-        "residuals": reports,
-        "options": {"stages": args.stages, "independent": True},
-        "command": ["identify", "fit", *map(str, _argv_tail(args))],
-        "versions": package_versions(),
-    }
-    (out / RESULT_FILE).write_text(json.dumps(jsonable(doc), indent=1) + "\n")
-    roles = {name: "fit" for name in outputs}
-    written = [out / RESULT_FILE]
-    written += plots.plot_fit(outputs, out, title=f"{exp.name}: each log fitted on its own", roles=roles)
-    written += plots.plot_residuals(outputs, out, roles=roles)
-    written += plots.plot_by_log(results, between, out)
+    _print_safely(lambda: print(between.summary() if hasattr(between, "summary") else between))
     print()
     say(f"total {time.perf_counter() - start:.1f} s")
-    print(f"Results written to {out}/:")
-    for p in written:
-        print(f"  {p}")
+    _say_written(folder.path, written)
+    if interrupted:
+        return INTERRUPTED
     failed = [", ".join(r.problem.log_names) for r in results if not r.converged]
     if failed:
         print(
@@ -398,6 +323,51 @@ def _independent_fits(args, exp, inputs, out, start, say, progress) -> int:
         )
         return NOT_CONVERGED
     return 0
+
+
+def _write_independent(args, exp, folder: OutputFolder, results):
+    """`result.json` of the independent fits first, then their plots, into `folder`
+    (`_write_fit`'s rules). Returns the paths, the comparison between the logs (or the
+    text saying why there is none) and whether the run was interrupted."""
+    from .._fit.result import fitted_outputs
+    from .._fit.uncertainty import between_logs
+    from .._report import fit_plots as plots
+    from .._workflow import experiment_document, residual_report
+
+    problems, outputs, reports = [], {}, {}
+    try:
+        between = between_logs(results)
+    except ValueError as e:  # fewer than 2 converged logs
+        between = f"no comparison between the logs: {e}"
+    try:
+        for r in results:
+            outputs.update(fitted_outputs(r))
+            reports.update(residual_report(r))
+    except Exception as e:  # noqa: BLE001 (the fits are kept)
+        problems.append(f"fitted outputs and residual tests not computed: {type(e).__name__}: {e}")
+    doc = {
+        "mode": "independent",
+        "experiment": experiment_document(exp),
+        "logs": {", ".join(r.problem.log_names): r.to_dict() for r in results},
+        "between_logs": between.to_dict() if hasattr(between, "to_dict") else None,
+        "residuals": reports,
+        "problems": problems,
+        "options": {"stages": args.stages, "independent": True},
+        "command": ["identify", "fit", *map(str, _argv_tail(args))],
+        "versions": package_versions(),
+    }
+    stage = folder.staging()
+    _write_json(stage / RESULT_FILE, doc)
+    roles = {name: "fit" for name in outputs}
+    tasks = [lambda: plots.plot_by_log(results, between if hasattr(between, "to_dict") else None, stage)]
+    if outputs:
+        title = f"{exp.name}: each log fitted on its own"
+        tasks[:0] = [
+            lambda: plots.plot_fit(outputs, stage, title=title, roles=roles),
+            lambda: plots.plot_residuals(outputs, stage, roles=roles),
+        ]
+    more, interrupted = _run_plots(tasks, stage, False)
+    return _commit_json(folder, doc, more, interrupted), between, interrupted
 
 
 def _argv_tail(args) -> list:

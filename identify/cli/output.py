@@ -10,12 +10,27 @@ from pathlib import Path
 MARKER = ".identify-output"
 
 
+#: held locked by the run writing into the folder (`folder.OutputFolder.claim`)
+LOCK_FILE = ".identify-lock"
+
+
+#: a run's files are written into a hidden folder of this prefix, then moved into place
+STAGING_PREFIX = ".identify-staging-"
+
+
+#: temporary files (written, then renamed into place) and probes of writability
+TEMPORARY_PREFIX = ".identify-tmp-"
+
+
 #: `identify diagnose` writes every progress line here as it goes, so that a diagnosis
 #: stopped part-way leaves its progress on disk
 PROGRESS_FILE = "progress.log"
 
 
 NOT_CONVERGED = 3  # exit status when the fit (`diagnose`: the baseline fit) did not converge
+
+
+INTERRUPTED = 130  # exit status after Ctrl-C (the shell's 128 + SIGINT)
 
 
 RESULT_FILE = "result.json"
@@ -30,7 +45,15 @@ def output_files() -> tuple[str, ...]:
     from .._report.diagnosis_report import FILES
     from .._report.fit_plots import BY_LOG_PLOT, PLOT_FILES
 
-    return (MARKER, RESULT_FILE, PROGRESS_FILE, *PLOT_FILES, BY_LOG_PLOT, *FILES)
+    return (MARKER, LOCK_FILE, RESULT_FILE, PROGRESS_FILE, *PLOT_FILES, BY_LOG_PLOT, *FILES)
+
+
+def _ours(p: Path) -> bool:
+    """Whether `p`, an entry of an output folder, is one of the commands' (files under our
+    names, staging folders and temporary files of a run)."""
+    if p.name.startswith((STAGING_PREFIX, TEMPORARY_PREFIX)):
+        return True
+    return p.name in output_files() and p.is_file()
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -62,7 +85,7 @@ def check_output_folder(out: Path, inputs: list[Path], force: bool, suffix: str 
             raise _Refused(f"refusing to write {target}: it is an input of the experiment")
     if force or not entries:
         return
-    foreign = [p.name + ("/" if p.is_dir() else "") for p in entries if p.name not in ours or not p.is_file()]
+    foreign = [p.name + ("/" if p.is_dir() else "") for p in entries if not _ours(p)]
     if foreign:
         shown = ", ".join(foreign[:5]) + (f", ... ({len(foreign)} in all)" if len(foreign) > 5 else "")
         raise _Refused(
@@ -111,15 +134,6 @@ def _load_experiment(args):
             "header or the experiment's columns, or pass --any-rate to fit it as it is"
         )
     return exp
-
-
-def _write_marker(out: Path) -> None:
-    """Create `out` and mark it as `identify`'s (`check_output_folder`)."""
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text(
-        "Written by `identify` (flexdyn). This folder holds its outputs; a new run may overwrite these "
-        f"files: {', '.join(output_files())}.\n"
-    )
 
 
 def printers(command: str, quiet: bool):

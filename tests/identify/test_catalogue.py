@@ -215,3 +215,25 @@ def test_a_nested_structural_fit_that_ends_above_its_limit_is_noted():
     # above by the optimiser's precision only, on a large cost (the spinning-link example's
     # sensor high-pass: 57 over 1.045e8): not a local minimum
     assert _stuck_above_nested(friction, 104508119.3, 104508062.3, 10.0, limit="sensor.theta1.highpass = 0") == ""
+
+
+def test_dry_friction_is_judged_against_the_peak_torque_not_the_rms():
+    """Found on a geared servo's step tests: a dry friction of 0.095 N m was called
+    implausible because it exceeds the RMS driving torque, although the peak torque was 5x
+    higher and the hub really stands still between moves. The diagnosis's signals carry
+    the logs' peak torque, and the plausibility test is against it."""
+    from types import SimpleNamespace
+
+    from identify._diagnose.search import _signals
+
+    t = np.arange(0.0, 4.0, 1e-3)
+    steps = np.where((t % 2.0) < 0.04, 0.5, 0.0)  # short moves, standing still between them
+    log = SimpleNamespace(t=t, torque=steps[:, None], outputs={"theta1": np.zeros_like(t)}, offsets={})
+    rigid = fd.Chain([fd.RigidLink(0.5, 0.1)], [fd.RigidJoint(damping=0.01)], [fd.Hub(inertia=0.02)], fd.Payload(0.05))
+    base = SimpleNamespace(problem=SimpleNamespace(channels=["theta1"]), chain=rigid)  # horizontal: no gravity
+    signals = _signals(base, [log], [], modal=[])
+    assert signals.torque_peak == 0.5 and signals.torque_rms == pytest.approx(0.5 * np.sqrt(0.02), rel=1e-3)
+    assert cat.characteristic_torque(base.chain, signals.torque_rms) < 0.095  # (what the RMS would have said)
+    scale = cat.characteristic_torque(base.chain, signals.torque_peak)
+    assert cat.implausible("coulomb_friction", {"joint1.coulomb": 0.095}, **{**_CONTEXT, "torque_scale": scale}) == []
+    assert cat.implausible("coulomb_friction", {"joint1.coulomb": 0.6}, **{**_CONTEXT, "torque_scale": scale})

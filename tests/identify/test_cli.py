@@ -5,6 +5,7 @@ plots, error messages, the output-folder policy, and that inputs are never touch
 import hashlib
 import json
 import math
+import os
 import re
 import shutil
 from pathlib import Path
@@ -378,7 +379,7 @@ def test_residual_table_notes_coloured_fit_residuals():
     """Found in review: a fit whose residuals failed the whiteness test (p = 4.5e-280, an
     initial angle held at a noisy first sample) printed intervals 10 standard errors off
     with no note; the note now follows the table for fit logs (not validation logs)."""
-    from identify.cli.fit_command import _residual_lines
+    from identify.cli.fit_text import _residual_lines
 
     def item(white):
         return {"rms": 1e-3, "whiteness": {"white": white, "p_value": 0.5 if white else 1e-9}, "input_correlation": {}}
@@ -444,6 +445,7 @@ def test_diagnose_exits_3_when_its_baseline_fit_did_not_converge(tmp_path, monke
     @dataclasses.dataclass
     class StandIn:
         baseline: object
+        interrupted: object = None
         baseline_converged = property(module.Diagnosis.baseline_converged.fget)
 
         def summary(self):
@@ -577,3 +579,194 @@ def test_a_per_log_parameter_through_identify_fit(tmp_path, capsys):
     # (its standard error is ~3e-5 kg: its interval is checked in test_run; here, that the
     # value written is the held-out fit's, not the guess of 0.03 or a fit log's)
     assert held["unit"] == "kg" and abs(held["value"] - MASSES["m35"]) < 5e-4, held
+
+
+# --- nothing lost: a finished fit is written whatever fails or is interrupted after it ---
+
+
+def _doc(out: Path) -> dict:
+    return json.loads((out / "result.json").read_text())
+
+
+def test_a_summary_that_cannot_be_formatted_loses_nothing(fitted, monkeypatch, capsys):
+    """Found on a real 10 s log: `identify fit` ran 5 minutes, then crashed printing its
+    summary (`math domain error` in `interval_text`) and wrote nothing. The files are
+    written before the summary is printed, and a failure to print is a warning."""
+    import identify.cli.fit_command as fit_command
+
+    def broken(report):
+        raise ValueError("math domain error")
+
+    monkeypatch.setattr(fit_command, "print_results", broken)
+    out = fitted["work"] / "unprintable"
+    assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the summary could not be printed (ValueError: math domain error)" in err, err
+    doc = _doc(out)
+    assert doc["converged"] is True and doc["problems"] == [] and doc["interrupted"] is False
+    assert set(doc["files"]) == {"result.json", *PLOT_FILES}
+    assert all((out / name).is_file() for name in doc["files"])
+
+
+def test_a_failing_follow_up_or_plot_keeps_the_fit(fitted, monkeypatch, capsys):
+    """A simulation failing on the validation log, or a plot failing, is named in
+    `result.json`'s `problems` and on stderr; the fit is written and the run exits 0."""
+    import identify._report.fit_plots as fit_plots
+
+    def failing_validation(exp, result, progress=None):
+        raise RuntimeError("the solver's step limit on log 'drop_c'")
+
+    def failing_plot(*args, **kwargs):
+        raise OverflowError("cannot convert float infinity to integer")
+
+    monkeypatch.setattr(_workflow_module, "validate", failing_validation)
+    monkeypatch.setattr(fit_plots, "write_plots", failing_plot)
+    out = fitted["work"] / "follow-ups-failed"
+    assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 0
+    captured = capsys.readouterr()
+    doc = _doc(out)
+    assert doc["problems"] == [
+        "validation not computed: RuntimeError: the solver's step limit on log 'drop_c'",
+        "plots not written: OverflowError: cannot convert float infinity to integer",
+    ], doc["problems"]
+    assert doc["validation"] == {} and doc["files"] == ["result.json"]
+    assert not any((out / name).exists() for name in PLOT_FILES)
+    assert "plots not written: OverflowError" in captured.err
+    assert "Fitted parameters" in captured.out  # the summary is printed as usual
+
+
+def test_ctrl_c_after_the_fit_writes_the_fit_marked_interrupted(fitted, monkeypatch, capsys):
+    def interrupted(exp, result, **kw):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_workflow_module, "fit_report", interrupted)
+    out = fitted["work"] / "interrupted-after"
+    assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 130
+    doc = _doc(out)
+    assert doc["interrupted"] is True and doc["converged"] is True
+    assert doc["problems"] == ["interrupted (Ctrl-C) before the fit's follow-ups were computed"]
+    assert "status: interrupted, partly written" in (out / MARKER).read_text()
+    assert "interrupted after the fit; writing the fit alone" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("existing", [False, True])
+def test_ctrl_c_during_the_fit_writes_nothing_and_keeps_the_previous_result(fitted, monkeypatch, capsys, existing):
+    def interrupted(experiment, **options):
+        raise KeyboardInterrupt
+
+    out = fitted["work"] / f"interrupted-during-{existing}"
+    if existing:
+        shutil.copytree(fitted["out"], out)
+        before = _snapshot(out)
+    monkeypatch.setattr(_workflow_module, "fit_experiment", interrupted)
+    assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 130
+    assert "interrupted during the fit; nothing was written" in capsys.readouterr().err
+    if not existing:  # the folder this run created is removed again
+        assert not out.exists()
+        return
+    after = _snapshot(out)
+    changed = {p.name for p in set(before) | set(after) if before.get(p) != after.get(p)}
+    assert changed <= {MARKER, ".identify-lock"}, changed  # the previous result is untouched
+    assert "status: interrupted during the fit, nothing written" in (out / MARKER).read_text()
+
+
+def test_the_output_folder_is_checked_before_the_fit(fitted, monkeypatch, tmp_path, capsys):
+    """A folder the result could not be written to is refused before minutes of fitting:
+    `--out` under a file, a result name taken by a folder (even with --force), a folder
+    another run holds, a read-only folder."""
+    from identify.cli.folder import OutputFolder
+
+    def must_not_fit(experiment, **options):
+        raise AssertionError("the fit started")
+
+    monkeypatch.setattr(_workflow_module, "fit_experiment", must_not_fit)
+    exp = str(fitted["exp"])
+    (tmp_path / "a-file").write_text("x")
+    assert main(["fit", exp, "--out", str(tmp_path / "a-file" / "out")]) == 2
+    assert f"{tmp_path / 'a-file'} is a file, not a folder" in capsys.readouterr().err
+    blocked = tmp_path / "blocked"
+    (blocked / "result.json").mkdir(parents=True)
+    (blocked / MARKER).write_text("")
+    assert main(["fit", exp, "--out", str(blocked), "--force"]) == 2
+    assert f"cannot write {blocked / 'result.json'}: it is a folder" in capsys.readouterr().err
+    held = tmp_path / "held"
+    with OutputFolder.claim(held, [fitted["exp"]], force=False):
+        assert main(["fit", exp, "--out", str(held)]) == 2
+    err = capsys.readouterr().err
+    assert f"refusing to write into {held}: another identify run is writing there (pid" in err, err
+    readonly = tmp_path / "readonly"
+    readonly.mkdir()
+    readonly.chmod(0o500)
+    try:
+        if os.access(readonly, os.W_OK):  # (root writes anyway: then so would the result)
+            pytest.skip("running as a user who can write into read-only folders")
+        assert main(["fit", exp, "--out", str(readonly)]) == 2
+        assert f"cannot write into {readonly}" in capsys.readouterr().err
+    finally:
+        readonly.chmod(0o700)
+
+
+def test_a_killed_previous_run_is_said_and_its_leftovers_cleared(fitted, capsys):
+    out = fitted["work"] / "after-a-kill"
+    shutil.copytree(fitted["out"], out)
+    (out / MARKER).write_text("Written by `identify`.\nstatus: running (pid 999999, since 2026-12-07T00:00:00)\n")
+    (out / ".identify-staging-abc").mkdir()
+    (out / ".identify-staging-abc" / "result.json").write_text("{")
+    assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert f"note: the previous run into {out} was killed (running (pid 999999" in printed
+    assert not list(out.glob(".identify-staging-*"))
+    assert "status: complete" in (out / MARKER).read_text()
+
+
+def test_a_folder_that_cannot_take_the_result_after_the_fit_loses_nothing(fitted, monkeypatch, capsys):
+    """The folder removed or the disk full during the fit: the result goes to the system's
+    temporary folder, and the command says where."""
+    import identify.cli.fit_command as fit_command
+
+    def disk_full(*args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(fit_command, "_write_fit", disk_full)
+    out = fitted["work"] / "disk-full"
+    assert main(["fit", str(fitted["exp"]), "--out", str(out), "--stages", "2", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    saved = re.search(r"the result is saved as (\S+\.json)", err)
+    assert saved and "No space left on device" in err, err
+    doc = json.loads(Path(saved.group(1)).read_text())
+    assert doc["converged"] is True and "No space left on device" in doc["problems"][-1]
+    Path(saved.group(1)).unlink()
+
+
+def test_a_diagnosis_interrupted_in_its_rounds_writes_what_it_accepted(tmp_path, monkeypatch, capsys):
+    """Found on a real rig: a diagnosis stopped by a time limit or Ctrl-C left no report
+    although a cause was already accepted. The library returns what was accepted, marked
+    `interrupted` (tests/identify/test_diagnose_interrupted.py); the command writes it,
+    says so and exits 130."""
+    import dataclasses
+    import importlib
+    from types import SimpleNamespace
+
+    report = importlib.import_module("identify._report.diagnosis_report")
+
+    @dataclasses.dataclass
+    class StandIn:
+        baseline: object
+        interrupted: object
+        baseline_converged = True
+
+        def summary(self):
+            return f"INTERRUPTED: {self.interrupted}"
+
+    def write(diag, out, **kw):
+        (Path(out) / "diagnosis.json").write_text(json.dumps({"interrupted": diag.interrupted}))
+        return [Path(out) / "diagnosis.json"]
+
+    text = "interrupted (Ctrl-C) in round 2, after 1 cause(s) accepted; the search did not finish"
+    monkeypatch.setattr(_workflow_module, "diagnose", lambda experiment, **options: StandIn(SimpleNamespace(), text))
+    monkeypatch.setattr(report, "write_report", write)
+    out = tmp_path / "out"
+    assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(out), "--quiet"]) == 130
+    assert json.loads((out / "diagnosis.json").read_text())["interrupted"] == text
+    assert "status: interrupted, the report of what was accepted before it" in (out / MARKER).read_text()
+    assert f"exit status 130: {text}; the report of what was accepted before it is written" in capsys.readouterr().err

@@ -232,6 +232,10 @@ def test_clustered_covariance_needs_two_logs():
         (-3.2e-3, 4.1e-3, "[-0.0032, 0.0041]"),  # across zero
         (2.5, 2.5, "[2.5, 2.5]"),  # a zero width (a parameter the data fix exactly): 4 digits
         (float("nan"), float("nan"), "[nan, nan]"),
+        # found on a real log: value / width underflowed to 0 and math.log10 raised
+        # "math domain error" after a 5-minute fit; its ends at their 4 digits
+        (5e-324, 10.0, "[4.941e-324, 10]"),
+        (1e-300, 1e300, "[1e-300, 1e+300]"),  # (and the quotient overflowing)
     ],
 )
 def test_an_interval_prints_with_the_digits_that_tell_its_ends_apart(lo, hi, text):

@@ -1009,14 +1009,16 @@ def test_a_simulation_that_runs_out_of_steps_is_named_with_the_values_where_it_f
 WRONG_BASIN = {"link1.EI": 1.68, "joint1.damping": 0.00526, "hub1.inertia": 0.00279, "payload.mass": 0.118}
 
 
-@pytest.mark.parametrize("restart", [True, False])
+@pytest.mark.parametrize("restart", [True, False, "fails"])
 def test_a_fit_that_ends_in_a_wrong_basin_restarts_from_the_next_start(arm, monkeypatch, restart):
     """The growing horizon from the best start is sent to a wrong basin (its first attempt
     starts at `WRONG_BASIN` and fits the full log, where it stays): the residuals are
     several times the noise floor, so `fit` grows the horizon again from the next-best
     start and ends within the issue's bars with residuals at the floor. With
     `restart_poor_fit=False` it keeps the wrong basin and reports it: `poor_fit` names
-    both channels and the summary warns."""
+    both channels and the summary warns. A restart whose simulation fails (walked into a
+    stiff region, found on a real log: the whole fit exited 1) leaves the first attempt as
+    the result, with a note naming the failure."""
     t = np.arange(0.0, 3.0, DT)
     log = identify.simulate_log(
         arm.chain,
@@ -1038,16 +1040,29 @@ def test_a_fit_that_ends_in_a_wrong_basin_restarts_from_the_next_start(arm, monk
                 horizons[-1:],
             )
         attempts.append(1)
+        if restart == "fails" and len(attempts) == 2:
+            raise steps_module.SimulationFailed("stand-in: step limit at t = 1.2 s", horizon_s=3.0, values={}, logs={})
         return grow(problem, z, sigma, horizons, *rest)
 
     monkeypatch.setattr(fit_module, "_grow", first_attempt_in_the_wrong_basin)
     said = []
     result = identify.fit(
-        problem, params, estimate_noise=False, frequency_init=False, restart_poor_fit=restart, progress=said.append
+        problem,
+        params,
+        estimate_noise=False,
+        frequency_init=False,
+        restart_poor_fit=bool(restart),
+        progress=said.append,
     )
     print(result.summary())
     ratios = {c: q["ratio"] for c, q in result.fit_quality.items()}
-    if restart:
+    if restart == "fails":
+        failed = "the restart from the first stage's optimum #2 failed (stand-in: step limit at t = 1.2 s)"
+        assert len(attempts) == 2 and result.failed_restarts == [failed], result.failed_restarts
+        assert result.value["payload.mass"] == pytest.approx(WRONG_BASIN["payload.mass"], rel=0.05)
+        assert f"note: {failed}; the result is the best attempt that finished" in result.summary()
+        assert result.to_dict()["failed_restarts"] == [failed]
+    elif restart:
         assert len(attempts) == 2 and any("times the noise floor: growing the horizon again" in m for m in said), said
         assert within_bars(result), result.summary()
         assert result.poor_fit == [] and all(0.8 < r < 1.2 for r in ratios.values()), ratios
