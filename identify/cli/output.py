@@ -59,7 +59,7 @@ def _ours(p: Path) -> bool:
 def _same(a: Path, b: Path) -> bool:
     try:
         return a.resolve() == b.resolve() or (a.exists() and b.exists() and a.samefile(b))
-    except OSError:
+    except (OSError, RuntimeError):  # (a symbolic link loop: Python 3.11's `resolve` raises RuntimeError)
         return False
 
 

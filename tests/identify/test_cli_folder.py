@@ -140,3 +140,10 @@ def test_a_folder_that_cannot_be_written_is_refused_at_the_claim(tmp_path, monke
     monkeypatch.setattr(folder_module.tempfile, "mkstemp", denied)
     with pytest.raises(_Refused, match=r"cannot write into .*out: Permission denied. Choose another folder"):
         OutputFolder.claim(tmp_path / "out", [], force=False)
+
+
+def test_an_out_folder_that_is_a_symlink_loop_is_refused_with_a_message(tmp_path):
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    with pytest.raises(_Refused, match="cannot use --out .*loop: it exists and is not a folder"):
+        OutputFolder.claim(loop, [tmp_path / "experiment.toml"], force=False)
