@@ -58,13 +58,19 @@ class Calibration:
     `theta<i>`, `alpha<i>` and `torque<i>` are (`fd.ElasticJoint`): an angle is divided by
     `G`, a torque multiplied by `G` (gear losses aside). It applies last, after any volt
     `scale` and `offset` (which are then motor-side), and to a column in any unit of the
-    channel's dimension: a motor encoder in `[deg]` with `{ gear_ratio = 70 }`."""
+    channel's dimension: a motor encoder in `[deg]` with `{ gear_ratio = 70 }`.
+
+    `sign` (`1` or `-1`) multiplies the channel's value last, after every conversion above,
+    on a column in any unit: a sensor wired or mounted against flexdyn's counter-clockwise
+    positive convention (a strain gauge bridge with its arms swapped) is read without a
+    negated copy of the log."""
 
     scale: float | None = None
     offset: float = 0.0
     unit: str | None = None
     neutral_axis_distance: float | None = None
     gear_ratio: float | None = None
+    sign: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,13 +172,18 @@ def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibrati
             f"unit; expected one of {_units_of(dim)}" + extra,
             channel=w.channel,
         )
-    if cal is not None and (cal.scale is not None or cal.gear_ratio is None):
+    if cal is not None and cal.neutral_axis_distance is not None:
+        raise LogError(
+            f"{where}: a neutral_axis_distance is given for {w.channel} but its unit is [{written}], not a strain "
+            "([ue], [strain]); remove it (it turns a strain gauge's strain into the curvature)",
+            channel=w.channel,
+        )
+    if cal is not None and cal.scale is not None:
         raise LogError(
             f"{where}: a calibration scale is given for {w.channel} but its unit is [{written}], not [V]; "
             "remove the scale and offset (they apply to voltage columns only"
-            + (
-                "; a gear_ratio alone refers a motor-side column to the link side)" if _GEARED.match(w.channel) else ")"
-            ),
+            + ("; a gear_ratio alone refers a motor-side column to the link side" if _GEARED.match(w.channel) else "")
+            + "; sign = -1 alone reverses the column)",
             channel=w.channel,
         )
     return unit, cal
@@ -205,6 +216,8 @@ def _to_si(
                 si *= cal.gear_ratio
             else:
                 si /= cal.gear_ratio
+        if cal.sign != 1.0:  # last: the channel's value reversed (`Calibration`)
+            np.negative(si, out=si)
     return si
 
 
@@ -215,7 +228,9 @@ def _calibration_note(cal: Calibration | None) -> str:
     parts = ["calibrated"] if cal.scale is not None or cal.neutral_axis_distance is not None else []
     if cal.gear_ratio is not None:
         parts.append(f"gear ratio {cal.gear_ratio:g}: motor side to link side")
-    return f" ({', '.join(parts)})"
+    if cal.sign != 1.0:
+        parts.append("sign reversed")
+    return f" ({', '.join(parts)})" if parts else ""
 
 
 #: the channels a `Calibration.gear_ratio` applies to: joint, rotor angles and joint torques
@@ -224,20 +239,23 @@ _GEARED = re.compile(r"^(theta|alpha|torque)\d+$")
 
 def check_calibration(channel: str, spec, where: str) -> Calibration:
     """A `Calibration` from an experiment-file table `{scale, offset, unit,
-    neutral_axis_distance, gear_ratio}`."""
+    neutral_axis_distance, gear_ratio, sign}`."""
     if not isinstance(spec, Mapping):
         raise LogError(f"{where}: expected a table {{ scale = ..., offset = ... }}, got {spec!r}")
-    keys = {"scale", "offset", "unit", "neutral_axis_distance", "gear_ratio"}
+    keys = {"scale", "offset", "unit", "neutral_axis_distance", "gear_ratio", "sign"}
     extra = set(spec) - keys
     if extra:
         raise LogError(
             f"{where}: unknown key(s) {sorted(extra)}; expected scale, offset and optionally unit "
-            "(voltage columns), neutral_axis_distance (strain gauges), or gear_ratio (motor-side angles "
-            "and torques)"
+            "(voltage columns), neutral_axis_distance (strain gauges), gear_ratio (motor-side angles "
+            "and torques), or sign = -1 (a reversed column)"
         )
     dim = u.channel_dimension(channel)
     if dim is None or dim == u.TIME:
         raise LogError(f"{where}: calibrations apply to measured channels, not {channel!r}")
+    sign = spec.get("sign", 1)
+    if isinstance(sign, bool) or sign not in (1, -1):
+        raise LogError(f"{where}.sign: expected -1 (the column's values reversed) or 1 (as recorded), got {sign!r}")
     gear = spec.get("gear_ratio")
     if gear is not None:
         if not _GEARED.match(channel):
@@ -263,7 +281,7 @@ def check_calibration(channel: str, spec, where: str) -> Calibration:
             raise LogError(f"{where}.neutral_axis_distance: {e}") from None
         if isinstance(distance, bool) or not isinstance(distance, int | float) or not 0 < distance < math.inf:
             raise LogError(f"{where}.neutral_axis_distance: expected a distance > 0 (m, or '1 mm'), got {distance!r}")
-    if "scale" not in spec and distance is None and gear is None:
+    if "scale" not in spec and distance is None and gear is None and "sign" not in spec:
         raise LogError(f"{where}: missing 'scale' (SI = scale * V + offset)")
     if "scale" not in spec and spec.get("unit") is not None:
         raise LogError(f"{where}.unit: the unit of a volt scale's result, but no scale is given")
@@ -294,6 +312,7 @@ def check_calibration(channel: str, spec, where: str) -> Calibration:
         unit,
         None if distance is None else float(distance),
         None if gear is None else float(gear),
+        float(sign),
     )
 
 

@@ -164,7 +164,7 @@ def load_log(
       `wrench.force.z`), with `joint` for a `sensor_msgs/msg/JointState`, and no `time`.
     - `calibration`: channel -> `Calibration` (or `{scale, offset, unit}`) for `[V]` columns;
       `{neutral_axis_distance}` for a strain gauge's, `{gear_ratio}` for a motor-side
-      angle or torque (`Calibration`).
+      angle or torque, `{sign = -1}` for a reversed column of any unit (`Calibration`).
     - `strict`: if True, columns, variables or topics that no channel uses are an error
       (default: they are ignored and listed in `Log.ignored`).
     - `min_samples`: fewest samples accepted.
@@ -185,7 +185,11 @@ def load_log(
     path = Path(path)
     cals = {}
     for ch, c in (calibration or {}).items():
-        spec = {k: v for k, v in dataclasses.asdict(c).items() if v is not None} if isinstance(c, Calibration) else c
+        spec = (
+            {k: v for k, v in dataclasses.asdict(c).items() if v is not None and (k, v) != ("sign", 1.0)}
+            if isinstance(c, Calibration)
+            else c
+        )
         cals[ch] = check_calibration(ch, spec, f"{path}: calibration.{ch}")
     bag = is_bag(path)
     problem = input_problem(path, bag)

@@ -260,8 +260,9 @@ class FitResult:
                 f"warning: {c} first moves against the simulation's push (cosine {corr:.2f} of the two traces over "
                 "each log's first push of the torque): is its sign "
                 "reversed (or the torque's)? flexdyn's angles, deflections and torques are counter-clockwise "
-                "positive (README: conventions); negate the column in the log (a column in volts: a negative "
-                "calibration scale, docs/experiment-format.md)"
+                "positive (README: conventions); a reversed column is read with sign = -1 in its calibration in "
+                f"the log's entry (calibration = {{ {c} = {{ sign = -1 }} }}, or the torque's; any unit: "
+                "docs/experiment-format.md)"
             )
         if self.poor_fit:
             lines.append(

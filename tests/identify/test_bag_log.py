@@ -246,6 +246,19 @@ def test_numbers_of_a_custom_message_by_field_path(rig_bags, kind):
     assert log.sources["tip1"] == "/gauges v.z [mm] (receive times)"
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_reversed_topic_is_read_negated(rig_bags, kind):
+    """`sign = -1` on a bag's channels: a joint's position in rad and a strain bridge's
+    volts after their scale come back as the negated values written."""
+    calibration = {"theta1": {"sign": -1}, "tip1": {**CALIBRATION["tip1"], "sign": -1}}
+    log = load(rig_bags[kind], calibration=calibration, time_base="/joint_states")
+    t = np.arange(3, 180) * JOINT_DT / 1e9
+    assert np.array_equal(log.outputs["theta1"], -shoulder(t))
+    np.testing.assert_allclose(log.outputs["tip1"], -12.5e-3 * volts(t), rtol=1e-13, atol=0)
+    assert np.array_equal(log.inputs["torque1"], effort(t))
+    assert log.sources["theta1"].endswith("(header stamps) (sign reversed)")
+
+
 def test_an_experiment_file_reads_a_bag(rig_bags, tmp_path):
     path = tmp_path / "exp.toml"
     path.write_text(

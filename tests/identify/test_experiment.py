@@ -791,6 +791,22 @@ def test_measurement_mistakes_name_the_line_and_key(tmp_path, body, fragments):
         load_experiment(path)
 
 
+def test_a_reversed_column_through_the_experiment_file(tmp_path):
+    """`sign = -1` in a log's calibration negates a column in any unit (here mm, where a
+    scale is refused); another sign is an error naming the line and key."""
+    plain = load_experiment(experiment(tmp_path, RIG + LOG)).logs[0]
+    reversed_ = load_experiment(
+        experiment(tmp_path, RIG + LOG + "calibration = { tip1 = { sign = -1 } }\n", name="r.toml")
+    ).logs[0]
+    np.testing.assert_array_equal(reversed_.log.outputs["tip1"], -plain.log.outputs["tip1"])
+    np.testing.assert_array_equal(reversed_.log.outputs["theta1"], plain.log.outputs["theta1"])
+    path = experiment(tmp_path, RIG + LOG + "calibration = { tip1 = { sign = 2 } }\n", name="s.toml")
+    with pytest.raises(
+        ExperimentError, match=msg("s.toml, line 9: logs[1].calibration.tip1.sign", "expected -1", "or 1", "got 2")
+    ):
+        load_experiment(path)
+
+
 @pytest.mark.parametrize(
     ("gravity", "text"),
     [

@@ -1216,6 +1216,8 @@ def test_a_channel_whose_sign_is_reversed_is_named(arm):
     # measured: theta1 -0.907 (tip1 +0.996; on the true log +0.9995 / +0.9999)
     assert result.reversed_channels.get("theta1", 0.0) < -0.8 and "tip1" not in result.reversed_channels
     assert "theta1 first moves against the simulation" in result.summary()
+    # the fix it names: the log's calibration key that negates the column when it is read
+    assert "calibration = { theta1 = { sign = -1 } }" in result.summary()
     assert result.to_dict()["reversed_channels"] == result.reversed_channels
 
 

@@ -261,6 +261,44 @@ def test_gear_ratio_errors(tmp_path):
             load_log(path, columns, calibration={channel: spec})
 
 
+def test_a_reversed_column_is_read_negated_in_any_unit(tmp_path):
+    """`sign = -1` negates the channel's value last, after every other conversion: a
+    column in mm (no scale allowed there), a volt column after its scale and offset, a
+    motor encoder after its gear ratio, in a CSV and in a .mat log."""
+    t, a, b = samples(15)
+    volts = 0.4 * np.arange(15.0)
+    rows = [
+        [f"{ti:.4f}", repr(float(np.rad2deg(ai))), repr(float(1e3 * bi)), repr(float(v))]
+        for ti, ai, bi, v in zip(t, a, b, volts)
+    ]
+    path = write_csv(tmp_path / "r.csv", ["time [s]", "enc [deg]", "gauge [mm]", "bridge [V]"], rows)
+    columns = {"time": "time [s]", "theta1": "enc [deg]", "tip1": "gauge [mm]"}
+    log = load_log(path, columns, calibration={"tip1": {"sign": -1}, "theta1": {"gear_ratio": 4, "sign": -1}})
+    np.testing.assert_allclose(log.outputs["tip1"], -b, rtol=1e-13)
+    np.testing.assert_allclose(log.outputs["theta1"], -a / 4.0, rtol=1e-13)
+    assert log.sources["tip1"] == "column 3 'gauge [mm]' (sign reversed)"
+    assert log.sources["theta1"].endswith("(gear ratio 4: motor side to link side, sign reversed)")
+    columns["tip1"] = "bridge [V]"
+    log = load_log(path, columns, calibration={"tip1": Calibration(scale=12.5, offset=0.5, unit="mm", sign=-1.0)})
+    np.testing.assert_allclose(log.outputs["tip1"], -1e-3 * (12.5 * volts + 0.5), rtol=1e-13)
+    # sign = 1 is the column as recorded
+    log = load_log(path, {"time": "time [s]", "tip1": "gauge [mm]"}, calibration={"tip1": {"sign": 1}})
+    np.testing.assert_allclose(log.outputs["tip1"], b, rtol=1e-13)
+    mat = tmp_path / "r.mat"
+    scipy.io.savemat(mat, {"t": t, "gauge": 1e3 * b})
+    log = load_log(mat, {"time": "t [s]", "tip1": "gauge [mm]"}, calibration={"tip1": {"sign": -1}})
+    np.testing.assert_allclose(log.outputs["tip1"], -b, rtol=1e-13)
+
+
+@pytest.mark.parametrize("sign", [2, -2, 0, -1.5, True, "-1", "reversed"])
+def test_a_sign_other_than_minus_one_or_one_is_an_error(tmp_path, sign):
+    path = write_csv(tmp_path / "s.csv", HEADER, good_rows())
+    with pytest.raises(LogError, match=msg("calibration.tip1.sign", "expected -1", "or 1", f"got {sign!r}")):
+        load_log(path, COLUMNS, calibration={"tip1": {"sign": sign}})
+    with pytest.raises(LogError, match=msg("calibration.time", "measured channels, not 'time'")):
+        load_log(path, COLUMNS, calibration={"time": {"sign": -1}})
+
+
 def test_strain_gauge_columns_become_root_curvature(tmp_path):
     """A root strain gauge read in microstrain (or in volts with a bridge calibration to
     microstrain) maps to `curvature1` through its distance `c` from the neutral axis:
