@@ -137,7 +137,8 @@ class Experiment:
     - `measurement`: the sensors and drives between the model and the logs
       (`identify.measurement.Measurement`, from `[sensors.<channel>]` and
       `[actuators.joint<i>]`; a measurement parameter that is free but not given there is
-      present at its neutral value).
+      present at its neutral value); a sensor's declared `kind` and `resolution` are on its
+      `Sensor`.
     - `starts`: `[[starts]]`, extra points for the fit's multi-start stage, each a dict of
       free parameter -> SI value (the others start at their guesses): `identify.fit`'s
       `extra_starts`.
@@ -189,6 +190,12 @@ class Experiment:
             lines.append(f"  start {k}: " + ", ".join(f"{n} = {v:g}" for n, v in start.items()))
         for c, s in self.noise.items():
             lines.append(f"  noise {c}: {'estimate' if s is None else _noise_text(c, s)}")
+        for c, sensor in sorted(self.measurement.sensors.items()):
+            described = [sensor.kind] if sensor.kind is not None else []
+            if sensor.resolution is not None:
+                described.append(f"resolution {_noise_text(c, sensor.resolution)}")
+            if described:
+                lines.append(f"  sensor {c}: {', '.join(described)}")
         for n in meas.parameter_names(self.measurement):
             unit = meas.unit(n, channel_unit)
             lines.append(f"  measurement {n} = {float(meas.get_parameter(self.measurement, n)):g} {unit}".rstrip())

@@ -40,7 +40,7 @@ JOINT_TYPES = {"rigid": fd.RigidJoint, "elastic": fd.ElasticJoint}
 _PARAMETER_KEYS = ("guess", "lower", "upper", "per_log")
 
 
-_SENSOR_KEYS = ("gain", "offset", "delay", "highpass")
+_SENSOR_KEYS = ("gain", "offset", "delay", "highpass", "kind", "resolution")
 
 
 _ACTUATOR_KEYS = ("lag",)
@@ -295,6 +295,11 @@ def _measurement_parameter(r: _Reader, chain, measurement, logs, name: str, key:
         measured = sorted({c for entry in logs for c in entry.log.outputs})
         if channel not in measured:
             raise r.error(key, f"no log measures {channel}; the logs measure {', '.join(measured)}")
+        sensor = measurement.sensors.get(channel)
+        field = name.rsplit(".", 1)[1]
+        why = meas.lacks(None if sensor is None else sensor.kind).get(field)
+        if why is not None:
+            raise r.error(key, f"{channel}'s sensor is of kind = {sensor.kind!r}, which has no {field}: {why}")
     elif not 1 <= joint <= chain.n_links:
         raise r.error(key, f"the rig has joints 1 to {chain.n_links}; got actuator{joint}")
     try:
@@ -305,23 +310,35 @@ def _measurement_parameter(r: _Reader, chain, measurement, logs, name: str, key:
 
 
 def _measurement(r: _Reader, chain: fd.Chain, logs: list[LogSpec], doc: Mapping) -> meas.Measurement:
-    """`[sensors.<channel>]` (gain, offset, delay, highpass) and `[actuators.joint<i>]`
-    (lag): the measurement model between the rig and the logs (`identify.measurement`)."""
+    """`[sensors.<channel>]` (kind, resolution, gain, offset, delay, highpass) and
+    `[actuators.joint<i>]` (lag): the measurement model between the rig and the logs
+    (`identify.measurement`). A kind that cannot measure the channel, or given an effect it
+    cannot have (an encoder's gain), is an error."""
     measured = sorted({c for entry in logs for c in entry.log.outputs})
     sensors = {}
     for channel, spec in r.table(doc.get("sensors", {}), ("sensors",)).items():
         key = ("sensors", channel)
         if channel not in measured:
             raise r.error(key, f"no log measures {channel}; the logs measure {', '.join(measured)}")
-        spec = r.table(spec, key, _SENSOR_KEYS)
+        spec = dict(r.table(spec, key, _SENSOR_KEYS))
+        described = {"kind": _sensor_kind(r, spec.pop("kind", None), channel, key), "resolution": None}
         dims = {"gain": None, "offset": u.channel_dimension(channel), "delay": u.TIME, "highpass": u.FREQUENCY}
+        if "resolution" in spec:
+            described["resolution"] = _quantity(r, spec.pop("resolution"), dims["offset"], key + ("resolution",))
+            if described["resolution"] <= 0:
+                raise r.error(
+                    key + ("resolution",), f"expected a quantisation step > 0, got {described['resolution']:g}"
+                )
         values = {field: _quantity(r, value, dims[field], key + (field,)) for field, value in spec.items()}
         for field in ("delay", "highpass"):
             if values.get(field, 0.0) < 0:
                 raise r.error(key + (field,), f"expected a value >= 0, got {values[field]:g}")
         if values.get("gain", 1.0) <= 0:
             raise r.error(key + ("gain",), f"expected a gain > 0, got {values['gain']:g}")
-        sensors[channel] = meas.Sensor(**values)
+        for field, why in meas.lacks(described["kind"]).items():
+            if field in values:
+                raise r.error(key + (field,), f"a sensor of kind = {described['kind']!r} has no {field}: {why}")
+        sensors[channel] = meas.Sensor(**values, **described)
     lags = [None] * chain.n_links
     for joint, spec in r.table(doc.get("actuators", {}), ("actuators",)).items():
         key = ("actuators", joint)
@@ -335,6 +352,16 @@ def _measurement(r: _Reader, chain: fd.Chain, logs: list[LogSpec], doc: Mapping)
                 raise r.error(key + ("lag",), f"expected a lag >= 0 (s), got {lag:g}")
             lags[int(m[1]) - 1] = lag
     return meas.Measurement(sensors, lags if any(v is not None for v in lags) else ())
+
+
+def _sensor_kind(r: _Reader, kind, channel: str, key: tuple) -> str | None:
+    """A sensor's `kind` (`identify.measurement.KINDS`), checked against its channel."""
+    if kind is None:
+        return None
+    why = meas.kind_problem(kind, channel)
+    if why is not None:
+        raise r.error(key + ("kind",), why)
+    return kind
 
 
 def _quantity(r: _Reader, value, dimension: str | None, key: tuple) -> float:

@@ -33,10 +33,31 @@ that is linear between samples:
 **Actuator lag**: the applied torque `u_a` follows the commanded (logged) torque `u`
 through `T u_a' = u - u_a`, `u_a(t_0) = u(t_0)`, integrated by the same exact recursion
 (with `x = h_k / T`; `T = 0` is the identity).
+
+**Sensor kinds** (`Sensor.kind`, `KINDS`): what the sensor is, when it is known. A kind
+measures some channels only and cannot have some of the effects above; `identify.diagnose`
+then does not offer them (`identify.catalogue.kind_left_out`):
+
+| kind            | channels                   | delay | gain | offset | highpass |
+| --------------- | -------------------------- | ----- | ---- | ------ | -------- |
+| `encoder`       | `theta`, `phi`, `alpha`    | yes   | no   | yes    | no       |
+| `potentiometer` | `theta`, `phi`, `alpha`    | yes   | yes  | yes    | no       |
+| `strain_gauge`  | `curvature`, `tip`         | yes   | yes  | yes    | yes      |
+| `accelerometer` | `accel_x`, `accel_y`       | yes   | yes  | yes    | yes      |
+| `optical`       | `end_x`, `end_y`, `tip`    | yes   | yes  | yes    | no       |
+
+**Resolution** (`Sensor.resolution`, SI): the quantisation step of the channel's values.
+Uniform quantisation of a signal that crosses many steps adds an error uniform on
+`[-q/2, q/2]`, of standard deviation `q / sqrt(12)` (Widrow & Kollar 2008, *Quantization
+Noise*, ch. 4), which the model cannot explain; the model-free noise floor of a slow
+signal misses most of it (`identify.noise_floor.series_floor` is kept at least at it).
+Neither is a parameter: both are static metadata of the sensor.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import re
 
 import equinox as eqx
@@ -52,16 +73,94 @@ NEUTRAL = {"gain": 1.0, "offset": 0.0, "delay": 0.0, "highpass": 0.0, "lag": 0.0
 _NAME = re.compile(r"^sensor\.(?P<ch>[A-Za-z_]\w*)\.(?P<field>gain|offset|delay|highpass)$|^actuator(?P<j>\d+)\.lag$")
 
 
+@dataclasses.dataclass(frozen=True)
+class SensorKind:
+    """A kind of sensor (`KINDS`): `what` it is and what it `measures`, in words; the
+    channel families it can measure (`channel_family`: `theta`, `tip`, `end`, `accel`, ...);
+    the `Sensor` fields it cannot have, each with the reason in one sentence (`lacks`)."""
+
+    what: str
+    measures: str
+    channels: tuple[str, ...]
+    lacks: dict = dataclasses.field(default_factory=dict)
+
+
+_ANGLES = ("theta", "phi", "alpha")
+
+#: The sensor kinds a channel may declare (`[sensors.<channel>] kind`); the module
+#: docstring's table. Every kind can have a delay (a filter, a bus cycle, a frame) and an
+#: offset (an encoder's zero, a bridge's balance, a bias).
+KINDS = {
+    "encoder": SensorKind(
+        "an incremental or absolute quadrature encoder",
+        "angles (theta<i>, phi<i>, alpha<i>)",
+        _ANGLES,
+        {
+            "gain": "an encoder's gain is fixed by its counts per revolution",
+            "highpass": "an encoder is DC-coupled (it counts position: a constant angle reads constant)",
+        },
+    ),
+    "potentiometer": SensorKind(
+        "a rotary potentiometer",
+        "angles (theta<i>, phi<i>, alpha<i>)",
+        _ANGLES,
+        {"highpass": "a potentiometer is DC-coupled (a voltage divider: a constant angle reads constant)"},
+    ),
+    "strain_gauge": SensorKind(
+        "a strain gauge bridge",
+        "a root curvature (curvature<i>) or a tip deflection calibrated from it (tip<i>)",
+        ("curvature", "tip"),
+    ),
+    "accelerometer": SensorKind(
+        "a MEMS or piezoelectric accelerometer",
+        "the end point's acceleration (accel_x, accel_y)",
+        ("accel",),
+    ),
+    "optical": SensorKind(
+        "a camera, laser tracker or laser displacement sensor",
+        "positions: the end point's (end_x, end_y) or a tip deflection (tip<i>)",
+        ("end", "tip"),
+        {"highpass": "an optical position measurement is DC-coupled (a still target reads constant)"},
+    ),
+}
+
+
+def channel_family(channel: str) -> str:
+    """`'theta2'` -> `'theta'`, `'end_x'` -> `'end'`, `'accel_y'` -> `'accel'`."""
+    return re.match(r"[a-z]+", channel)[0]
+
+
+def kind_problem(kind, channel: str) -> str | None:
+    """None if `kind` is a known sensor kind that can measure the output `channel`, else
+    why not (listing the kinds, or those that fit the channel)."""
+    if kind not in KINDS:
+        return f"unknown sensor kind {kind!r}; expected one of {', '.join(KINDS)}"
+    if channel_family(channel) not in KINDS[kind].channels:
+        fits = [k for k, v in KINDS.items() if channel_family(channel) in v.channels]
+        return f"{kind} ({KINDS[kind].what}) measures {KINDS[kind].measures}, not {channel}; expected " + (
+            f"{' or '.join(fits)} for {channel}, or no kind" if fits else f"no kind for {channel}"
+        )
+    return None
+
+
+def lacks(kind: str | None) -> dict:
+    """The `Sensor` fields a sensor of `kind` cannot have, field -> why (empty for None)."""
+    return {} if kind is None else KINDS[kind].lacks
+
+
 class Sensor(eqx.Module):
     """Calibration and dynamics of one output channel's sensor (see the module docstring).
-    Every field is optional (`None`: absent)."""
+    Every field is optional (`None`: absent). `kind` (a `KINDS` name) and `resolution`
+    (the quantisation step, SI, > 0) describe the sensor; they are static, not parameters."""
 
     gain: jax.Array | None = None
     offset: jax.Array | None = None
     delay: jax.Array | None = None
     highpass: jax.Array | None = None
+    kind: str | None = eqx.field(static=True, default=None)
+    resolution: float | None = eqx.field(static=True, default=None)
 
-    def __init__(self, gain=None, offset=None, delay=None, highpass=None):
+    def __init__(self, gain=None, offset=None, delay=None, highpass=None, *, kind=None, resolution=None):
         for name, value in (("gain", gain), ("offset", offset), ("delay", delay), ("highpass", highpass)):
             value = None if value is None else as_float_array(value)
             if value is not None and not isinstance(value, jax.core.Tracer):
@@ -69,6 +168,22 @@ class Sensor(eqx.Module):
                 if v.shape != () or not np.isfinite(v) or (name != "offset" and v < 0) or (name == "gain" and v == 0):
                     raise ValueError(f"Sensor.{name}: expected a finite scalar{'' if name == 'offset' else ' >= 0'}")
             setattr(self, name, value)
+        if kind is not None and kind not in KINDS:
+            raise ValueError(f"Sensor.kind: unknown sensor kind {kind!r}; expected one of {', '.join(KINDS)}")
+        for name, why in lacks(kind).items():
+            if getattr(self, name) is not None:
+                raise ValueError(f"Sensor.{name}: a sensor of kind {kind!r} has none: {why}")
+        self.kind = kind
+        if resolution is not None and not (
+            isinstance(resolution, int | float) and not isinstance(resolution, bool) and 0 < resolution < math.inf
+        ):
+            raise ValueError(f"Sensor.resolution: expected a quantisation step > 0 (SI), got {resolution!r}")
+        self.resolution = None if resolution is None else float(resolution)
+
+    @property
+    def described(self) -> dict:
+        """The static description as keywords (`kind`, `resolution`), to build a copy."""
+        return {"kind": self.kind, "resolution": self.resolution}
 
 
 class Measurement(eqx.Module):
@@ -176,8 +291,19 @@ def with_effect(m: Measurement, name: str, value=None) -> Measurement:
     old = sensors.get(c, Sensor())
     kw = {k: getattr(old, k) for k in FIELDS}
     kw[f] = NEUTRAL[f] if value is None else value
-    sensors[c] = Sensor(**kw)
+    sensors[c] = Sensor(**kw, **old.described)
     return Measurement(sensors, m.actuator_lag)
+
+
+def kinds(m: Measurement) -> dict[str, str]:
+    """Channel -> sensor kind, for the channels whose sensor declares one."""
+    return {c: s.kind for c, s in m.sensors.items() if s.kind is not None}
+
+
+def resolutions(m: Measurement, channels) -> np.ndarray:
+    """Each of `channels`' declared quantisation step (SI; `Sensor.resolution`), 0 where
+    none is declared."""
+    return np.asarray([(m.sensors[c].resolution or 0.0) if c in m.sensors else 0.0 for c in channels], float)
 
 
 # ---------------------------------------------------------------------------

@@ -24,8 +24,20 @@ usually standing in for an effect the catalogue lacks, as two sensor gains of 12
 stood in for the missing geometric stiffening of a spinning link before the catalogue had
 that entry.
 
+A channel whose sensor declares its kind (`identify.measurement.KINDS`) is offered only the
+sensor effects that kind can have (`kind_left_out` says which are not, and why):
+
+| kind            | `sensor_delay` | `sensor_gain_offset` | `sensor_highpass` |
+| --------------- | -------------- | -------------------- | ----------------- |
+| `encoder`       | yes            | offset only          | no                |
+| `potentiometer` | yes            | yes                  | no                |
+| `strain_gauge`  | yes            | yes                  | yes               |
+| `accelerometer` | yes            | yes                  | yes               |
+| `optical`       | yes            | yes                  | no                |
+
 `candidates(...)` lists the entries that apply to a rig and its logs (friction on every
-joint, drag on every link, sensor effects on every recorded channel, actuator lag on
+joint, drag on every link, sensor effects on every recorded channel (those its kind can
+have), actuator lag on
 every driven joint, backlash on elastic joints, tilt on a rig without gravity, a
 missing mode on flexible links, elasticity on driven rigid joints, geometric stiffening on
 flexible links without it where the logs' motion or gravity would shift the first mode's
@@ -233,7 +245,7 @@ def superset(chain: fd.Chain, measurement: meas.Measurement, channels, driven_jo
     for c in channels:
         s = measurement.sensors.get(c, meas.Sensor())
         for f in ("gain", "offset", "delay", "highpass"):
-            if getattr(s, f) is None:
+            if getattr(s, f) is None and f not in meas.lacks(s.kind):
                 measurement = meas.with_effect(measurement, f"sensor.{c}.{f}")
     for j in driven_joints:
         if measurement.lag(j) is None:
@@ -253,10 +265,13 @@ def candidates(
     offsets_fitted: set,
     max_frequency_hz: float,
     stiffening_links=(),
+    sensor_kinds=None,
 ) -> list[Candidate]:
     """The catalogue entries that apply to this rig and these logs, with starting values.
     `stiffening_links`: the flexible links (`"link<i>"`) whose model check is flagged
-    (`identify.evidence.stiffening_checks`); `geometric_stiffening` is offered on those."""
+    (`identify.evidence.stiffening_checks`); `geometric_stiffening` is offered on those.
+    `sensor_kinds`: channel -> its sensor's kind (`identify.measurement.kinds`); a channel
+    is offered only the sensor effects its kind can have (`kind_left_out`)."""
     tau = characteristic_torque(chain, torque_rms)
     w = max(rate_rms, 1e-3)
     out = []
@@ -285,22 +300,7 @@ def candidates(
         )
     dt = max(sample_interval, 1e-4)
     for c in channels:
-        out.append(
-            Candidate("sensor_delay", c, (f"sensor.{c}.delay",), (True,), ((0.01 * dt,), (0.5 * dt,), (3.0 * dt,)))
-        )
-        if c in offsets_fitted:
-            out.append(Candidate("sensor_gain_offset", c, (f"sensor.{c}.gain",), (True,), ((1.0,),)))
-        else:
-            out.append(
-                Candidate(
-                    "sensor_gain_offset",
-                    c,
-                    (f"sensor.{c}.gain", f"sensor.{c}.offset"),
-                    (True, False),
-                    ((1.0, 0.0),),
-                )
-            )
-        out.append(Candidate("sensor_highpass", c, (f"sensor.{c}.highpass",), (True,), ((0.005,), (0.1,), (1.0,))))
+        out.extend(_sensor_candidates(c, dt, c in offsets_fitted, meas.lacks((sensor_kinds or {}).get(c))))
     for j in driven_joints:
         out.append(
             Candidate(
@@ -344,6 +344,53 @@ def candidates(
                     structural=True,
                 )
             )
+    return out
+
+
+#: the sensor entries and the `identify.measurement.Sensor` fields each fits
+SENSOR_FIELDS = {"sensor_delay": ("delay",), "sensor_gain_offset": ("gain", "offset"), "sensor_highpass": ("highpass",)}
+
+
+def _sensor_candidates(c: str, dt: float, offset_fitted: bool, lacks: dict) -> list[Candidate]:
+    """The sensor entries on channel `c` (sample interval `dt`, s): all but the fields its
+    kind `lacks`; the calibration without its offset where each log fits its own."""
+    starts = {
+        "delay": ((0.01 * dt,), (0.5 * dt,), (3.0 * dt,)),
+        "highpass": ((0.005,), (0.1,), (1.0,)),
+    }
+    out = []
+    for name, fields in SENSOR_FIELDS.items():
+        fields = [f for f in fields if f not in lacks and not (f == "offset" and offset_fitted)]
+        if not fields:
+            continue
+        params = tuple(f"sensor.{c}.{f}" for f in fields)
+        log_scale = tuple(not meas.is_signed(p) for p in params)
+        if name == "sensor_gain_offset":  # one start: the calibration as declared
+            out.append(Candidate(name, c, params, log_scale, (tuple(meas.NEUTRAL[f] for f in fields),)))
+        else:
+            out.append(Candidate(name, c, params, log_scale, starts[fields[0]]))
+    return out
+
+
+def kind_left_out(channels, sensor_kinds: dict, offsets_fitted=frozenset()) -> dict:
+    """The sensor entries (or parts of one) `candidates` leaves out because of a channel's
+    sensor kind (`sensor_kinds`: channel -> kind): label (`sensor_highpass:theta1`) -> why
+    (`identify.measurement.KINDS`), in channel order. An entry still tried in part (an
+    encoder's offset) says which part is tried."""
+    out = {}
+    for c in channels:
+        lacks = meas.lacks(sensor_kinds.get(c))
+        for name, fields in SENSOR_FIELDS.items():
+            missing = [f for f in fields if f in lacks]
+            if not missing:
+                continue
+            why = "; ".join(lacks[f] for f in missing)
+            rest = [f for f in fields if f not in missing]
+            if rest and c in offsets_fitted and rest == ["offset"]:
+                why += " (its offset is fitted per log already)"
+            elif rest:
+                why += f" (only its {' and '.join(rest)} is tried)"
+            out[f"{name}:{c}"] = why
     return out
 
 

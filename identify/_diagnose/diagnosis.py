@@ -72,7 +72,9 @@ class Diagnosis:
     # not refitted in round n, counted over the whole search)
     notes: list = dataclasses.field(default_factory=list)
     # the catalogue entries not tried at all, and why: name -> reason (an entry that does
-    # not apply to the rig or the logs, one the caller excluded, one already in the model)
+    # not apply to the rig or the logs, one the caller excluded, one already in the model);
+    # and label (`sensor_highpass:theta1`) -> reason for a sensor entry, or a part of one,
+    # that the channel's declared sensor kind cannot have (`catalogue.kind_left_out`)
     not_tried: dict = dataclasses.field(default_factory=dict)
     # the smallest effect of each continuous candidate not named that these logs would have
     # let the search name (BIC test and held-out gain), linearised at the final model

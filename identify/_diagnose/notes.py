@@ -8,21 +8,26 @@ from . import catalogue as cat
 from .held_out import _no_headroom, held_out_headroom
 
 
-def _not_tried(catalogue, offered, cands, exclude, inapplicable: dict) -> dict:
+def _not_tried(catalogue, offered, cands, exclude, inapplicable: dict, by_kind: dict | None = None) -> dict:
     """`Diagnosis.not_tried`: each entry of `catalogue` with no candidate in `cands`, and
     why (`catalogue.not_applicable`, excluded by the caller, or its parameters already free
-    in the baseline), in catalogue order."""
+    in the baseline), in catalogue order; then, by label, each sensor entry on a channel
+    whose sensor kind cannot have it (`by_kind`: `catalogue.kind_left_out`)."""
+    by_kind = by_kind or {}
     out = {}
     for name in catalogue:
-        if any(c.name == name for c in cands):
-            continue
+        ruled_out = {label: why for label, why in by_kind.items() if label.split(":", 1)[0] == name}
         mine = [c for c in offered if c.name == name]
-        if not mine:
-            out[name] = inapplicable.get(name, "not offered on this rig and these logs")
+        if any(c.name == name for c in cands):
+            pass
+        elif not mine:
+            if not ruled_out:  # (else every channel's kind rules it out: said below, by channel)
+                out[name] = inapplicable.get(name, "not offered on this rig and these logs")
         elif all(c.label in exclude for c in mine):
             out[name] = f"excluded by the caller ({', '.join(c.label for c in mine)})"
         else:
             out[name] = "its parameters are free in the baseline already (it is part of the model)"
+        out.update(ruled_out)
     return out
 
 

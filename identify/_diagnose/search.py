@@ -245,8 +245,10 @@ def _signals(base: FitResult, fit_logs, held_out_logs, modal) -> Signals:
 def _candidates(base: FitResult, parameters, signals: Signals, catalogue, exclude) -> tuple[list, dict]:
     """The catalogue's candidates to try on the fitted rig (`catalogue.candidates`: those
     named in `catalogue`, not excluded, and whose parameters are not free in the baseline
-    already), and why each entry without one was not tried (`Diagnosis.not_tried`)."""
+    already), and why each entry without one was not tried (`Diagnosis.not_tried`), and each
+    sensor entry a channel's sensor kind rules out (`catalogue.kind_left_out`)."""
     fitted_chain = base.chain
+    kinds = meas.kinds(base.problem.measurement)
     offered = cat.candidates(
         fitted_chain,
         base.problem.channels,
@@ -258,11 +260,13 @@ def _candidates(base: FitResult, parameters, signals: Signals, catalogue, exclud
         offsets_fitted=signals.offsets_fitted,
         max_frequency_hz=signals.max_frequency_hz,
         stiffening_links=signals.stiffening_links,
+        sensor_kinds=kinds,
     )
     free = {p.name for p in parameters}
     cands = [c for c in offered if c.name in catalogue and c.label not in exclude and not set(c.params) & free]
     inapplicable = cat.not_applicable(fitted_chain, signals.driven, signals.stiffening_links)
-    return cands, _not_tried(catalogue, offered, cands, exclude, inapplicable)
+    by_kind = cat.kind_left_out(base.problem.channels, kinds, signals.offsets_fitted)
+    return cands, _not_tried(catalogue, offered, cands, exclude, inapplicable, by_kind)
 
 
 def _baseline_model(superset: Superset, held: HeldOutSet, base: FitResult, say) -> CurrentModel:

@@ -237,3 +237,174 @@ def test_dry_friction_is_judged_against_the_peak_torque_not_the_rms():
     scale = cat.characteristic_torque(base.chain, signals.torque_peak)
     assert cat.implausible("coulomb_friction", {"joint1.coulomb": 0.095}, **{**_CONTEXT, "torque_scale": scale}) == []
     assert cat.implausible("coulomb_friction", {"joint1.coulomb": 0.6}, **{**_CONTEXT, "torque_scale": scale})
+
+
+# ---------------------------------------------------------------------------
+# Sensor kinds: a channel is offered only the effects its sensor can have
+# ---------------------------------------------------------------------------
+
+
+#: `not_tried`'s reasons for an encoder's theta1 (`identify.measurement.KINDS`)
+ENCODER_GAIN = "an encoder's gain is fixed by its counts per revolution (only its offset is tried)"
+ENCODER_HIGHPASS = "an encoder is DC-coupled (it counts position: a constant angle reads constant)"
+
+
+def _sensor_offers(kinds, channels=("theta1", "tip1"), offsets_fitted=()):
+    """label -> parameters of the sensor entries `candidates` offers on a flexible pendulum."""
+    out = cat.candidates(
+        fd.rigs.flexible_pendulum(n_modes=1),
+        channels,
+        [],
+        torque_rms=0.1,
+        rate_rms=1.0,
+        sample_interval=0.005,
+        channel_rms={},
+        offsets_fitted=set(offsets_fitted),
+        max_frequency_hz=50.0,
+        sensor_kinds=kinds,
+    )
+    return {c.label: c.params for c in out if c.name in cat.SENSOR_FIELDS}
+
+
+def test_without_a_kind_every_sensor_entry_is_offered_as_before():
+    everything = {
+        "sensor_delay:theta1": ("sensor.theta1.delay",),
+        "sensor_gain_offset:theta1": ("sensor.theta1.gain", "sensor.theta1.offset"),
+        "sensor_highpass:theta1": ("sensor.theta1.highpass",),
+        "sensor_delay:tip1": ("sensor.tip1.delay",),
+        "sensor_gain_offset:tip1": ("sensor.tip1.gain", "sensor.tip1.offset"),
+        "sensor_highpass:tip1": ("sensor.tip1.highpass",),
+    }
+    assert _sensor_offers(None) == _sensor_offers({}) == everything
+    assert _sensor_offers({"tip1": "strain_gauge"}) == everything  # a strain gauge can have them all
+    assert cat.kind_left_out(("theta1", "tip1"), {}) == {} == cat.kind_left_out(("tip1",), {"tip1": "strain_gauge"})
+
+
+def test_an_encoder_is_offered_its_delay_and_offset_only():
+    """An encoder counts position (DC-coupled: no high-pass) with a gain fixed by its counts
+    per revolution; its zero (offset) and a read-out delay are real."""
+    offers = _sensor_offers({"theta1": "encoder", "tip1": "strain_gauge"})
+    assert offers["sensor_delay:theta1"] == ("sensor.theta1.delay",)
+    assert offers["sensor_gain_offset:theta1"] == ("sensor.theta1.offset",)
+    assert "sensor_highpass:theta1" not in offers and "sensor_highpass:tip1" in offers
+    cand = next(
+        c
+        for c in cat.candidates(
+            fd.rigs.flexible_pendulum(n_modes=1), ("theta1",), [], torque_rms=0.1, rate_rms=1.0,
+            sample_interval=0.005, channel_rms={}, offsets_fitted=set(), max_frequency_hz=50.0,
+            sensor_kinds={"theta1": "encoder"},
+        )
+        if c.name == "sensor_gain_offset"
+    )  # fmt: skip
+    assert cand.log_scale == (False,) and cand.starts == ((0.0,),)  # a signed offset, from 0
+    why = cat.kind_left_out(("theta1", "tip1"), {"theta1": "encoder", "tip1": "strain_gauge"})
+    assert why == {
+        "sensor_gain_offset:theta1": ENCODER_GAIN,
+        "sensor_highpass:theta1": ENCODER_HIGHPASS,
+    }
+    # with the offset fitted per log, nothing of the calibration entry is left to try
+    offers = _sensor_offers({"theta1": "encoder"}, offsets_fitted={"theta1"})
+    assert "sensor_gain_offset:theta1" not in offers
+    assert cat.kind_left_out(("theta1",), {"theta1": "encoder"}, {"theta1"})["sensor_gain_offset:theta1"].endswith(
+        "(its offset is fitted per log already)"
+    )
+
+
+@pytest.mark.parametrize("kind", ["potentiometer", "encoder"])
+def test_a_dc_coupled_angle_sensor_is_not_offered_a_highpass(kind):
+    offers = _sensor_offers({"theta1": kind})
+    assert "sensor_highpass:theta1" not in offers and "sensor_delay:theta1" in offers
+    assert "DC-coupled" in cat.kind_left_out(("theta1",), {"theta1": kind})["sensor_highpass:theta1"]
+    if kind == "potentiometer":  # its gain (supply, wiper span) is a real calibration error
+        assert offers["sensor_gain_offset:theta1"] == ("sensor.theta1.gain", "sensor.theta1.offset")
+
+
+def test_the_superset_has_no_effect_a_channels_kind_cannot_have():
+    from identify._data import measurement as meas
+
+    m = meas.Measurement({"theta1": meas.Sensor(kind="encoder")})
+    _, sup = cat.superset(fd.rigs.flexible_pendulum(n_modes=1), m, ("theta1", "tip1"), [])
+    names = meas.parameter_names(sup)
+    assert "sensor.theta1.offset" in names and "sensor.theta1.delay" in names
+    assert "sensor.theta1.gain" not in names and "sensor.theta1.highpass" not in names
+    assert {"sensor.tip1.gain", "sensor.tip1.highpass"} <= set(names)
+    assert sup.sensors["theta1"].kind == "encoder"
+
+
+def test_not_tried_names_each_entry_a_kind_rules_out_by_channel():
+    """`Diagnosis.not_tried` (`notes._not_tried`): an entry a kind rules out on one channel
+    but tried on another appears by its label; one ruled out on every channel appears only by
+    its labels (no generic line)."""
+    from identify._diagnose.notes import _not_tried
+
+    kinds = {"theta1": "encoder", "tip1": "strain_gauge"}
+    rig = fd.rigs.flexible_pendulum(n_modes=1)
+    offered = cat.candidates(
+        rig, ("theta1", "tip1"), [], torque_rms=0.1, rate_rms=1.0, sample_interval=0.005, channel_rms={},
+        offsets_fitted=set(), max_frequency_hz=50.0, sensor_kinds=kinds,
+    )  # fmt: skip
+    by_kind = cat.kind_left_out(("theta1", "tip1"), kinds)
+    out = _not_tried(cat.NAMES, offered, offered, (), cat.not_applicable(rig, []), by_kind)
+    assert out["sensor_highpass:theta1"].startswith("an encoder is DC-coupled")
+    assert "sensor_highpass" not in out and "sensor_gain_offset" not in out  # tried on tip1 (and theta1's offset)
+    only_encoder = [c for c in offered if c.where == "theta1"]
+    out = _not_tried(cat.NAMES, only_encoder, only_encoder, (), {}, cat.kind_left_out(("theta1",), kinds))
+    assert "sensor_highpass" not in out and "sensor_highpass:theta1" in out
+    # a caller's catalogue without the entry: not reported at all
+    out = _not_tried(("sensor_delay",), only_encoder, only_encoder, (), {}, cat.kind_left_out(("theta1",), kinds))
+    assert out == {}
+
+
+def test_a_declared_kind_reaches_the_diagnosis_through_the_experiment_file(tmp_path):
+    """`[sensors.theta1] kind = "encoder"` in an experiment file: `identify.diagnose` tries
+    only the encoder's delay and offset on theta1, and its `not_tried` names the high-pass
+    and the gain with the reason (the path from the file to `diagnose_logs`' candidates)."""
+    import textwrap
+
+    import identify
+    from identify._data.logs import write_log
+
+    rig = fd.rigs.rigid_pendulum()
+    t = np.arange(0.0, 2.0, 0.01)
+    for k, start in enumerate((0.3, -0.4)):
+        log = identify.simulate_log(
+            rig, t, initial={"theta1": start}, noise={"theta1": 1e-3}, rng=np.random.default_rng(k), name=f"l{k}"
+        )
+        write_log(log, tmp_path / f"l{k}.csv")
+    path = tmp_path / "exp.toml"
+    path.write_text(
+        textwrap.dedent(
+            """
+            [rig]
+            base = "rigid_pendulum"
+
+            [parameters]
+            "joint1.damping" = { guess = 1e-3, lower = 1e-6, upper = 1.0 }
+
+            [sensors.theta1]
+            kind = "encoder"
+
+            [noise]
+            theta1 = 1e-3
+
+            [[logs]]
+            file = "l0.csv"
+            initial = { theta1 = 0.3 }
+
+            [[logs]]
+            file = "l1.csv"
+            initial = { theta1 = -0.4 }
+            role = "validation"
+            """
+        )
+    )
+    sensor_entries = tuple(cat.SENSOR_FIELDS)
+    diag = identify.diagnose(
+        identify.load_experiment(path), catalogue=sensor_entries, max_effects=1, pair_search=False, n_fit=1
+    )
+    assert {s.label for s in diag.rounds[0]} == {"sensor_delay:theta1", "sensor_gain_offset:theta1"}
+    assert diag.not_tried == {
+        "sensor_gain_offset:theta1": ENCODER_GAIN,
+        "sensor_highpass:theta1": ENCODER_HIGHPASS,
+    }
+    assert "sensor_highpass:theta1: an encoder is DC-coupled" in diag.summary()

@@ -807,6 +807,64 @@ def test_a_reversed_column_through_the_experiment_file(tmp_path):
         load_experiment(path)
 
 
+def test_a_sensor_kind_and_resolution_are_read_onto_the_sensor(tmp_path):
+    body = RIG + LOG + '[sensors.theta1]\nkind = "encoder"\nresolution = "0.088 deg"\noffset = "1 deg"\n'
+    body += '[sensors.tip1]\nkind = "strain_gauge"\nhighpass = "2 Hz"\n'
+    exp = load_experiment(experiment(tmp_path, body))
+    theta1, tip1 = exp.measurement.sensors["theta1"], exp.measurement.sensors["tip1"]
+    assert theta1.kind == "encoder" and theta1.resolution == pytest.approx(math.radians(0.088), rel=1e-15)
+    assert tip1.kind == "strain_gauge" and tip1.resolution is None
+    assert "sensor theta1: encoder, resolution 0.00153589 rad (0.088 deg)" in exp.summary()
+    assert "sensor tip1: strain_gauge" in exp.summary()
+    # no kind, no resolution: the sensor is as before
+    exp = load_experiment(experiment(tmp_path, RIG + LOG + "[sensors.theta1]\ndelay = 0.001\n", name="b.toml"))
+    assert exp.measurement.sensors["theta1"].kind is None and exp.measurement.sensors["theta1"].resolution is None
+
+
+_KINDS = "encoder, potentiometer, strain_gauge, accelerometer, optical"
+
+
+@pytest.mark.parametrize(
+    "body, key, fragments",
+    [
+        ('[sensors.theta1]\nkind = "encodr"\n', "kind", ("sensors.theta1.kind", f"'encodr'; expected one of {_KINDS}")),
+        ("[sensors.theta1]\nkind = 3\n", "kind", ("sensors.theta1.kind", f"kind 3; expected one of {_KINDS}")),
+        (
+            '[sensors.tip1]\nkind = "encoder"\n',
+            "kind",
+            (
+                "sensors.tip1.kind",
+                "encoder (",
+                "measures angles (theta<i>",
+                "not tip1",
+                "strain_gauge or optical for tip1",
+            ),
+        ),
+        (
+            '[sensors.theta1]\nkind = "encoder"\ngain = 1.02\n',
+            "gain",
+            ("sensors.theta1.gain", "kind = 'encoder' has no gain", "counts per revolution"),
+        ),
+        (
+            '[sensors.theta1]\nkind = "potentiometer"\nhighpass = "1 Hz"\n',
+            "highpass",
+            ("sensors.theta1.highpass", "kind = 'potentiometer' has no highpass", "DC-coupled"),
+        ),
+        (
+            '[sensors.theta1]\nkind = "encoder"\n[parameters]\n"sensor.theta1.gain" = 1.0\n',
+            '"sensor.theta1.gain"',
+            ('parameters."sensor.theta1.gain"', "kind = 'encoder', which has no gain", "counts per revolution"),
+        ),
+        ('[sensors.theta1]\nresolution = "0.1 mm"\n', "resolution", ("sensors.theta1.resolution", "is a length")),
+        ("[sensors.theta1]\nresolution = 0.0\n", "resolution", ("sensors.theta1.resolution", "step > 0, got 0")),
+    ],
+)
+def test_sensor_kind_and_resolution_mistakes_name_the_line_and_key(tmp_path, body, key, fragments):
+    path = experiment(tmp_path, RIG + LOG + body)
+    with pytest.raises(ExperimentError, match=msg(f"line {line_of(path, key)}", *fragments)):
+        load_experiment(path)
+
+
 @pytest.mark.parametrize(
     ("gravity", "text"),
     [

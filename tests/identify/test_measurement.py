@@ -83,3 +83,50 @@ def test_apply_sensors_gain_offset_and_names():
         meas.get_parameter(m, "sensor.tip1.delay")
     with pytest.raises(ValueError, match="Sensor.delay"):
         meas.Sensor(delay=-1.0)
+
+
+def test_a_sensors_kind_and_resolution_are_static_and_survive_copies():
+    """`kind` and `resolution` describe the sensor (not parameters): no leaves of the
+    pytree, kept by `with_effect` and `with_parameters`, checked when a Sensor is built."""
+    m = meas.Measurement({"theta1": meas.Sensor(offset=0.01, kind="encoder", resolution=1.5e-3)})
+    assert [float(x) for x in jax.tree_util.tree_leaves(m)] == [0.01]
+    m = meas.with_parameters(meas.with_effect(m, "sensor.theta1.delay"), {"sensor.theta1.offset": 0.02})
+    s = m.sensors["theta1"]
+    assert (s.kind, s.resolution, float(s.offset), float(s.delay)) == ("encoder", 1.5e-3, 0.02, 0.0)
+    assert meas.kinds(m) == {"theta1": "encoder"}
+    np.testing.assert_array_equal(meas.resolutions(m, ("tip1", "theta1")), [0.0, 1.5e-3])
+    with pytest.raises(ValueError, match="Sensor.gain: a sensor of kind 'encoder' has none: .*counts per revolution"):
+        meas.with_effect(m, "sensor.theta1.gain")
+    with pytest.raises(ValueError, match="Sensor.highpass: .*'potentiometer'.*DC-coupled"):
+        meas.Sensor(highpass=1.0, kind="potentiometer")
+    with pytest.raises(ValueError, match="Sensor.kind: unknown sensor kind 'lvdt'; expected one of encoder"):
+        meas.Sensor(kind="lvdt")
+    for bad in (0.0, -1e-3, float("inf"), True):
+        with pytest.raises(ValueError, match="Sensor.resolution: expected a quantisation step > 0"):
+            meas.Sensor(resolution=bad)
+
+
+@pytest.mark.parametrize(
+    ("kind", "channel", "fits"),
+    [
+        ("encoder", "theta2", True),
+        ("encoder", "phi1", True),
+        ("encoder", "alpha1", True),
+        ("encoder", "tip1", False),
+        ("potentiometer", "alpha2", True),
+        ("potentiometer", "curvature1", False),
+        ("strain_gauge", "curvature1", True),
+        ("strain_gauge", "tip1", True),
+        ("strain_gauge", "end_x", False),
+        ("accelerometer", "accel_y", True),
+        ("accelerometer", "theta1", False),
+        ("optical", "end_y", True),
+        ("optical", "tip2", True),
+        ("optical", "curvature1", False),
+    ],
+)
+def test_each_kind_measures_its_quantities_only(kind, channel, fits):
+    why = meas.kind_problem(kind, channel)
+    assert (why is None) is fits
+    if not fits:
+        assert f"not {channel}" in why and why.endswith("or no kind")
