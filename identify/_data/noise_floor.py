@@ -42,9 +42,24 @@ is in `identify.fit.fit`'s docstring (measured ratios of right and wrong basins)
 A channel's floor never drops below `RESOLUTION` (1e-6) times its RMS: noise-free
 (simulated) data then compare the fit's integration error with a 20-bit converter's
 resolution instead of with zero.
+
+**Quantisation.** A channel recorded with a step `q` (an encoder's count, an ADC's least
+significant bit) carries the quantisation error `Q(y) - y`, which no model explains: for a
+signal that crosses many steps it is uniform on `[-q/2, q/2]`, of standard deviation
+`q / sqrt(12)` (Widrow & Kollar 2008, *Quantization Noise*, ch. 4-5; the error is then
+nearly white). The difference estimator misses most of it when the signal moves less than a
+step per sample: the error is then a sawtooth that stays put for many samples, smooth to
+the 4th differences, and the floor came out 2.3x below `q / sqrt(12)` on a real encoder
+(`tests/identify/test_noise_floor.py` simulates it). A declared step (`[sensors.<channel>]
+resolution`, `identify.measurement.Sensor.resolution`) keeps the floor at least at
+`q / sqrt(12)` (`series_floor`'s `resolution`): the floor is the noise a fit cannot go
+below, so it is the larger of the two, not their sum (noise that dithers the signal
+across steps is measured by the estimator, quantisation included).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -88,29 +103,38 @@ def noise_floor(t, y, order: int = ORDER) -> float:
     return float(np.sqrt(np.mean(e**2))) if e.size else 0.0
 
 
-def series_floor(t, y) -> float:
+def quantisation_noise(resolution: float) -> float:
+    """The standard deviation of uniform quantisation noise of step `resolution`:
+    `resolution / sqrt(12)` (module docstring)."""
+    return float(resolution) / math.sqrt(12.0)
+
+
+def series_floor(t, y, resolution: float = 0.0) -> float:
     """The floor a fit of the samples `y` is judged against: `noise_floor`, at least
-    `RESOLUTION` times their RMS (noise-free data)."""
+    `RESOLUTION` times their RMS (noise-free data) and at least the quantisation noise of
+    the declared step `resolution` (SI, the channel's unit; 0: none declared)."""
     y = np.asarray(y, float)
     rms = float(np.sqrt(np.mean(y**2))) if y.size else 0.0
-    return max(noise_floor(t, y), RESOLUTION * rms)
+    return max(noise_floor(t, y), RESOLUTION * rms, quantisation_noise(resolution))
 
 
-def channel_floors(t, measured, valid, present) -> tuple[np.ndarray, np.ndarray]:
+def channel_floors(t, measured, valid, present, resolution=None) -> tuple[np.ndarray, np.ndarray]:
     """Per log and channel: the noise floor and the number of samples it stands for.
 
     `t` `(L, T)`, `measured` `(L, T, C)`, `valid` `(L, T)` (samples that exist),
-    `present` `(L, C)` (channels a log records). Returns `(floor, count)`, both `(L, C)`;
-    0 where a log does not record a channel."""
+    `present` `(L, C)` (channels a log records); `resolution` `(C,)`: each channel's
+    declared quantisation step (SI, 0 for none; `series_floor`), or None for none. Returns
+    `(floor, count)`, both `(L, C)`; 0 where a log does not record a channel."""
     t, measured = np.asarray(t, float), np.asarray(measured, float)
     valid, present = np.asarray(valid, bool), np.asarray(present, bool)
     L, _, C = measured.shape
+    step = np.zeros(C) if resolution is None else np.asarray(resolution, float)
     floor, count = np.zeros((L, C)), np.zeros((L, C), int)
     for l in range(L):
         k = valid[l]
         for j in range(C):
             if present[l, j]:
-                floor[l, j] = series_floor(t[l, k], measured[l, k, j])
+                floor[l, j] = series_floor(t[l, k], measured[l, k, j], step[j])
                 count[l, j] = int(k.sum())
     return floor, count
 

@@ -13,8 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._data import noise_floor as nf
+from .._data import measurement as meas, noise_floor as nf
 from .._data.channels import state_names
+from .._fit.quality import noise_floors
 from .._fit.result import FitResult
 from .._model.parameters import exp_natural, x_from_z, z_from_x
 from .._model.problem import Problem, make_problem, parameter_unit
@@ -390,7 +391,10 @@ def held_out_headroom(problem: Problem, r_used: np.ndarray) -> Headroom:
     L, T, C = problem.measured.shape
     used = _used(problem)
     r = _pad_used(np.asarray(r_used, float), used).reshape(L, T, C)
-    floor, count = nf.channel_floors(problem.t, r, problem.valid, problem.present)
+    # (the residual carries the measured samples' quantisation: its floor is at least it too)
+    floor, count = nf.channel_floors(
+        problem.t, r, problem.valid, problem.present, meas.resolutions(problem.measurement, problem.channels)
+    )
     n = float(np.sum(count))
     n_pseudo = float(np.sum(np.clip(count - nf.ORDER, 0, None)))  # the floor's differences
     if n_pseudo == 0:
@@ -445,7 +449,7 @@ def _held_out_summary(rms_base: dict, rms_ext: dict, cost_base: float, cost_ext:
 def _floor_per_channel(problem: Problem) -> dict:
     """Per channel, the model-free noise floor of the problem's logs (SI; `identify.noise_floor`,
     the sample-weighted RMS over the logs)."""
-    floor, count = nf.channel_floors(problem.t, problem.measured, problem.valid, problem.present)
+    floor, count = noise_floors(problem)
     f2 = nf.pooled(np.square(floor), count)
     return {c: float(np.sqrt(v)) for c, v in zip(problem.channels, f2) if not np.isnan(v)}
 

@@ -47,8 +47,8 @@ from scipy.special import i0e, i1e
 
 import flexdyn as fd
 
-from .._data.noise_floor import channel_floors
 from .._model.residuals import chain_at
+from .quality import noise_floors
 
 #: EI factors tried around the guess (flexural frequency ~ sqrt(EI): 1/4 to 4 times the
 #: guess's, in steps of 2^(1/4), 19 %)
@@ -460,9 +460,10 @@ def _say_many(say, name, channel, best: _Best, moved, noisy, poor) -> None:
 
 
 def _floor(problem, j: int) -> float:
-    """The model-free noise floor (`identify.noise_floor.series_floor`) of channel index
-    `j`, RMS over the logs that record it (by their samples)."""
-    floor, count = channel_floors(problem.t, problem.measured, problem.valid, problem.present)
+    """The model-free noise floor (`identify.noise_floor.series_floor`; at least a declared
+    resolution's noise: `quality.noise_floors`) of channel index `j`, RMS over the logs
+    that record it (by their samples)."""
+    floor, count = noise_floors(problem)
     n = count[:, j].sum()
     return float(np.sqrt(np.sum(count[:, j] * floor[:, j] ** 2) / n)) if n else 0.0
 

@@ -108,7 +108,7 @@ def _reversed_channels(problem: Problem, z, sigma, step, channels) -> dict:
         stop = first + (int(ends[0]) if ends.size else len(idx))
         stop = min(stop, first + max(len(idx) // 4, 4))
         pushes.append((l, idx[: stop + 1]))
-    floors = nf.channel_floors(problem.t, meas_, valid, present)[0]
+    floors = noise_floors(problem)[0]
     out = {}
     for jc, c in enumerate(problem.channels):
         if c not in channels:
@@ -164,8 +164,10 @@ def _initial_far(problem: Problem, init: dict, offs: dict, sigma) -> dict:
 
 
 def noise_floors(problem: Problem):
-    """`identify.noise_floor.channel_floors` of the problem's logs."""
-    return nf.channel_floors(problem.t, problem.measured, problem.valid, problem.present)
+    """`identify.noise_floor.channel_floors` of the problem's logs, each channel's at least
+    the quantisation noise of its sensor's declared resolution (`Sensor.resolution`)."""
+    resolution = meas.resolutions(problem.measurement, problem.channels)
+    return nf.channel_floors(problem.t, problem.measured, problem.valid, problem.present, resolution)
 
 
 #: `FitResult.summary`: a channel whose residual RMS is below this fraction of its noise

@@ -264,12 +264,13 @@ def _check_log_data(log: LogData) -> None:
 AT_REST = 3.0
 
 
-def _warn_if_at_rest(log: LogData) -> None:
+def _warn_if_at_rest(log: LogData, measurement: Measurement) -> None:
     """Warn when a log shows no motion above its noise: on every channel the RMS about its
     mean is below `AT_REST` times the channel's model-free noise floor (white noise alone
-    gives 1): such a log "converges" with intervals that come from the noise. A static
-    test under a load does determine the static parameters (a mass times its centre's
-    distance, from torque against angle), so this warns and does not refuse."""
+    gives 1; at least the quantisation noise of a declared `Sensor.resolution`): such a
+    log "converges" with intervals that come from the noise. A static test under a load
+    does determine the static parameters (a mass times its centre's distance, from torque
+    against angle), so this warns and does not refuse."""
     t = np.asarray(log.t, dtype=float)
     if t.size <= nf.ORDER + 1:
         return
@@ -277,7 +278,7 @@ def _warn_if_at_rest(log: LogData) -> None:
     for c, v in log.outputs.items():
         y = np.asarray(v, dtype=float)
         spread = float(np.std(y))
-        floor = nf.noise_floor(t, y)
+        floor = max(nf.noise_floor(t, y), nf.quantisation_noise(meas.resolutions(measurement, (c,))[0]))
         if spread > AT_REST * floor:  # (a constant channel, all zeros included, is at rest)
             return
         scale, unit = display_unit(c)
@@ -344,7 +345,7 @@ def make_problem(
             raise ValueError(f"make_problem: two logs are named {log.name!r}; names label the results and must differ")
         seen.add(log.name)
         _check_log_data(log)
-        _warn_if_at_rest(log)
+        _warn_if_at_rest(log, measurement)
     channels = sorted({c for log in logs for c in log.outputs})
     for c in channels:
         ch.check_channel(chain, c)
@@ -352,7 +353,7 @@ def make_problem(
     padded = _padded_logs(chain, logs, channels)
     noise = dict(noise or {})
     sigma = _noise_levels(chain, noise, channels, padded)
-    onset = _onsets(logs, channels, noise, sigma, padded)
+    onset = _onsets(logs, channels, noise, sigma, padded, meas.resolutions(measurement, channels))
     return Problem(
         chain=chain,
         measurement=measurement,
@@ -529,8 +530,9 @@ def _noise_levels(chain, noise: dict, channels: list[str], padded: _PaddedLogs) 
     return sigma
 
 
-def _onsets(logs, channels: list[str], noise: dict, sigma: list[float], padded: _PaddedLogs) -> list[float]:
-    """Each log's `log_onset` (s, on its clock)."""
+def _onsets(logs, channels: list[str], noise: dict, sigma: list[float], padded: _PaddedLogs, resolution) -> list[float]:
+    """Each log's `log_onset` (s, on its clock); `resolution` `(C,)`: the channels' declared
+    quantisation steps (0: none), which keep their floors at least at its noise."""
     t, measured, present, torque_v = padded.t, padded.measured, padded.present, padded.torque_v
     onset = []
     for l, log in enumerate(logs):
@@ -539,7 +541,9 @@ def _onsets(logs, channels: list[str], noise: dict, sigma: list[float], padded: 
         # model-free floor in this log: 1 % of its RMS can be under its noise, and noise
         # would then be read as motion
         at_rest = [
-            sigma[j] if noise.get(c) is not None else max(sigma[j], nf.series_floor(t[l, :k], measured[l, :k, j]))
+            sigma[j]
+            if noise.get(c) is not None
+            else max(sigma[j], nf.series_floor(t[l, :k], measured[l, :k, j], resolution[j]))
             for j, c in enumerate(channels)
             if present[l, j]
         ]

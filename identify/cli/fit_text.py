@@ -6,11 +6,13 @@ from __future__ import annotations
 import math
 
 
-def _residual_lines(report: dict, outputs: dict, roles: dict) -> list[str]:
+def _residual_lines(report: dict, outputs: dict, roles: dict, resolution: dict | None = None) -> list[str]:
     """The residual table: per log and channel the residual's RMS, its ratio to the noise
     floor of the measured samples alone (`identify.noise_floor`: ~1 where the model
     explains the data; the fit's own noise estimate would read ~1 whatever the misfit),
-    whiteness and correlation with the input. `outputs`: `fitted_outputs` of the logs."""
+    whiteness and correlation with the input. `outputs`: `fitted_outputs` of the logs;
+    `resolution`: channel -> its sensor's declared quantisation step (SI), which keeps
+    the floor at least at its noise, as in the fit's `fit_quality`."""
     from .._data.noise_floor import series_floor
     from .._data.units import display_unit
 
@@ -30,7 +32,9 @@ def _residual_lines(report: dict, outputs: dict, roles: dict) -> list[str]:
                 bad = [k for k, v in ic.items() if not v["independent"]]
                 inp = "correlated with " + ", ".join(bad) if bad else "independent of " + ", ".join(ic)
             entry = outputs.get(name, {})
-            floor = series_floor(entry["t"], entry["measured"][c]) if c in entry.get("measured", {}) else 0.0
+            measured = entry.get("measured", {})
+            step = (resolution or {}).get(c, 0.0)
+            floor = series_floor(entry["t"], measured[c], step) if c in measured else 0.0
             ratio = item["rms"] / floor if floor > 0 else float("nan")
             rms = f"{scale * item['rms']:.4g} {unit}"
             lines.append(f"{label:<24} {c:<10} {rms:>14} {ratio:>9.3g}  {white:<26} {inp}")
@@ -155,4 +159,5 @@ def _print_model(report) -> None:
     print("Residuals (fitted - measured; [val] = validation log, not used by the fit):")
     roles = {spec.name: spec.role for spec in report.experiment.logs}
     combined = {**report.residuals, **report.validation_residuals}
-    print("\n".join(_residual_lines(combined, {**report.outputs, **report.validation_outputs}, roles)))
+    steps = {c: s.resolution for c, s in result.problem.measurement.sensors.items() if s.resolution is not None}
+    print("\n".join(_residual_lines(combined, {**report.outputs, **report.validation_outputs}, roles, steps)))

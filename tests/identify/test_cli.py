@@ -393,6 +393,28 @@ def test_residual_table_notes_coloured_fit_residuals():
     assert "note:" not in "\n".join(_residual_lines(white, {}, roles))
 
 
+def test_residual_table_takes_a_declared_resolution_into_the_floor():
+    """The residual table's RMS/floor uses the same floor as the fit's `fit_quality`: at
+    least q / sqrt(12) for a channel with a declared step q (a staircase moving 0.1 count
+    per sample, whose own floor is 0.46 of that: `test_noise_floor.py`)."""
+    import numpy as np
+
+    from identify.cli.fit_text import _residual_lines
+
+    q = 1e-3
+    t = np.arange(5000) * 1e-3
+    counts = q * np.round(20.25 * q * np.sin(0.1 / 20.25 * np.arange(5000)) / q)
+    item = {"rms": q / np.sqrt(12), "whiteness": {"white": True, "p_value": 0.5}, "input_correlation": {}}
+    outputs = {"run": {"t": t, "measured": {"tip1": counts}}}
+
+    def ratio(resolution):
+        line = _residual_lines({"run": {"tip1": item}}, outputs, {"run": "fit"}, resolution)[1]
+        return float(line.split()[4])
+
+    assert ratio(None) > 2.0
+    assert ratio({"tip1": q}) == pytest.approx(1.0, abs=1e-3)
+
+
 def test_diagnose_refusing_the_experiment_folder_names_its_own_default(tmp_path, capsys):
     # found in review: the message named the fit command's default folder (-fit)
     exp = _copy_example(tmp_path / "example")

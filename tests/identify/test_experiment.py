@@ -816,6 +816,14 @@ def test_a_sensor_kind_and_resolution_are_read_onto_the_sensor(tmp_path):
     assert tip1.kind == "strain_gauge" and tip1.resolution is None
     assert "sensor theta1: encoder, resolution 0.00153589 rad (0.088 deg)" in exp.summary()
     assert "sensor tip1: strain_gauge" in exp.summary()
+    # the step reaches the fit's noise floors (the log's smooth theta1 has almost none)
+    from identify._fit.quality import noise_floors
+    from identify._workflow import problem_from_experiment
+
+    problem = problem_from_experiment(exp)
+    floor = noise_floors(problem)[0][0]
+    assert floor[problem.channels.index("theta1")] == pytest.approx(math.radians(0.088) / math.sqrt(12), rel=1e-12)
+    assert floor[problem.channels.index("tip1")] < 1e-6
     # no kind, no resolution: the sensor is as before
     exp = load_experiment(experiment(tmp_path, RIG + LOG + "[sensors.theta1]\ndelay = 0.001\n", name="b.toml"))
     assert exp.measurement.sensors["theta1"].kind is None and exp.measurement.sensors["theta1"].resolution is None
