@@ -353,6 +353,13 @@ def test_strain_gauge_column_errors(tmp_path):
     ):
         with pytest.raises(LogError, match=msg(expected)):
             load_log(path, columns, calibration={"curvature1": spec})
+    # a curvature column already in 1/m: the distance would divide it a second time
+    with pytest.raises(LogError, match=msg("column 3", "neutral_axis_distance is given for curvature1", "[1/m]")):
+        load_log(
+            write_csv(tmp_path / "k.csv", ["time [s]", "theta1 [rad]", "gauge [1/m]"], rows),
+            {"time": "time [s]", "theta1": "theta1 [rad]", "curvature1": "gauge [1/m]"},
+            calibration={"curvature1": {"neutral_axis_distance": 1e-3}},
+        )
     with pytest.raises(
         LogError, match=msg("neutral_axis_distance", "applies to a strain gauge's curvature<i>", "tip1")
     ):
