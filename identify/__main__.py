@@ -1,7 +1,5 @@
 """`python -m identify ...`: the `identify` command line (`identify.cli`)."""
 
-import sys
+from .cli import console_main
 
-from .cli import main
-
-sys.exit(main())
+console_main()

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import signal
 import sys
 import threading
@@ -178,6 +179,20 @@ def main(argv=None) -> int:
             return 130
 
 
+def console_main() -> None:
+    """The `identify` console script and `python -m identify`: `main`, then exit with its
+    status. After an interruption the process ends at once (`os._exit`, output flushed):
+    the interpreter's teardown while XLA's threads may still be compiling could otherwise
+    crash (a segmentation fault seen after Ctrl-C), and everything the command writes is
+    already closed and renamed into place by then."""
+    code = main()
+    if code == 130:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 def _run(args) -> int:
     """The command of `args`."""
     if args.command == "fit":
@@ -220,4 +235,4 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()

@@ -36,6 +36,10 @@ except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
 
+#: how a marker says that its folder's files are an earlier run's than the one it describes
+EARLIER = "; the files here are an earlier run's ("
+
+
 def _now() -> str:
     return datetime.datetime.now().astimezone().isoformat(timespec="seconds")
 
@@ -256,7 +260,9 @@ class OutputFolder:
             with contextlib.suppress(OSError):
                 self.path.rmdir()
             return
-        self.mark(f"{status} ({_now()})")
+        earlier = (self.previous or "").rsplit(EARLIER, 1)[-1].removesuffix(")")  # (not nested)
+        kept = f"{EARLIER}{earlier})" if earlier and leftover else ""
+        self.mark(f"{status} ({_now()}){kept}")
 
     def release(self) -> None:
         """Give up the lock (the process ending does the same)."""
