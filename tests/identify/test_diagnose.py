@@ -258,7 +258,7 @@ def test_each_log_is_diagnosed_at_its_own_known_payload():
     assert 0.8 < ratio < 1.2, (ratio, diag.summary())
 
 
-@pytest.mark.slow  # ~150 s on 2 cores (CI budget); per-log parameters stay in CI through test_run, test_fit, test_uncertainty
+@pytest.mark.slow  # ~150 s on 2 cores (CI budget); per-log parameters stay in CI: test_run, test_fit
 def test_each_log_is_diagnosed_at_its_own_fitted_payload():
     """Per-log free parameters (`Parameter.per_log`) through diagnose: the releases of
     the test above at tip masses of 30, 50 and 80 g that nobody weighed, each fitted per log
