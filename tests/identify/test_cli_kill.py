@@ -27,14 +27,19 @@ from identify.cli.output import MARKER
 ROOT = Path(identify.__file__).resolve().parents[1]
 
 
-def _start(exp: Path, out: Path) -> subprocess.Popen:
+def _command(exp: Path, out: Path) -> tuple[list[str], dict]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    cmd = [sys.executable, "-m", "identify", "fit", str(exp), "--out", str(out), "--stages", "2", "--quiet"]
+    return [sys.executable, "-m", "identify", "fit", str(exp), "--out", str(out), "--stages", "2", "--quiet"], env
+
+
+def _start(exp: Path, out: Path) -> subprocess.Popen:
+    cmd, env = _command(exp, out)
     return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def _check_folder(out: Path) -> str:
-    """What the folder holds ('nothing', 'no result', 'complete', 'interrupted'); fails
+    """What the folder holds ('nothing', 'no result', 'complete', 'interrupted', or a complete
+    result with a later run killed beside it: the marker can say only "running" then); fails
     where it looks like a finished result and is not one."""
     if not out.exists():
         return "nothing"
@@ -46,6 +51,8 @@ def _check_folder(out: Path) -> str:
     assert present == set(doc["files"]), (present, doc["files"])
     assert all((out / name).stat().st_size > 0 for name in doc["files"])
     status = (out / MARKER).read_text()
+    if "status: running" in status:  # a run killed (SIGKILL) after this result was committed, or before it
+        return "complete, then a run killed"
     if "nothing written" in status:  # a later run that wrote nothing: the result is an earlier run's
         assert "the files here are an earlier run's" in status, status
         status = status.split("the files here are an earlier run's", 1)[1]
@@ -106,7 +113,8 @@ def test_killed_early_leaves_no_result(tmp_path):
 def test_killed_at_random_times_never_leaves_a_result_it_is_not(tmp_path):
     t0 = time.perf_counter()
     exp = _copy_example(tmp_path / "timing")
-    done = subprocess.run(_start(exp, tmp_path / "timing-out").args, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    cmd, env = _command(exp, tmp_path / "timing-out")
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     full = time.perf_counter() - t0
     assert done.returncode == 0 and _check_folder(tmp_path / "timing-out") == "complete"
     seen = _trials(tmp_path, 20, (0.5, full * 1.05), seed=1)
