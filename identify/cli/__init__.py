@@ -181,11 +181,15 @@ def main(argv=None) -> int:
 
 def console_main() -> None:
     """The `identify` console script and `python -m identify`: `main`, then exit with its
-    status. After an interruption the process ends at once (`os._exit`, output flushed):
-    the interpreter's teardown while XLA's threads may still be compiling could otherwise
-    crash (a segmentation fault seen after Ctrl-C), and everything the command writes is
-    already closed and renamed into place by then."""
+    status, Ctrl-C and SIGTERM ignored from then on. After an interruption the process
+    ends at once (`os._exit`, output flushed): the interpreter's teardown while XLA's
+    threads may still be compiling could otherwise crash (a segmentation fault seen after
+    Ctrl-C), and everything the command writes is closed and renamed into place by then."""
     code = main()
+    # the command is done and its files are closed: a signal now would only interrupt
+    # Python's and JAX's clean-up with a traceback (seen in the kill test)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if code == 130:
         sys.stdout.flush()
         sys.stderr.flush()
