@@ -21,40 +21,54 @@
   model and the log (`identify.measurement`), fittable by name like the chain's parameters.
 """
 
-from ._data import measurement as measurement, noise_floor as noise_floor
-from ._data.channels import check_channel as check_channel, state_names as state_names
-from ._data.columns import LogError as LogError
-from ._data.experiment import Experiment as Experiment, FreeParameter as FreeParameter, LogSpec as LogSpec
-from ._data.experiment_file import load_experiment as load_experiment
-from ._data.logs import Log as Log, load_log as load_log, write_log as write_log
-from ._data.measurement import Measurement as Measurement, Sensor as Sensor
-from ._data.toml_reader import ExperimentError as ExperimentError
-from ._diagnose import catalogue as catalogue, evidence as evidence
-from ._diagnose.diagnosis import Diagnosis as Diagnosis
-from ._diagnose.scores import Cause as Cause, Score as Score
-from ._diagnose.search import diagnose_logs as diagnose_logs
-from ._diagnose.split import split_logs as split_logs
-from ._fit.fit import fit as fit
-from ._fit.fit_independent import fit_independent as fit_independent
-from ._fit.result import FitResult as FitResult, fitted_outputs as fitted_outputs
-from ._fit.steps import SimulationFailed as SimulationFailed
-from ._fit.uncertainty import (
-    BetweenLogs as BetweenLogs,
-    ClusteredUncertainty as ClusteredUncertainty,
-    between_logs as between_logs,
-    clustered_uncertainty as clustered_uncertainty,
-)
-from ._model.parameters import Parameter as Parameter
-from ._model.problem import LogData as LogData, Problem as Problem, log_onset as log_onset, make_problem as make_problem
-from ._model.residuals import predict as predict
-from ._model.synthetic import simulate_log as simulate_log
-from ._report.diagnosis_report import write_report as write_report
-from ._workflow import (
-    diagnose as diagnose,
-    evaluate_held_out as evaluate_held_out,
-    fit_experiment as fit_experiment,
-    fit_experiment_independent as fit_experiment_independent,
-    log_data as log_data,
-    problem_from_experiment as problem_from_experiment,
-    residual_report as residual_report,
-)
+from typing import TYPE_CHECKING
+
+# the public names, imported on first use (`identify._lazy`): `import identify`, and the
+# `identify` command before its arguments are parsed, stay free of JAX's seconds of import
+if TYPE_CHECKING:
+    from ._data import measurement as measurement, noise_floor as noise_floor
+    from ._data.channels import check_channel as check_channel, state_names as state_names
+    from ._data.columns import LogError as LogError
+    from ._data.experiment import Experiment as Experiment, FreeParameter as FreeParameter, LogSpec as LogSpec
+    from ._data.experiment_file import load_experiment as load_experiment
+    from ._data.logs import Log as Log, load_log as load_log, write_log as write_log
+    from ._data.measurement import Measurement as Measurement, Sensor as Sensor
+    from ._data.toml_reader import ExperimentError as ExperimentError
+    from ._diagnose import catalogue as catalogue, evidence as evidence
+    from ._diagnose.diagnosis import Diagnosis as Diagnosis
+    from ._diagnose.scores import Cause as Cause, Score as Score
+    from ._diagnose.search import diagnose_logs as diagnose_logs
+    from ._diagnose.split import split_logs as split_logs
+    from ._fit.fit import fit as fit
+    from ._fit.fit_independent import fit_independent as fit_independent
+    from ._fit.result import FitResult as FitResult, fitted_outputs as fitted_outputs
+    from ._fit.steps import SimulationFailed as SimulationFailed
+    from ._fit.uncertainty import (
+        BetweenLogs as BetweenLogs,
+        ClusteredUncertainty as ClusteredUncertainty,
+        between_logs as between_logs,
+        clustered_uncertainty as clustered_uncertainty,
+    )
+    from ._model.parameters import Parameter as Parameter
+    from ._model.problem import (
+        LogData as LogData,
+        Problem as Problem,
+        log_onset as log_onset,
+        make_problem as make_problem,
+    )
+    from ._model.residuals import predict as predict
+    from ._model.synthetic import simulate_log as simulate_log
+    from ._report.diagnosis_report import write_report as write_report
+    from ._workflow import (
+        diagnose as diagnose,
+        evaluate_held_out as evaluate_held_out,
+        fit_experiment as fit_experiment,
+        fit_experiment_independent as fit_experiment_independent,
+        log_data as log_data,
+        problem_from_experiment as problem_from_experiment,
+        residual_report as residual_report,
+    )
+
+from ._lazy import exports as _exports
+
+__getattr__, __dir__, __all__ = _exports(__name__, __file__)

@@ -96,10 +96,11 @@ def test_named_repository_paths_exist(page):
 
 
 def _public_names(package: str) -> list[str]:
-    """The names `package/__init__.py` re-exports (`from .x import name as name`)."""
+    """The names `package/__init__.py` re-exports (`from .x import name as name`, at the top
+    level or, for a lazily imported package, under `if TYPE_CHECKING:`)."""
     tree = ast.parse((ROOT / package / "__init__.py").read_text(encoding="utf-8"))
     names = []
-    for node in tree.body:
+    for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.level >= 1:
             names += [a.asname for a in node.names if a.asname and not a.asname.startswith("_")]
     return names

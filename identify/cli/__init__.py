@@ -47,6 +47,7 @@ only noted: there it is often the missing effect's symptom).
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import contextlib
 import os
@@ -169,7 +170,7 @@ def main(argv=None) -> int:
         args = _parser().parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2, already printed)
         return int(e.code or 0) if not isinstance(e.code, str) else 2
-    with warnings.catch_warnings(), _terminate_as_interrupt():  # (both restored on the way out)
+    with warnings.catch_warnings(), _terminate_as_interrupt(), _interrupts_not_swallowed():  # (all restored after)
         warnings.showwarning = _show_warning
         # (the commands import the library, and with it JAX, only once parsed: `--help` stays fast)
         try:
@@ -230,6 +231,30 @@ def _terminate_as_interrupt():
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def _interrupts_not_swallowed():
+    """A Ctrl-C that lands in a callback Python cannot raise from (JAX's garbage-collection
+    callback, run at any allocation, often while the libraries import) would be printed
+    as "Exception ignored" and lost, the command going on as if never interrupted: such a
+    KeyboardInterrupt is re-delivered to the main thread instead (a moment later, again
+    until it lands outside a callback), where it stops the command as any Ctrl-C does."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable):
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            # from another thread, a moment later: the main thread raises it once out of
+            # the callback (raised here, it would be lost again in the hook)
+            threading.Timer(0.01, _thread.interrupt_main).start()
+        else:
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
