@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import warnings
 from pathlib import Path
 
@@ -368,12 +369,14 @@ def _closing(diag) -> list[str]:
 def write_report(diag, folder, title: str = "", extra: dict | None = None) -> list[Path]:
     """Write `diagnosis.json`, `report.md` and the plots into `folder` (created); returns
     the paths written. `diagnosis.json` first; the report or a plot that cannot be made
-    is left out with a `RuntimeWarning` naming it and the error (the diagnosis is kept)."""
+    is left out with a `RuntimeWarning` naming it and the error (the diagnosis is kept).
+    `diagnosis.json` then lists the `files` written and, under `problems`, those left out
+    and why (rewritten through a temporary file: it never holds half a document)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     doc = diag.to_dict()
     doc.update(extra or {})
-    (folder / JSON_FILE).write_text(json.dumps(jsonable(doc), indent=1) + "\n")
+    _write_json(folder / JSON_FILE, doc)
     written = [folder / JSON_FILE]
     writers = [(REPORT_FILE, lambda: _write_markdown(diag, title, folder / REPORT_FILE))]
     writers += [
@@ -382,13 +385,25 @@ def write_report(diag, folder, title: str = "", extra: dict | None = None) -> li
             PLOT_FILES, (plot_traces, plot_residuals, plot_spectra, plot_envelopes, plot_scores), strict=True
         )
     ]
+    problems = []
     for name, write in writers:
         try:
             written.append(write())
         except Exception as e:  # noqa: BLE001 (a figure must not cost the diagnosis)
             (folder / name).unlink(missing_ok=True)  # (it may be partial)
+            problems.append(f"{name} not written: {type(e).__name__}: {e}")
             warnings.warn(f"{folder / name} not written: {type(e).__name__}: {e}", RuntimeWarning, stacklevel=2)
+    doc["files"] = [p.name for p in written]
+    doc["problems"] = problems
+    _write_json(folder / JSON_FILE, doc)
     return written
+
+
+def _write_json(path: Path, doc: dict) -> None:
+    """`doc` as JSON into `path`, through a temporary file beside it and a rename."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(jsonable(doc), indent=1) + "\n")
+    os.replace(tmp, path)
 
 
 def _write_markdown(diag, title: str, path: Path) -> Path:

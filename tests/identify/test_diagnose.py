@@ -96,7 +96,9 @@ def test_main_job_diagnose_names_the_hidden_friction_of_the_example(tmp_path):
         "geometric_stiffening",
         "joint_elasticity",
     }
-    for name in ("report.md", *diagnosis_report.PLOT_FILES):
+    assert doc["files"] == ["diagnosis.json", "report.md", *diagnosis_report.PLOT_FILES]
+    assert doc["problems"] == []
+    for name in doc["files"]:
         assert (out / name).stat().st_size > 0
     assert "coulomb_friction" in (out / "report.md").read_text()
     assert "Not tried:" in (out / "report.md").read_text()

@@ -48,3 +48,28 @@ def test_residual_spectrum_resolves_a_low_frequency_over_a_long_log():
     f, p = residual_spectrum(t, np.sin(2 * np.pi * 1.27 * t))
     assert f[1] - f[0] < 0.2
     assert abs(f[np.argmax(p)] - 1.27) < 0.1
+
+
+def test_diagnosis_json_lists_its_files_and_what_could_not_be_written(tmp_path):
+    """A report or plot that fails is left out with a warning; diagnosis.json, written
+    first, names the files written and the failures (here a stand-in diagnosis that only
+    serialises: every figure fails)."""
+    import json
+
+    from identify._report import diagnosis_report
+
+    class OnlyDict:
+        def to_dict(self):
+            return {"named": ["x"]}
+
+    with pytest.warns(RuntimeWarning) as caught:
+        written = diagnosis_report.write_report(OnlyDict(), tmp_path, extra={"command": ["identify"]})
+    assert len(caught) == 1 + len(diagnosis_report.PLOT_FILES)
+    assert str(caught[0].message).startswith(f"{tmp_path / 'report.md'} not written: AttributeError")
+    assert written == [tmp_path / "diagnosis.json"]
+    doc = json.loads((tmp_path / "diagnosis.json").read_text())
+    assert doc["named"] == ["x"] and doc["command"] == ["identify"]
+    assert doc["files"] == ["diagnosis.json"]
+    assert [p.split(" ")[0] for p in doc["problems"]] == ["report.md", *diagnosis_report.PLOT_FILES]
+    assert all("not written: AttributeError" in p for p in doc["problems"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["diagnosis.json"]  # (no partial figure, no temporary)
