@@ -7,13 +7,17 @@ the message's header stamp or its receive time (`BagTiming.stamp`). Topics recor
 different rates are put on one time base (a topic's stamps, or a uniform rate) by linear
 interpolation inside the span every topic covers (`resample`): no value is extrapolated.
 Every problem raises `LogError` naming the bag, the topic, the field and the message
-(counted from 1 in the order the bag recorded them); the bag is opened read-only.
+(counted from 1 in the order the bag recorded them); the bag is opened read-only. A bag
+split while recording (a folder whose `metadata.yaml` lists several storage files) is read
+whole, file after file in the order listed; a storage file missing from it, a damaged record
+and a message that cannot be deserialised are errors, not a part of the bag left out (one
+storage file of a split bag given on its own is read alone, with a warning).
 """
 
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
+from pathlib import Path, PurePath
 
 import numpy as np
 
@@ -90,6 +94,7 @@ def _open(path: Path):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
+    _check_storage_files(path)
     # a bag without message definitions (ROS 2 sqlite3 bags before Iron) is read with
     # Humble's standard types
     try:
@@ -98,6 +103,43 @@ def _open(path: Path):
     except Exception as e:  # rosbags raises several types for a file that is not a bag
         raise LogError(f"{path}: not a readable ROS bag ({type(e).__name__}: {e})") from None
     return reader
+
+
+def _storage_files(folder: Path) -> list[str] | None:
+    """The storage files a ROS 2 bag folder's `metadata.yaml` lists (`relative_file_paths`, by
+    name, as rosbags finds them in the folder), in its order; None where it cannot be read
+    (rosbags then says why)."""
+    from ruamel.yaml import YAML  # (a dependency of rosbags, which reads the same file with it)
+
+    try:
+        info = YAML(typ="safe").load((folder / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        return [PurePath(str(name)).name for name in info["relative_file_paths"]]
+    except Exception:
+        return None
+
+
+def _check_storage_files(path: Path) -> None:
+    """A bag folder holds every storage file its `metadata.yaml` lists (a bag split while
+    recording has one per part: `LogError` naming those missing); a storage file given on
+    its own that is one part of a split bag is read alone, with a warning naming its folder."""
+    if path.is_dir():
+        files = _storage_files(path) or []
+        missing = [name for name in files if not (path / name).exists()]
+        if missing:
+            raise LogError(
+                f"{path}: storage file(s) {', '.join(missing)} listed in its metadata.yaml are missing from the "
+                f"folder; expected every file of the bag ({', '.join(files)}): a bag split while recording needs "
+                "all its parts"
+            )
+    elif path.suffix.lower() in (".db3", ".mcap") and (path.parent / "metadata.yaml").is_file():
+        files = _storage_files(path.parent) or []
+        if len(files) > 1 and path.name in files:
+            warnings.warn(
+                f"{path} is one of the {len(files)} storage files of the bag {path.parent} ({', '.join(files)}): "
+                "only its own messages are read; give the bag's folder as the log to read them all",
+                UserWarning,
+                stacklevel=4,
+            )
 
 
 def _listing(topics) -> str:
@@ -145,14 +187,13 @@ def _read_messages(path: Path, reader, sources, needed, timing: BagTiming, conte
     kinds: dict[str, str] = {}
     connections = [c for c in reader.connections if c.topic in by_topic]
     counts = {topic: info.msgcount for topic, info in reader.topics.items()}
-    for connection, received, data in reader.messages(connections=connections):
+    for connection, k, received, data in _messages(path, reader, connections):
         topic = connection.topic
-        k = len(stamps[topic]) + 1
         at = f"{path}: topic {topic!r}, message {k}" + (f" of {counts[topic]}" if counts[topic] >= k else "")
         try:
             message = reader.deserialize(data, connection.msgtype)
-        except Exception as e:
-            raise LogError(f"{at}: not a readable {connection.msgtype} ({type(e).__name__}: {e})") from None
+        except Exception as e:  # rosbags raises several types for bytes that are not the message
+            raise LogError(_not_deserialised(at, connection.msgtype, received, data, e)) from None
         header = header_stamp_ns(message)
         if topic not in kinds:
             kinds[topic] = _stamp_kind(path, topic, connection.msgtype, header, timing)
@@ -184,6 +225,53 @@ def _read_messages(path: Path, reader, sources, needed, timing: BagTiming, conte
                 channel=s.channel,
             )
     return out, kinds, raw
+
+
+def _messages(path: Path, reader, connections):
+    """`reader.messages` of `connections` as `(connection, k, received, data)`, `k` the
+    message's number in its topic (from 1), `received` its receive time (ns). A damaged
+    record in the bag's storage raises `LogError` naming the last message read (not
+    rosbags' own error, whatever its type), and so does a topic whose receive times go back
+    (the storage files of a split bag listed out of recording order)."""
+    read: dict[str, tuple[int, int]] = {}  # topic -> (messages read, the last one's receive time)
+    last = None  # (topic, k, received) of the last message read
+    stream = reader.messages(connections=connections)
+    while True:
+        try:
+            connection, received, data = next(stream)
+        except StopIteration:
+            return
+        except Exception as e:  # rosbags raises several types (and struct's, zstd's) for a damaged record
+            raise LogError(
+                f"{path}: a damaged record in the bag's storage, found {_last_read(last)} ({type(e).__name__}: "
+                f"{e}); expected an intact bag: this copy is cut short or corrupt"
+            ) from None
+        topic = connection.topic
+        k, before = read.get(topic, (0, received))
+        if received < before:
+            raise LogError(
+                f"{path}: topic {topic!r}, message {k + 1}: received at {_seconds(received)}, before message {k} "
+                f"({_seconds(before)}); expected the messages in the order received: a bag split while recording "
+                "is read file after file as its metadata.yaml lists them (relative_file_paths), which must be "
+                "the order they were recorded in"
+            )
+        read[topic], last = (k + 1, received), (topic, k + 1, received)
+        yield connection, k + 1, received, data
+
+
+def _last_read(last: tuple[str, int, int] | None) -> str:
+    if last is None:
+        return "before any message was read"
+    topic, k, received = last
+    return f"after reading topic {topic!r}, message {k} (received at {_seconds(received)})"
+
+
+def _not_deserialised(at: str, msgtype: str, received: int, data: bytes, e: Exception) -> str:
+    return (
+        f"{at} (received at {_seconds(received)}, {len(data)} bytes): not a readable {msgtype} "
+        f"({type(e).__name__}: {e}); expected the bytes of a {msgtype} as its definition in the bag lays them "
+        "out: the message is cut short or corrupt, or was recorded with another definition of the type"
+    )
 
 
 def _joint_value(message, s: BagSource) -> float:

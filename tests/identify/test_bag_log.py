@@ -14,6 +14,7 @@ import pytest
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from ruamel.yaml import YAML
 
 from identify._data.columns import LogError
 from identify._data.experiment_file import load_experiment
@@ -46,21 +47,59 @@ MS = 1_000_000  # ns
 
 def write_bag(path, kind: str, topics: dict) -> "Path":  # noqa: F821
     """Write `topics` (topic -> (message type, [(receive time ns, message), ...])) as a bag
-    of `kind` at `path` (a ROS 2 folder, or `path.bag` for ROS 1); returns the bag's path."""
-    store = TYPESTORES[kind]
+    of `kind` at `path` (a ROS 2 folder, or `path.bag` for ROS 1); returns the bag's path.
+    A message given as `bytes` is written as they are (a damaged one)."""
     if kind == "ros1":
         path = path.with_suffix(".bag")
         writer = Writer1(path)
-        serialize = store.serialize_ros1
     else:
         plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
         writer = Writer2(path, version=9, storage_plugin=plugin)
-        serialize = store.serialize_cdr
     with writer:
+        store = TYPESTORES[kind]
         connections = {topic: writer.add_connection(topic, t, typestore=store) for topic, (t, _) in topics.items()}
         records = [(at, topic, m) for topic, (_, items) in topics.items() for at, m in items]
         for at, topic, message in sorted(records, key=lambda r: r[0]):
-            writer.write(connections[topic], at, serialize(message, topics[topic][0]))
+            raw = message if isinstance(message, bytes) else serialized(kind, message, topics[topic][0])
+            writer.write(connections[topic], at, raw)
+    return path
+
+
+def serialized(kind: str, message, msgtype: str) -> bytes:
+    """`message` as a bag of `kind` stores it (ROS 1 or CDR bytes)."""
+    store = TYPESTORES[kind]
+    return bytes(store.serialize_ros1(message, msgtype) if kind == "ros1" else store.serialize_cdr(message, msgtype))
+
+
+def split_bag(path, kind: str, topics: dict, at: int) -> "Path":  # noqa: F821
+    """`topics` as a ROS 2 bag folder `path` split while recording into two storage files, as
+    rosbag2 writes one: the messages received before `at` in `<name>_0`, the rest in
+    `<name>_1`, one `metadata.yaml` listing both with the counts and times summed (rosbags'
+    writer does not split: each part is written as a bag of its own, their metadata merged)."""
+    yaml = YAML(typ="safe")
+    path.mkdir()
+    infos = []
+    for i in (0, 1):
+        part = {topic: (t, [(r, m) for r, m in items if (r >= at) == i]) for topic, (t, items) in topics.items()}
+        bag = write_bag(path.parent / f"{path.name}_part{i}", kind, part)
+        file = storage_file(bag)
+        info = yaml.load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        (entry,) = info["files"]
+        entry["path"] = f"{path.name}_{i}{file.suffix}"
+        file.rename(path / entry["path"])
+        infos.append(info)
+    first, second = infos
+    counts = {t["topic_metadata"]["name"]: t["message_count"] for t in second["topics_with_message_count"]}
+    for t in first["topics_with_message_count"]:
+        t["message_count"] += counts[t["topic_metadata"]["name"]]
+    first["files"] += second["files"]
+    first["relative_file_paths"] = [entry["path"] for entry in first["files"]]
+    first["message_count"] += second["message_count"]
+    start = first["starting_time"]["nanoseconds_since_epoch"]
+    end = second["starting_time"]["nanoseconds_since_epoch"] + second["duration"]["nanoseconds"]
+    first["duration"]["nanoseconds"] = end - start
+    with (path / "metadata.yaml").open("w") as f:
+        yaml.dump({"rosbag2_bagfile_information": first}, f)
     return path
 
 
@@ -315,6 +354,80 @@ def test_loading_leaves_the_bag_as_it_was(rig_bags):
     assert snapshot() == before
 
 
+SPLIT = 125 * MS
+
+
+def rig_split(tmp_path, kind):
+    """/joint_states (24 messages, 0 ... 230 ms) and /strain (24, 5 ... 235 ms) in one bag,
+    and split at 125 ms: 13 and 12 messages in the first storage file, 11 and 12 in the second."""
+    topics = {"/joint_states": joints(kind, n=24), "/strain": scalars(kind, n=24, start=5 * MS)}
+    return write_bag(tmp_path / "whole", kind, topics), split_bag(tmp_path / "run", kind, topics, T0 + SPLIT)
+
+
+@pytest.mark.parametrize("kind", ["sqlite3", "mcap"])
+def test_a_split_bag_is_read_across_its_storage_files(tmp_path, kind):
+    """A bag split while recording (its folder: `run_0`, `run_1` and one metadata.yaml) reads
+    as the bag it was split from: every message of both files, in time order, each topic's
+    messages numbered across them."""
+    whole, bag = rig_split(tmp_path, kind)
+    suffix = storage_file(whole).suffix
+    assert sorted(p.name for p in bag.iterdir()) == ["metadata.yaml", f"run_0{suffix}", f"run_1{suffix}"]
+    log = load(bag, THETA)
+    assert np.array_equal(log.t_relative, np.arange(24) * 0.01)
+    assert np.array_equal(log.outputs["theta1"], 0.01 * np.arange(24))
+    strain = {"tip1": {"topic": "/strain", "field": "data", "unit": "mm"}}
+    for kw in ({"time_base": "/joint_states"}, {"rate_hz": 250}):
+        split, one = load(bag, {**THETA, **strain}, **kw), load(whole, {**THETA, **strain}, **kw)
+        assert np.array_equal(split.t, one.t) and len(split) == len(one) >= 23
+        assert all(np.array_equal(split.outputs[c], one.outputs[c]) for c in ("theta1", "tip1"))
+        assert split.sources == one.sources
+    # as an experiment file's log entry: the folder, relative to the file
+    theta = '{ topic = "/joint_states", joint = "shoulder", field = "position", unit = "rad" }'
+    (entry,) = load_experiment(experiment(tmp_path, f'file = "run"\ncolumns = {{ theta1 = {theta} }}\n')).logs
+    assert entry.name == "run" and np.array_equal(entry.log.outputs["theta1"], log.outputs["theta1"])
+    # message numbers run on across the files: the 15th message is the second of run_1
+    damaged = joints(kind, n=24, stamps=[k * 10 * MS for k in range(14)] + [0] * 10)
+    with pytest.raises(LogError, match=msg(str(tmp_path / "bad"), "topic '/joint_states', message 15 of 24: its")):
+        load(split_bag(tmp_path / "bad", kind, {"/joint_states": damaged}, T0 + SPLIT), THETA)
+    # one storage file on its own is read alone, and says so
+    with pytest.warns(UserWarning, match=msg(f"run_1{suffix} is one of the 2 storage files of the bag {bag} (run_0")):
+        part = load(bag / f"run_1{suffix}", THETA)
+    assert np.array_equal(part.outputs["theta1"], 0.01 * np.arange(13, 24))
+
+
+@pytest.mark.parametrize("kind", ["sqlite3", "mcap"])
+def test_a_split_bag_missing_a_storage_file_or_listing_them_out_of_order(tmp_path, kind):
+    _, bag = rig_split(tmp_path, kind)
+    suffix = storage_file(tmp_path / "whole").suffix
+    yaml, metadata = YAML(typ="safe"), (bag / "metadata.yaml").read_text()
+    info = yaml.load(metadata)
+    assert info["rosbag2_bagfile_information"]["relative_file_paths"] == [f"run_0{suffix}", f"run_1{suffix}"]
+    info["rosbag2_bagfile_information"]["relative_file_paths"].reverse()
+    with (bag / "metadata.yaml").open("w") as f:
+        yaml.dump(info, f)
+    with pytest.raises(
+        LogError,
+        match=msg(
+            str(bag),
+            "topic '/joint_states', message 12: received at 1733300000.000000000 s, before message 11 "
+            "(1733300000.230000000 s); expected the messages in the order received",
+            "as its metadata.yaml lists them (relative_file_paths), which must be the order they were recorded in",
+        ),
+    ):
+        load(bag, THETA)
+    (bag / "metadata.yaml").write_text(metadata)
+    (bag / f"run_1{suffix}").unlink()
+    with pytest.raises(
+        LogError,
+        match=msg(
+            str(bag),
+            f"storage file(s) run_1{suffix} listed in its metadata.yaml are missing from the folder; expected every "
+            f"file of the bag (run_0{suffix}, run_1{suffix})",
+        ),
+    ):
+        load(bag, THETA)
+
+
 def test_the_output_folder_may_not_be_a_bag_folder(rig_bags):
     from identify.cli.output import _Refused, check_output_folder
 
@@ -368,10 +481,63 @@ def test_a_topic_not_in_the_bag(tmp_path):
     assert e.value.channel == "tip1"
 
 
-def test_a_topic_without_messages(tmp_path):
-    bag = bag_of(tmp_path, joint_states=joints(), strain=("std_msgs/msg/Float64", []))
-    with pytest.raises(LogError, match=msg(str(bag), "topic '/strain' has no messages; expected one per sample")):
-        load(bag, {**THETA, "tip1": {"topic": "/strain", "field": "data", "unit": "mm"}}, rate_hz=100)
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_topic_without_messages(tmp_path, kind):
+    """A topic the bag declares (a publisher that never published) is no channel of zeros:
+    read for a channel or as the time base, alone or beside another."""
+    bag = bag_of(tmp_path, kind, joint_states=joints(kind), strain=("std_msgs/msg/Float64", []))
+    strain = {"tip1": {"topic": "/strain", "field": "data", "unit": "mm"}}
+    for columns, kw in [({**THETA, **strain}, {"rate_hz": 100}), (strain, {}), (THETA, {"time_base": "/strain"})]:
+        with pytest.raises(LogError, match=msg(str(bag), "topic '/strain' has no messages; expected one per sample")):
+            load(bag, columns, **kw)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_message_that_cannot_be_deserialised_names_it(tmp_path, kind):
+    """Bytes that are not the message the topic's type says (cut short, padded): the bag,
+    topic, type and message by number and receive time, not rosbags' traceback."""
+    whole = serialized(kind, joints(kind)[1][4][1], "sensor_msgs/msg/JointState")
+    for i, damaged in enumerate((whole[:-5], whole + bytes(7), b"")):
+        (tmp_path / str(i)).mkdir()
+        bag = bag_of(tmp_path / str(i), kind, joints=joints(kind, m5=damaged))
+        with pytest.raises(
+            LogError,
+            match=msg(
+                str(bag),
+                f"topic '/joints', message 5 of 12 (received at 1733300000.040000000 s, {len(damaged)} bytes): "
+                "not a readable sensor_msgs/msg/JointState (",
+                "); expected the bytes of a sensor_msgs/msg/JointState as its definition in the bag lays them out: "
+                "the message is cut short or corrupt",
+            ),
+        ) as e:
+            load(bag, {"theta1": {**COLUMNS["theta1"], "topic": "/joints"}})
+        assert e.value.__cause__ is None and e.value.__suppress_context__
+
+
+@pytest.mark.parametrize("kind", ["mcap", "ros1"])
+def test_a_damaged_record_in_the_storage(tmp_path, kind):
+    """The storage's own record of message 5 damaged (its length): an error naming the bag
+    and where reading stopped, whatever rosbags raises (a `ReaderError`, an `OverflowError`)."""
+    bag = bag_of(tmp_path, kind, joint_states=joints(kind))
+    file = bag if kind == "ros1" else storage_file(bag)
+    data = bytearray(file.read_bytes())
+    fifth = data.find(serialized(kind, joints(kind)[1][4][1], "sensor_msgs/msg/JointState"))
+    assert fifth > 0 and data.count(data[fifth - 8 : fifth + 60]) == 1  # stored as written (no compression)
+    # ROS 1: the data's uint32 length before it; MCAP: the message record's uint64 length
+    length = slice(fifth - 4, fifth) if kind == "ros1" else slice(fifth - 30, fifth - 22)
+    data[length] = b"\xff" * (length.stop - length.start)
+    file.write_bytes(data)
+    where = "after reading topic '/joint_states', message 4 (received at 1733300000.030000000 s)"
+    with pytest.raises(
+        LogError,
+        match=msg(
+            str(bag),
+            "a damaged record in the bag's storage, found " + (where if kind == "ros1" else ""),
+            "); expected an intact bag: this copy is cut short or corrupt",
+        ),
+    ) as e:
+        load(bag, THETA)
+    assert e.value.__cause__ is None and e.value.__suppress_context__
 
 
 def test_a_joint_not_in_a_message_names_the_message(tmp_path):
