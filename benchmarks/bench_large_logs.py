@@ -8,7 +8,10 @@ temporary folder and loaded by:
 - careful: the same with every chunk read by the careful line-by-line reader (the fallback
   that names the line and column of a bad cell: `csv_rows.read_rows(fast=False)`);
 - commit `REV` (with `--commit REV`): `load_log` of that git commit (`git archive` of its
-  `identify` and `flexdyn`), e.g. the line-by-line reader before the chunked one (`8cebc72`).
+  `identify` and `flexdyn`), e.g. the line-by-line reader before the chunked one (`8cebc72`);
+- check: the whole `identify check` of an experiment (paper 002's two-link arm) that maps
+  all six data columns of the log, as a user runs it (imports, the checks, the problem a
+  fit would start from: the issue's goal, a 1 GB log checked in < 30 s and < 3 GB).
 
 Each load runs in a fresh process (so its peak resident memory is its own), `--repeats`
 rounds round robin; reported per run: the median and fastest wall time of the load (imports
@@ -16,7 +19,8 @@ excluded), throughput, the process's peak resident memory and its rise over the 
 the imports, and both as ratios to the fast reader. Every run must read the same values
 (a hash of the SI arrays, compared bit for bit).
 
-Usage: `python benchmarks/bench_large_logs.py [--mb 200] [--repeats 1] [--commit REV] [--json out.json]`
+Usage: `python benchmarks/bench_large_logs.py [--mb 200] [--repeats 1] [--runs fast,careful,check]
+[--commit REV] [--json out.json]`
 """
 
 from __future__ import annotations
@@ -78,6 +82,43 @@ def write_log(path: str, megabytes: float, block: int = 20_000) -> int:
     return rows
 
 
+EXPERIMENT = """
+[experiment]
+name = "bench_large_logs"
+
+[rig]
+base = "two_link_flexible_arm"
+
+[parameters]
+"joint1.damping" = { guess = 1e-3, lower = 1e-6, upper = 1e-1 }
+
+[[logs]]
+name = "large"
+file = "large.csv"
+columns = { time = "time [s]", theta1 = "theta1 [deg]", theta2 = "theta2 [deg]", tip1 = "tip1 [mm]", \
+tip2 = "tip2 [mm]", torque1 = "torque1 [N m]", torque2 = "torque2 [N m]" }
+"""
+
+
+def check_child(path: str) -> dict:
+    """`identify check` of `EXPERIMENT` over the log `path`, in this process (its output
+    discarded); the wall time includes the imports, as a user waits for them."""
+    import contextlib
+    import io
+
+    toml = os.path.join(os.path.dirname(path), "experiment.toml")
+    with open(toml, "w") as f:
+        f.write(EXPERIMENT)
+    start = time.perf_counter()
+    from identify.cli import main
+
+    with contextlib.redirect_stdout(io.StringIO()) as out, contextlib.redirect_stderr(io.StringIO()) as err:
+        code = main(["check", toml])
+    if code:
+        raise SystemExit(f"identify check exited {code}:\n{out.getvalue()}\n{err.getvalue()}")
+    return {"seconds": time.perf_counter() - start, "rows": 0, "hash": "check"}
+
+
 def child(run: str, path: str, tree: str | None) -> None:
     """Load `path` once in this process and print the measurements as JSON."""
     import resource
@@ -86,6 +127,13 @@ def child(run: str, path: str, tree: str | None) -> None:
         sys.path.insert(0, tree)
     else:
         sys.path.insert(0, ROOT)
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    if run == "check":
+        scale = 1024 if sys.platform != "darwin" else 1
+        result = check_child(path)
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        print(json.dumps({**result, "peak_mb": peak * scale / 1e6, "rise_mb": (peak - base) * scale / 1e6}))
+        return
     import identify
 
     if run == "careful":
@@ -151,14 +199,14 @@ def main(argv=None):
         samples: dict[str, list[dict]] = {name: [] for name in runs}
         for _ in range(max(args.repeats, 1)):
             for name, tree in runs.items():
-                kind = "careful" if name == "careful" else "fast"
+                kind = name if name in ("careful", "check") else "fast"
                 cmd = [sys.executable, os.path.abspath(__file__), "--child", kind, path, tree]
                 out = subprocess.run(cmd, capture_output=True, text=True)
                 if out.returncode:
                     raise SystemExit(f"bench_large_logs: the {name} run failed:\n{out.stderr}")
                 samples[name].append(json.loads(out.stdout.strip().splitlines()[-1]))
                 print(f"{name}: {samples[name][-1]['seconds']:.2f} s", flush=True)
-    hashes = {s["hash"] for runs_ in samples.values() for s in runs_}
+    hashes = {s["hash"] for runs_ in samples.values() for s in runs_ if s["hash"] != "check"}
     if len(hashes) != 1:
         raise SystemExit(f"bench_large_logs: the runs read different values ({len(hashes)} hashes)")
     results = []
@@ -167,7 +215,7 @@ def main(argv=None):
         results.append(
             dict(
                 run=name,
-                rows=runs_[0]["rows"],
+                rows=runs_[0]["rows"] or rows,
                 warm_s=statistics.median(seconds),
                 min_s=min(seconds),
                 mb_per_s=size_mb / statistics.median(seconds),

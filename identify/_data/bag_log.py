@@ -109,9 +109,9 @@ def _storage_files(folder: Path) -> list[str] | None:
     """The storage files a ROS 2 bag folder's `metadata.yaml` lists (`relative_file_paths`, by
     name, as rosbags finds them in the folder), in its order; None where it cannot be read
     (rosbags then says why)."""
-    from ruamel.yaml import YAML  # (a dependency of rosbags, which reads the same file with it)
-
     try:
+        from ruamel.yaml import YAML  # (rosbags' own reader of this file; without it, rosbags' checks)
+
         info = YAML(typ="safe").load((folder / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
         return [PurePath(str(name)).name for name in info["relative_file_paths"]]
     except Exception:
