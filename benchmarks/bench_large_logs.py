@@ -207,7 +207,7 @@ def main(argv=None):
                 samples[name].append(json.loads(out.stdout.strip().splitlines()[-1]))
                 print(f"{name}: {samples[name][-1]['seconds']:.2f} s", flush=True)
     hashes = {s["hash"] for runs_ in samples.values() for s in runs_ if s["hash"] != "check"}
-    if len(hashes) != 1:
+    if len(hashes) > 1:
         raise SystemExit(f"bench_large_logs: the runs read different values ({len(hashes)} hashes)")
     results = []
     for name, runs_ in samples.items():

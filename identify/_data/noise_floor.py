@@ -71,19 +71,20 @@ ORDER = 4
 RESOLUTION = 1e-6
 
 
-def pseudo_residuals(t, y, order: int = ORDER) -> np.ndarray:
-    """The normalised divided differences `d_i / sqrt(sum_j w_ij^2)` of order `order` of
-    the samples `y` at times `t` (strictly increasing; module docstring): `len(t) - order`
-    of them, each of variance `sigma^2` for white noise."""
-    t = np.asarray(t, float)
-    y = np.asarray(y, float)
+def _check_series(t: np.ndarray, y: np.ndarray) -> None:
     if t.shape != y.shape or t.ndim != 1:
         raise ValueError(f"noise floor: t and y must be 1-D of the same length, got {t.shape} and {y.shape}")
+
+
+def _weights(t: np.ndarray, order: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """The divided differences' weights `w_ij` (a list over `j` of arrays over `i`) at the
+    strictly increasing times `t`, and their norms `sqrt(sum_j w_ij^2)`. The times are
+    taken from their first: the differences of a ROS bag's stamps (1.7e9 s) would keep
+    only 7 of their digits."""
     if np.any(np.diff(t) <= 0):
         raise ValueError("noise floor: t must be strictly increasing")
+    t = t - t[0]
     n = len(t) - order
-    if n <= 0:
-        return np.zeros(0)
     ts = [t[j : j + n] for j in range(order + 1)]
     w = []
     for j in range(order + 1):
@@ -92,15 +93,54 @@ def pseudo_residuals(t, y, order: int = ORDER) -> np.ndarray:
             if m != j:
                 prod = prod * (ts[j] - ts[m])
         w.append(1.0 / prod)
-    d = sum(wj * y[j : j + n] for j, wj in enumerate(w))
-    return d / np.sqrt(sum(wj**2 for wj in w))
+    return w, np.sqrt(sum(wj**2 for wj in w))
+
+
+def pseudo_residuals(t, y, order: int = ORDER) -> np.ndarray:
+    """The normalised divided differences `d_i / sqrt(sum_j w_ij^2)` of order `order` of
+    the samples `y` at times `t` (strictly increasing; module docstring): `len(t) - order`
+    of them, each of variance `sigma^2` for white noise."""
+    t, y = np.asarray(t, float), np.asarray(y, float)
+    _check_series(t, y)
+    n = len(t) - order
+    if n <= 0:
+        return np.zeros(0)
+    w, norm = _weights(t, order)
+    return sum(wj * y[j : j + n] for j, wj in enumerate(w)) / norm
+
+
+#: `noise_floors` works through a long series this many samples at a time, so that its
+#: temporaries (a dozen arrays of the chunk's length) stay small beside a 1 GB log
+CHUNK = 1 << 20
 
 
 def noise_floor(t, y, order: int = ORDER) -> float:
     """The model-free noise standard deviation of the samples `y` at times `t` (SI, the
     channel's unit; module docstring), 0 for `order` samples or fewer."""
-    e = pseudo_residuals(t, y, order)
-    return float(np.sqrt(np.mean(e**2))) if e.size else 0.0
+    return noise_floors(t, [y], order)[0]
+
+
+def noise_floors(t, ys, order: int = ORDER) -> list[float]:
+    """`noise_floor` of each series of `ys` sampled at the same times `t`: the weights,
+    which depend on the times alone, computed once for all of them. Overlapping chunks of
+    `CHUNK` samples (each chunk's last `order` samples start the next), so a long log needs
+    memory of one chunk, not of a dozen copies of the log."""
+    t = np.asarray(t, float)
+    ys = [np.asarray(y, float) for y in ys]
+    for y in ys:
+        _check_series(t, y)
+    n = len(t) - order
+    if n <= 0:
+        return [0.0] * len(ys)
+    totals = np.zeros(len(ys))
+    for start in range(0, n, CHUNK):
+        stop = min(start + CHUNK, n) + order
+        w, norm = _weights(t[start:stop], order)
+        m = stop - order - start
+        for k, y in enumerate(ys):
+            e = sum(wj * y[start + j : start + j + m] for j, wj in enumerate(w)) / norm
+            totals[k] += float(np.dot(e, e))
+    return [math.sqrt(total / n) for total in totals]
 
 
 def quantisation_noise(resolution: float) -> float:
@@ -113,9 +153,19 @@ def series_floor(t, y, resolution: float = 0.0) -> float:
     """The floor a fit of the samples `y` is judged against: `noise_floor`, at least
     `RESOLUTION` times their RMS (noise-free data) and at least the quantisation noise of
     the declared step `resolution` (SI, the channel's unit; 0: none declared)."""
-    y = np.asarray(y, float)
-    rms = float(np.sqrt(np.mean(y**2))) if y.size else 0.0
-    return max(noise_floor(t, y), RESOLUTION * rms, quantisation_noise(resolution))
+    return series_floors(t, [y], [resolution])[0]
+
+
+def series_floors(t, ys, resolutions) -> list[float]:
+    """`series_floor` of each series of `ys` sampled at the same times `t`, with its
+    declared step of `resolutions` (the weights computed once: `noise_floors`)."""
+    ys = [np.asarray(y, float) for y in ys]
+    floors = noise_floors(t, ys)
+    out = []
+    for y, floor, step in zip(ys, floors, resolutions, strict=True):
+        rms = math.sqrt(float(np.dot(y, y)) / y.size) if y.size else 0.0
+        out.append(max(floor, RESOLUTION * rms, quantisation_noise(step)))
+    return out
 
 
 def channel_floors(t, measured, valid, present, resolution=None) -> tuple[np.ndarray, np.ndarray]:
@@ -131,11 +181,12 @@ def channel_floors(t, measured, valid, present, resolution=None) -> tuple[np.nda
     step = np.zeros(C) if resolution is None else np.asarray(resolution, float)
     floor, count = np.zeros((L, C)), np.zeros((L, C), int)
     for l in range(L):
-        k = valid[l]
-        for j in range(C):
-            if present[l, j]:
-                floor[l, j] = series_floor(t[l, k], measured[l, k, j], step[j])
-                count[l, j] = int(k.sum())
+        n = int(valid[l].sum())
+        # (the valid samples are a log's first `n` unless `valid` says otherwise: views then)
+        t_l, m_l = (t[l, :n], measured[l, :n]) if valid[l, :n].all() else (t[l, valid[l]], measured[l, valid[l]])
+        recorded = np.flatnonzero(present[l])
+        floors = series_floors(t_l, [m_l[:, j] for j in recorded], step[recorded])
+        floor[l, recorded], count[l, recorded] = floors, n
     return floor, count
 
 

@@ -354,19 +354,24 @@ def make_problem(
     noise = dict(noise or {})
     sigma = _noise_levels(chain, noise, channels, padded)
     onset = _onsets(logs, channels, noise, sigma, padded, meas.resolutions(measurement, channels))
+    # each padded array dropped as soon as it is on the device: a 1 GB log's copies one at a time
+    device = {}
+    for field in ("measured", "torque_v", "t", "valid", "present", "y0_known"):
+        device[field] = jax.device_put(getattr(padded, field)).block_until_ready()  # (one copy, made now)
+        padded = padded._replace(**{field: None})
     return Problem(
         chain=chain,
         measurement=measurement,
         lower=jnp.asarray(free.lower),
         upper=jnp.asarray(free.upper),
-        t=jnp.asarray(padded.t),
-        valid=jnp.asarray(padded.valid),
-        measured=jnp.asarray(padded.measured),
-        present=jnp.asarray(padded.present),
+        t=device["t"],
+        valid=device["valid"],
+        measured=device["measured"],
+        present=device["present"],
         sigma=jnp.asarray(sigma),
-        torque_t=jnp.asarray(padded.t),
-        torque_v=jnp.asarray(padded.torque_v),
-        y0_known=jnp.asarray(padded.y0_known),
+        torque_t=device["t"],
+        torque_v=device["torque_v"],
+        y0_known=device["y0_known"],
         onset=jnp.asarray(onset, dtype=float),
         log_set=jnp.asarray(log_set),
         names=tuple(free.names),
@@ -464,12 +469,15 @@ def _padded_logs(chain, logs, channels: list[str]) -> _PaddedLogs:
     the log's channels."""
     states = state_names(chain)
     L, T, nj = len(logs), max(len(log.t) for log in logs), chain.n_links
+    # one log needs no padding: its times and torques are used as they are (read-only views,
+    # never written to), not copied: a 1 GB log's copies are what `identify check` holds
+    single = L == 1
     out = _PaddedLogs(
-        t=np.zeros((L, T)),
+        t=np.asarray(logs[0].t, float)[None] if single else np.zeros((L, T)),
         valid=np.zeros((L, T), bool),
         measured=np.zeros((L, T, len(channels))),
         present=np.zeros((L, len(channels)), bool),
-        torque_v=np.zeros((L, T, nj)),
+        torque_v=_single_torque(logs[0], nj) if single else np.zeros((L, T, nj)),
         y0_known=np.zeros((L, len(states))),
         y0_free=[],
         offset_free=[],
@@ -477,16 +485,15 @@ def _padded_logs(chain, logs, channels: list[str]) -> _PaddedLogs:
     for l, log in enumerate(logs):
         tl = np.asarray(log.t, float)
         k = len(tl)
-        out.t[l, :k], out.t[l, k:] = tl, tl[-1]
+        if not single:
+            out.t[l, :k], out.t[l, k:] = tl, tl[-1]
         out.valid[l, :k] = True
         for c, values in log.outputs.items():
             j = channels.index(c)
             out.measured[l, :k, j] = np.asarray(values, float)
             out.present[l, j] = True
-        if log.torque is not None:
-            tv = np.asarray(log.torque, float).reshape(k, -1)
-            if tv.shape[1] != nj:
-                raise ValueError(f"log {log.name!r}: torque has {tv.shape[1]} column(s), the rig has {nj} joint(s)")
+        if log.torque is not None and not single:
+            tv = _torque_columns(log, nj)
             out.torque_v[l, :k], out.torque_v[l, k:] = tv, tv[-1]
         for name, value in log.initial.items():
             if name not in states:
@@ -506,6 +513,21 @@ def _padded_logs(chain, logs, channels: list[str]) -> _PaddedLogs:
                 raise ValueError(f"log {log.name!r}: offset for channel {c!r}, which the log does not record")
             out.offset_free.append((l, channels.index(c)))
     return out
+
+
+def _torque_columns(log, nj: int) -> np.ndarray:
+    """A log's torque as `(samples, nj)` (a view where it can be), checked against the rig."""
+    tv = np.asarray(log.torque, float).reshape(len(log.t), -1)
+    if tv.shape[1] != nj:
+        raise ValueError(f"log {log.name!r}: torque has {tv.shape[1]} column(s), the rig has {nj} joint(s)")
+    return tv
+
+
+def _single_torque(log, nj: int) -> np.ndarray:
+    """The torque of a problem's only log, `(1, samples, nj)`: its own array, or zeros."""
+    if log.torque is None:
+        return np.zeros((1, len(log.t), nj))
+    return _torque_columns(log, nj)[None]
 
 
 def _noise_levels(chain, noise: dict, channels: list[str], padded: _PaddedLogs) -> list[float]:
@@ -540,14 +562,13 @@ def _onsets(logs, channels: list[str], noise: dict, sigma: list[float], padded: 
         # a channel given no noise level is judged at rest against at least its own
         # model-free floor in this log: 1 % of its RMS can be under its noise, and noise
         # would then be read as motion
-        at_rest = [
-            sigma[j]
-            if noise.get(c) is not None
-            else max(sigma[j], nf.series_floor(t[l, :k], measured[l, :k, j], resolution[j]))
-            for j, c in enumerate(channels)
-            if present[l, j]
-        ]
-        onset.append(log_onset(t[l, :k], torque_v[l, :k], measured[l, :k][:, present[l]], np.asarray(at_rest)))
+        own = [j for j, c in enumerate(channels) if present[l, j] and noise.get(c) is None]
+        floors = dict(
+            zip(own, nf.series_floors(t[l, :k], [measured[l, :k, j] for j in own], [resolution[j] for j in own]))
+        )
+        at_rest = [max(sigma[j], floors[j]) if j in floors else sigma[j] for j in range(len(channels)) if present[l, j]]
+        recorded = measured[l, :k] if present[l].all() else measured[l, :k][:, present[l]]  # (a view if it can)
+        onset.append(log_onset(t[l, :k], torque_v[l, :k], recorded, np.asarray(at_rest)))
     return onset
 
 

@@ -792,3 +792,26 @@ def test_a_diagnosis_interrupted_in_its_rounds_writes_what_it_accepted(tmp_path,
     assert json.loads((out / "diagnosis.json").read_text())["interrupted"] == text
     assert "status: interrupted, the report of what was accepted before it" in (out / MARKER).read_text()
     assert f"exit status 130: {text}; the report of what was accepted before it is written" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("example", ["pendulum_friction", "ros_bag_link"])
+def test_check_takes_the_noise_floors_from_the_logs_as_the_fit_does(example):
+    """`identify check` computes the fit logs' noise floors from the logs' own arrays (not
+    copied off the device: a 1 GB log's 0.6 GB): the same values as the fit's
+    `noise_floors(problem)`, a ROS bag's nanosecond stamps included."""
+    import argparse
+
+    import numpy as np
+
+    from identify._fit.quality import noise_floors
+    from identify._workflow import problem_from_experiment
+    from identify.cli.check_command import _fit_log_floors
+    from identify.cli.output import _load_experiment
+
+    path = EXAMPLE.parent / example / "experiment.toml"
+    exp = _load_experiment(argparse.Namespace(experiment=path, any_rate=False))
+    problem = problem_from_experiment(exp)
+    floor, count = _fit_log_floors(exp, problem.channels)
+    expected_floor, expected_count = noise_floors(problem)
+    np.testing.assert_allclose(floor, expected_floor, rtol=1e-12)
+    np.testing.assert_array_equal(count, expected_count)

@@ -4,6 +4,7 @@ kind of malformed log (file, line, column or variable, and what was expected).""
 import math
 import os
 import re
+import sys
 import warnings
 
 import numpy as np
@@ -978,13 +979,24 @@ def mixed_rows(n=400):
     return rows
 
 
+def _without_pyarrow(monkeypatch):
+    """Imports of PyArrow fail from here on (an install without it: `pip --no-deps`)."""
+    for name in ("pyarrow", "pyarrow.csv"):
+        monkeypatch.setitem(sys.modules, name, None)
+
+
+@pytest.mark.parametrize("reader", ["pyarrow", "loadtxt"])
 @pytest.mark.parametrize("newline", ["\n", "\r\n"])
-def test_the_fast_reader_reads_what_the_careful_one_reads(tmp_path, monkeypatch, newline):
-    """The rows are read in chunks (here of 300 bytes): `np.loadtxt` for plain ones, the
-    careful line-by-line reader for the rest; the results agree bit for bit, line numbers
-    included."""
+def test_the_fast_reader_reads_what_the_careful_one_reads(tmp_path, monkeypatch, newline, reader):
+    """The rows are read in chunks (here of 300 bytes): PyArrow (or `np.loadtxt` without
+    it) for plain ones, the careful line-by-line reader for the rest; the results agree bit
+    for bit, line numbers included."""
     from identify._data import csv_log, csv_rows
 
+    if reader == "loadtxt":
+        _without_pyarrow(monkeypatch)
+    else:
+        pytest.importorskip("pyarrow")
     monkeypatch.setattr(csv_rows, "CHUNK_BYTES", 300)
     careful = []
     monkeypatch.setattr(csv_rows, "_careful", lambda *a, _f=csv_rows._careful: careful.append(1) or _f(*a))
@@ -1043,16 +1055,25 @@ def test_a_log_too_large_for_the_memory_is_refused_before_it_is_read(tmp_path, m
 TRICKY_CELLS = [
     "1", "-1.5", "+.5", "5.", "1e5", "1.5E-3", "-0.000", "nan", "-NaN", "inf", "-Infinity", "1_0", "-16_6.9411",
     "0x10", "1,5", "1,234.5", "1.234,5", "1 234", "1'234", "١٢", "１２", "1e", "e5", ".", "+", "--1", "1.5f",
-    "nan(1)", "1d5", " 2.5 ", "\t3", "",
+    "nan(1)", "1d5", " 2.5 ", "\t3", "", "NA", "null", "N/A", "0x1p3", "1e400", "4.9e-324", "1.#INF",
 ]  # fmt: skip
 
 
+@pytest.mark.parametrize("reader", ["pyarrow", "loadtxt"])
 @pytest.mark.parametrize("decimal", [".", ","])
-def test_one_number_grammar_for_both_readers(decimal):
-    """The careful reader's `parse_number`, the grammar its messages use, and `np.loadtxt`
-    (the fast reader, after a decimal comma is turned into a point) agree on every cell:
-    which reader reads a chunk never changes a value or what is refused."""
+def test_one_number_grammar_for_both_readers(decimal, reader, monkeypatch):
+    """The careful reader's `parse_number`, the grammar its messages use, and the fast
+    reader (PyArrow, or `np.loadtxt` without it; after a decimal comma is turned into a
+    point) agree on every cell: which reader reads a chunk never changes a value or what is
+    refused (a cell the fast reader refuses goes to the careful one)."""
     from identify._data.csv_numbers import _NUMBER, parse_number
+    from identify._data.csv_rows import Columns, _numbers
+
+    if reader == "loadtxt":
+        _without_pyarrow(monkeypatch)
+    else:
+        pytest.importorskip("pyarrow")
+    columns = Columns(1, ["t", "x"], ";", ".", [2])
 
     for cell in TRICKY_CELLS:
         try:
@@ -1062,9 +1083,8 @@ def test_one_number_grammar_for_both_readers(decimal):
         assert (value is not None) == bool(_NUMBER[decimal].fullmatch(cell.strip())), cell
         if decimal == "," and "." in cell:
             continue  # (the fast reader leaves such a chunk to the careful one)
-        try:
-            fast = float(np.loadtxt([f"0;{cell.replace(',', '.') if decimal == ',' else cell}"], delimiter=";")[1])
-        except ValueError:
-            fast = None
+        row = f"0;{cell.replace(',', '.') if decimal == ',' else cell}\n".encode()
+        read = _numbers(row, columns, 1)
+        fast = None if read is None else float(read[0, 0])
         if fast is not None:
             assert value is not None and (value == fast or (math.isnan(value) and math.isnan(fast))), cell

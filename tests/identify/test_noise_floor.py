@@ -210,3 +210,20 @@ def test_a_dithered_quantised_signal_is_measured_and_the_declared_step_changes_n
     se = 1.146 / np.sqrt(len(t) - nf.ORDER)
     assert nf.noise_floor(t, counts) == pytest.approx(q * np.sqrt(1 + 1 / 12), rel=4 * se)
     assert nf.series_floor(t, counts, resolution=q) == nf.series_floor(t, counts)
+
+
+@pytest.mark.parametrize("n", [5, 6, 7, 64, 65, 66, 67, 1000])
+def test_the_floor_of_a_long_series_is_taken_in_chunks_without_changing_it(monkeypatch, n):
+    """`noise_floor` works through overlapping chunks (`CHUNK` samples, small here): the
+    same value as from all pseudo-residuals at once, for lengths about the chunk edges."""
+    monkeypatch.setattr(nf, "CHUNK", 61)
+    rng = np.random.default_rng(n)
+    t = np.cumsum(rng.uniform(0.5, 1.5, n)) * 1e-3
+    y = np.sin(7 * t) + rng.normal(0, 0.01, n)
+    e = nf.pseudo_residuals(t, y)
+    assert nf.noise_floor(t, y) == pytest.approx(float(np.sqrt(np.mean(e**2))), rel=1e-13)
+    # several series at the same times: the weights once, each series' own floor
+    z = np.cos(3 * t) + rng.normal(0, 0.1, n)
+    e_z = nf.pseudo_residuals(t, z)
+    assert nf.noise_floors(t, [y, z]) == pytest.approx([nf.noise_floor(t, y), np.sqrt(np.mean(e_z**2))], rel=1e-13)
+    assert nf.series_floors(t, [y, z], [0.0, 1.0]) == pytest.approx([nf.series_floor(t, y), 1 / np.sqrt(12)])
