@@ -332,11 +332,10 @@ def _retry_wider(
         options.max_steps,
     )
     c2, s2, xe_out = np.asarray(c2, dtype=float)[:n], np.asarray(s2)[:n], np.asarray(out.xe)[:n]
-    costs, steps = costs.copy(), steps.copy()
+    costs, steps, retry = costs.copy(), steps.copy(), _Starts(xe_r, starts.n_layout)
     for lab in stayed:
         mine = [b for b, c in enumerate(owners) if c.label == lab]
         new = [r for r, c in enumerate(row_owner) if c.label == lab and np.isfinite(c2[r])]
-        retry = _Starts(xe_r, starts.n_layout)
         new.sort(key=lambda r: (not retry.left(superset, row_owner[r], xe_out[r], r), c2[r]))
         for b, r in zip(mine, new):
             vs = jax.tree_util.tree_map(lambda v, o, b=b, r=r: v.at[b].set(o[r]), vs, out)
