@@ -16,13 +16,17 @@ the chain's parts), switched on at a neutral value that reproduces the baseline 
 | `base_tilt`          | a horizontal-plane rig tilted: in-plane gravity    | `gravity[0]`, `gravity[1]` (m/s^2)  |
 | `geometric_stiffening` | axial-load stiffness of flexible link i (spin, weight) | (structure; refits the baseline) |
 
-`implausible(name, values, ...)` says when a named cause's fitted values are outside what
+`implausible(name, values, ...)` says when a candidate's fitted values are outside what
 the component plausibly does on a working rig (a calibration error beyond 2x, a tilt of
 more than 10 deg, dry friction above the torques that move the rig, a delay or lag longer
 than a tenth of the log, an AC-coupling corner above the lowest mode): such a value is
 usually standing in for an effect the catalogue lacks, as two sensor gains of 12 and 17
 stood in for the missing geometric stiffening of a spinning link before the catalogue had
-that entry.
+that entry. A candidate that passes the search's tests with such values is not named
+(`Plausibility.judge`, on one rig and its logs).
+
+`wider_starts(...)`: the starts a continuous candidate is fitted from again when its fit
+never left its own.
 
 A channel whose sensor declares its kind (`identify.measurement.KINDS`) is offered only the
 sensor effects that kind can have (`kind_left_out` says which are not, and why):
@@ -170,6 +174,20 @@ def implausible(
     hub standing still between moves is what friction does);
     `log_duration` (s): the shortest log's; `lowest_mode_hz`: the baseline's lowest
     positive natural frequency (None if it has none)."""
+    out = _implausible_values(
+        name, values, torque_scale=torque_scale, log_duration=log_duration, lowest_mode_hz=lowest_mode_hz
+    )
+    return out + [STANDING_IN] if out else out
+
+
+#: what `implausible` adds after the values it names
+STANDING_IN = "the value is probably standing in for an effect the catalogue lacks: read the model checks"
+
+
+def _implausible_values(
+    name: str, values: dict, *, torque_scale: float, log_duration: float, lowest_mode_hz: float | None
+) -> list[str]:
+    """`implausible`'s sentences about the values, without the closing one."""
     out = []
     for n, v in values.items():
         v = float(v)
@@ -201,9 +219,73 @@ def implausible(
                 f"a tilt of {np.degrees(np.arcsin(g / 9.81)):.3g} deg: more than {MAX_TILT_DEG:g} deg on a rig "
                 "meant to be horizontal"
             )
-    if out:
-        out.append("the value is probably standing in for an effect the catalogue lacks: read the model checks")
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Plausibility:
+    """What `implausible` judges a candidate's fitted values against on one rig and its
+    logs: `torque_scale` (N m), `log_duration` (s, the shortest fit log's) and
+    `lowest_mode_hz` (None without a mode), as `implausible` takes them."""
+
+    torque_scale: float
+    log_duration: float
+    lowest_mode_hz: float | None
+
+    def judge(self, cand: Candidate, values: dict) -> list[str]:
+        """`implausible` of candidate `cand` at its fitted `values` (parameter name -> SI
+        value): a pair (`Candidate.members`) is implausible when either member's values
+        are; the closing sentence is said once."""
+        out = []
+        for member in cand.members or (cand,):
+            mine = {n: values[n] for n in member.params if n in values}
+            out += _implausible_values(
+                member.name,
+                mine,
+                torque_scale=self.torque_scale,
+                log_duration=self.log_duration,
+                lowest_mode_hz=self.lowest_mode_hz,
+            )
+        return out + [STANDING_IN] if out else out
+
+
+#: `wider_starts`: how far beyond a candidate's own starts its second try goes
+WIDER_ABOVE, WIDER_BELOW = 10.0, 100.0
+
+
+def wider_starts(cand: Candidate, scale: dict) -> tuple[tuple[float, ...], ...]:
+    """Two starts of `cand` spread wider than its own (`Candidate.starts`), for a fit that
+    never left them: every log-scale parameter `WIDER_ABOVE` times above its largest start,
+    then `WIDER_BELOW` times below its smallest; every signed one at `+WIDER_ABOVE` and
+    `-WIDER_ABOVE` times its scale (its largest start's magnitude, or `scale[name]` where
+    every start is 0: `signed_scale`)."""
+    above, below = [], []
+    for i, (n, log) in enumerate(zip(cand.params, cand.log_scale)):
+        values = [float(s[i]) for s in cand.starts]
+        if log:
+            above.append(WIDER_ABOVE * max(values))
+            below.append(min(values) / WIDER_BELOW)
+        else:
+            size = max(abs(v) for v in values) or float(scale[n])
+            above.append(WIDER_ABOVE * size)
+            below.append(-WIDER_ABOVE * size)
+    return tuple(above), tuple(below)
+
+
+#: `signed_scale` of a base tilt's in-plane gravity: a 0.5 deg tilt (the wider starts at
+#: 10x it are a 5 deg tilt, inside `MAX_TILT_DEG`)
+TILT_SCALE = 9.81 * float(np.sin(np.radians(0.5)))
+
+
+def signed_scale(name: str, noise: dict) -> float:
+    """The size of signed parameter `name` for `wider_starts` where its starts are all 0: a
+    sensor offset's channel noise (`noise`: channel -> standard deviation, SI), a tilt's
+    `TILT_SCALE` (m/s^2); 1 for anything else."""
+    if name.startswith("gravity["):
+        return TILT_SCALE
+    if name.startswith("sensor.") and name.endswith(".offset"):
+        return float(noise.get(name.split(".")[1], 1.0))
+    return 1.0
 
 
 def _none(x):

@@ -68,7 +68,7 @@ def score_continuous(
     if not owners:
         options.say("  no continuous candidate is predicted to improve the fit significantly")
     else:
-        vs, costs, best, size = _fit_starts(
+        vs, costs, best, size, not_fitted = _fit_starts(
             superset, options, state, v_start, owners, remaining, idx, logf, xe, predicted
         )
         labels = [c.label for c in remaining if c.label in best]
@@ -81,6 +81,9 @@ def score_continuous(
         fits = CandidateFits(vs, best, idx, logf, held.residuals(thetas, state.step), labels, size)
         for i, lab in enumerate(labels):
             c = next(x for x in remaining if x.label == lab)
+            if lab in not_fitted:
+                scores.append(_not_fitted_score(options, state, c, float(costs[best[lab]]), not_fitted[lab]))
+                continue
             scores.append(
                 _fitted_score(superset, held, options, state, c, float(costs[best[lab]]), thetas[i], fits.ho[i])
             )
@@ -166,20 +169,18 @@ def _fit_starts(
     superset: Superset, options: SearchOptions, state: SearchState, v_start, owners, remaining, idx, logf, xe, predicted
 ):
     """The starts `owners` (slot layouts `idx`, `logf`, extension values `xe`) fitted from
-    `v_start` in one vmapped call, at a finer step if the best one needs it (`_step_check`),
-    the contenders continued (`_refine`). Returns the variables and costs of every start, each
-    candidate's best start, and `(batch size, seconds the call took)`."""
+    `v_start` in one vmapped call; the candidates none of whose starts moved their
+    parameters fitted again from wider starts (`_retry_wider`); at a finer step if the best
+    one needs it (`_step_check`), the contenders continued (`_refine`). Returns the
+    variables and costs of every start, each candidate's best start, `(batch size, seconds
+    the call took)`, and the candidates whose fit never left its starts, label -> why
+    (`_never_left`)."""
     joint, sigma_j, max_steps, say = superset.joint, superset.sigma_j, options.max_steps, options.say
     B = len(owners)
-    v0 = JointVariables(
-        offset=jnp.tile(v_start.offset, (B, 1)),
-        xe=jnp.asarray(xe),
-        y0=jnp.tile(v_start.y0, (B, 1)),
-        zb=jnp.tile(_unsaturated(joint, v_start.zb), (B, 1)),
-    )
+    v0 = _start_variables(joint, v_start, xe)
     say(f"round {state.round + 1}: fitting {len(remaining)} candidates ({B} starts) in one vmapped call ...")
     # padded to a few fixed sizes, so that every round reuses the compiled programs
-    size = next(b for b in (3, 6, 12, 24, 10**9) if b >= B) if B <= 24 else B
+    size = _batch_size(B)
     t_call = time.perf_counter()
     vs, costs, steps = _fit_batch(
         joint, _pad(v0, size), _pad(idx, size), _pad(logf, size), sigma_j, state.step, max_steps
@@ -187,6 +188,14 @@ def _fit_starts(
     costs = np.asarray(costs, dtype=float)  # waits for the call
     call_s = time.perf_counter() - t_call
     vs, costs, steps, best = _best_starts(vs, costs, steps, owners)
+    starts = _Starts(np.asarray(xe, dtype=float).copy(), len(state.current.layout))
+    stayed = starts.stayed(superset, vs, costs, owners)
+    tried, wider = {lab: starts.values(owners, lab) for lab in stayed}, {}
+    if stayed:
+        vs, costs, steps, wider = _retry_wider(
+            superset, options, state, v_start, stayed, owners, vs, costs, steps, starts
+        )
+        vs, costs, steps, best = _best_starts(vs, costs, steps, owners)
     finer = _step_check(superset, options, state, vs, costs, best, owners, idx, logf)
     if finer is not None:  # the fits go on from where they are, at the finer step
         state.step = finer
@@ -216,7 +225,136 @@ def _fit_starts(
         say,
         predicted=predicted,
     )
-    return vs, costs, best, sized
+    still = set(starts.stayed(superset, vs, costs, owners)) & set(stayed)
+    by_label = {c.label: c for c in owners}
+    return vs, costs, best, sized, {lab: _never_left(by_label[lab], tried[lab], wider[lab]) for lab in still}
+
+
+def _batch_size(n: int) -> int:
+    """The batch size `n` starts are padded to: one of a few fixed sizes (3, 6, 12, 24), so
+    that every round reuses the compiled programs; `n` itself above them."""
+    return next(b for b in (3, 6, 12, 24) if b >= n) if n <= 24 else n
+
+
+def _start_variables(joint, v_start: JointVariables, xe) -> JointVariables:
+    """The joint model's variables of a batch of starts: `v_start`'s (the baseline part
+    pulled off its bounds, `_unsaturated`) with each start's extension values `xe` (rows)."""
+    B = len(xe)
+    return JointVariables(
+        offset=jnp.tile(v_start.offset, (B, 1)),
+        xe=jnp.asarray(xe),
+        y0=jnp.tile(v_start.y0, (B, 1)),
+        zb=jnp.tile(_unsaturated(joint, v_start.zb), (B, 1)),
+    )
+
+
+#: `_Starts.stayed`: a fit whose every parameter changed by less than this, relative to
+#: its start (to its scale for a signed one starting at 0), never left its start
+MOVED_RTOL = 1e-9
+
+
+@dataclasses.dataclass
+class _Starts:
+    """The extension values each start of a candidate batch began from (`xe`: rows, natural
+    values, a log-scale slot's the logarithm), the candidate's own slots after the
+    `n_layout` accepted ones; rows are replaced where a start is (`_retry_wider`)."""
+
+    xe: np.ndarray
+    n_layout: int
+
+    def _slots(self, c) -> slice:
+        return slice(self.n_layout, self.n_layout + len(c.params))
+
+    def left(self, superset: Superset, c, fitted, b: int) -> bool:
+        """Whether start `b` of candidate `c` moved any of its parameters (`MOVED_RTOL`)
+        to the fitted extension values `fitted` (its row)."""
+        sl = self._slots(c)
+        x0, x = self.xe[b, sl], np.asarray(fitted, dtype=float)[sl]
+        noise = dict(zip(superset.problem.channels, superset.sigma))
+        size = [1.0 if log else max(abs(v), cat.signed_scale(n, noise)) for n, log, v in zip(c.params, c.log_scale, x0)]
+        return bool(np.any(np.abs(x - x0) > MOVED_RTOL * np.asarray(size)))
+
+    def stayed(self, superset: Superset, vs: JointVariables, costs, owners) -> list[str]:
+        """The labels of the candidates with a finished start (finite cost) and none that
+        moved its parameters (`left`), in batch order."""
+        xe, moved = np.asarray(vs.xe), {}
+        for b, c in enumerate(owners):
+            if np.isfinite(costs[b]):
+                moved[c.label] = moved.get(c.label, False) or self.left(superset, c, xe[b], b)
+        return [lab for lab, m in moved.items() if not m]
+
+    def values(self, owners, label: str) -> list[tuple[float, ...]]:
+        """The starting values (SI) of `label`'s rows, one tuple per row."""
+        out = []
+        for b, c in enumerate(owners):
+            if c.label == label:
+                x = self.xe[b, self._slots(c)]
+                out.append(tuple(float(np.exp(v)) if log else float(v) for v, log in zip(x, c.log_scale)))
+        return out
+
+
+def _retry_wider(
+    superset: Superset, options: SearchOptions, state: SearchState, v_start, stayed, owners, vs, costs, steps, starts
+):
+    """Fit the candidates `stayed` (labels) again from starts wider than their own
+    (`catalogue.wider_starts`), in one more call padded to the round's batch size (the same
+    compiled program, where they fit in it). Each one's rows take the new fits, those that
+    left their start first, then by cost (a candidate with fewer rows than new starts keeps
+    the best); `starts` is updated with them. Returns the variables, costs and step counts,
+    and each candidate's wider starts (label -> value tuples, SI)."""
+    joint, layout, say = superset.joint, list(state.current.layout), options.say
+    noise = dict(zip(superset.problem.channels, superset.sigma))
+    by_label = {c.label: c for c in owners}
+    rows, row_owner, wider = [], [], {}
+    for lab in stayed:
+        c = by_label[lab]
+        wider[lab] = list(cat.wider_starts(c, {n: cat.signed_scale(n, noise) for n in c.params}))
+        for s in wider[lab]:
+            rows.append(superset.layout(layout + [(n, val, lg) for n, val, lg in zip(c.params, s, c.log_scale)]))
+            row_owner.append(c)
+    idx_r = jnp.asarray(np.stack([r[0] for r in rows]))
+    logf_r = jnp.asarray(np.stack([r[1] for r in rows]))
+    xe_r = np.stack([r[2] for r in rows])
+    n = len(rows)
+    size = max(_batch_size(len(owners)), _batch_size(n))
+    say(
+        f"  round {state.round + 1}: {', '.join(stayed)}: the fit never left its starts; fitting again from wider "
+        f"starts ({n} in one call) ..."
+    )
+    v0 = _start_variables(joint, v_start, xe_r)
+    out, c2, s2 = _fit_batch(
+        joint,
+        _pad(v0, size),
+        _pad(idx_r, size),
+        _pad(logf_r, size),
+        superset.sigma_j,
+        state.step,
+        options.max_steps,
+    )
+    c2, s2, xe_out = np.asarray(c2, dtype=float)[:n], np.asarray(s2)[:n], np.asarray(out.xe)[:n]
+    costs, steps, retry = costs.copy(), steps.copy(), _Starts(xe_r, starts.n_layout)
+    for lab in stayed:
+        mine = [b for b, c in enumerate(owners) if c.label == lab]
+        new = [r for r, c in enumerate(row_owner) if c.label == lab and np.isfinite(c2[r])]
+        new.sort(key=lambda r: (not retry.left(superset, row_owner[r], xe_out[r], r), c2[r]))
+        for b, r in zip(mine, new):
+            vs = jax.tree_util.tree_map(lambda v, o, b=b, r=r: v.at[b].set(o[r]), vs, out)
+            costs[b], steps[b], starts.xe[b] = c2[r], s2[r], xe_r[r]
+    return vs, costs, steps, wider
+
+
+def _never_left(c, first: list, last: list) -> str:
+    """`Score.not_fitted` of candidate `c`, whose fit never left its start: from its own
+    starts `first`, then from the wider ones `last` (value tuples, SI)."""
+
+    def text(values):
+        return ", ".join("(" + ", ".join(f"{v:.3g}" for v in s) + ")" if len(s) > 1 else f"{s[0]:.3g}" for s in values)
+
+    names = c.params[0] if len(c.params) == 1 else "(" + ", ".join(c.params) + ")"
+    return (
+        f"its fit never left its start from {len(first) + len(last)} starts ({names} = {text(first)}, then wider "
+        f"{text(last)}): no evidence for or against the effect"
+    )
 
 
 def _step_check(superset: Superset, options: SearchOptions, state: SearchState, vs, costs, best, owners, idx, logf):
@@ -249,8 +387,10 @@ def _fitted_score(
 ) -> Score:
     """The scores of candidate `c` fitted to cost `cost_c` at parameters `theta` (held-out
     residual `r_ho`) against the current model: dBIC `N ln(C_c / C) + k ln N`, the F-test's
-    p-value, the held-out gain (ratio of RMS) and its standard error. A fit that ended above
-    the model it holds as a limit is noted (`_stuck_above_nested`)."""
+    p-value, the held-out gain (ratio of RMS) and its standard error. It is accepted when it
+    passes both tests with plausible values (`SearchOptions.plausibility`; a pair's, both
+    members'). A fit that ended above the model it holds as a limit is noted
+    (`_stuck_above_nested`)."""
     current, N, nb, problem = state.current, superset.N, superset.joint.nb, superset.problem
     k = len(c.params)
     dbic = N * math.log(max(cost_c, 1e-300) / current.cost) + k * math.log(N)
@@ -268,6 +408,8 @@ def _fitted_score(
         state.notes.append({"round": state.round + 1, "text": stuck})
     theta = np.asarray(theta)
     values = {n: float(theta[nb + superset.ext_names.index(n)]) for n in c.params}
+    passes = bool(dbic < -options.bic_threshold and gain >= options.min_gain)
+    implausible = options.plausibility.judge(c, values) if passes else []
     return Score(
         c.name,
         c.where,
@@ -277,10 +419,35 @@ def _fitted_score(
         p_value,
         _rms_per_channel(held.problem, _pad_used(r_ho, held.used), superset.sigma),
         float(gain),
-        bool(dbic < -options.bic_threshold and gain >= options.min_gain),
+        passes and not implausible,
         k,
         members=tuple(m.label for m in c.members),
         held_out_gain_se=gain_standard_error(np.asarray(current.ho), np.asarray(r_ho)),
+        implausible=implausible,
+    )
+
+
+def _not_fitted_score(options: SearchOptions, state: SearchState, c, cost_c: float, reason: str) -> Score:
+    """A candidate whose fit never left its start (`_never_left`: `reason`), at the cost its
+    best start ended at: no dBIC, p-value or held-out gain (NaN), never accepted; said and
+    noted (`Diagnosis.notes`)."""
+    text = f"{c.label}: not fitted: {reason}; it has no detection limit"
+    options.say(f"  round {state.round + 1}: {text}")
+    state.notes.append({"round": state.round + 1, "text": text})
+    nan = float("nan")
+    return Score(
+        c.name,
+        c.where,
+        {},
+        cost_c,
+        nan,
+        nan,
+        {},
+        nan,
+        False,
+        len(c.params),
+        members=tuple(m.label for m in c.members),
+        not_fitted=reason,
     )
 
 
@@ -327,6 +494,7 @@ def pair_search(
         for s in scores
         if not s.accepted
         and not s.screened
+        and not s.not_fitted
         and not s.members
         and s.delta_bic < -options.bic_threshold
         and any(c.label == s.label and not c.structural for c in cands)

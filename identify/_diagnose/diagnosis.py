@@ -26,8 +26,8 @@ from . import catalogue as cat, evidence as ev
 from .held_out import HeldOutSet, _floor_per_channel, _held_out_summary, limits_at_end
 from .joint_model import Superset, _bounds, _jacobian, _pad_used, _predict
 from .notes import note_text
-from .scores import Cause, _limit_text, _rms_per_channel, round_verdicts
-from .state import CurrentModel, SearchOptions, SearchState, Signals
+from .scores import Cause, _limit_text, _rms_per_channel, not_fitted_of, round_verdicts
+from .state import CurrentModel, SearchOptions, SearchState
 
 #: what `Diagnosis.detection_limits` are, as the summary and the report say it
 DETECTION_LIMITS_MEANING = (
@@ -105,6 +105,34 @@ class Diagnosis:
     @property
     def named(self) -> list[str]:
         return [c.name for c in self.causes]
+
+    @property
+    def not_fitted(self) -> dict:
+        """The catalogue candidates the search could not test: those whose fit never left
+        its start in the last round that tried them (`Score.not_fitted`), label ->
+        `"round n: why"`. Neither evidence against them nor a detection limit."""
+        return not_fitted_of(self.rounds)
+
+    def not_fitted_lines(self) -> list[str]:
+        """A line per candidate of `not_fitted`."""
+        return [f"{lab}: not fitted ({why}): no detection limit" for lab, why in self.not_fitted.items()]
+
+    @property
+    def implausible(self) -> list[str]:
+        """The labels of the candidates that passed both tests in some round but were not
+        named because their fitted values are implausible (`Score.implausible`), in order."""
+        out = []
+        for scores in self.rounds:
+            out += [s.label for s in scores if s.implausible and s.label not in out]
+        return out
+
+    @property
+    def unexplained_hint(self) -> str:
+        """What the line of a channel `left_unexplained` adds about the candidates not
+        fitted (the search did not rule them out), or ''."""
+        if not self.not_fitted:
+            return ""
+        return f"; not ruled out: {', '.join(self.not_fitted)}, whose fits never left their starts"
 
     @property
     def left_unexplained(self) -> list[str]:
@@ -189,6 +217,11 @@ class Diagnosis:
                     lines.append(f"    MARGINAL: {self.marginal_text(c)}")
         else:
             lines.append("no catalogue entry explains the residual significantly (see the evidence and the scores)")
+        if self.implausible:
+            lines.append(
+                f"not named, passing only with implausible values: {', '.join(self.implausible)} (see the scores and "
+                "the notes): probably standing in for an effect the catalogue lacks"
+            )
         for line in self.at_bound_lines():
             lines.append(f"on a bound: {line}")
         for check in self.model_checks:
@@ -212,6 +245,7 @@ class Diagnosis:
                 f"  {c}: the {'extended' if self.causes else 'baseline'} model's held-out residual is still "
                 f"{ratio:.3g} times the noise floor: an effect is left unexplained (or the noise is not white, "
                 "or the logged input is noisy: noise on a torque column drives the model, not the rig)"
+                + self.unexplained_hint
             )
         for name, by_log in self.per_log.items():
             unit = _unit(self.baseline.problem, name)
@@ -229,9 +263,9 @@ class Diagnosis:
         if self.not_tried:
             lines.append("not tried:")
             lines.extend(f"  {n}: {why}" for n, why in self.not_tried.items())
-        if self.detection_limits:
+        if self.detection_limits or self.not_fitted:
             lines.append(f"detection limits ({DETECTION_LIMITS_MEANING}):")
-            lines.extend(f"  {text}" for text in self.detection_limit_lines())
+            lines.extend(f"  {text}" for text in self.detection_limit_lines() + self.not_fitted_lines())
         for r, scores in enumerate(self.rounds, start=1):
             lines.append("")
             lines.append(f"round {r}: candidates (best first)")
@@ -241,6 +275,9 @@ class Diagnosis:
             for s in scores:
                 if s.screened:
                     lines.append(f"  {s.label:<{w}} {s.delta_bic:>10.1f}   (predicted; not fitted: {s.screen_reason})")
+                    continue
+                if s.not_fitted:
+                    lines.append(f"  {s.label:<{w}} {'--':>10}   {verdict[s.label]}")
                     continue
                 lines.append(
                     f"  {s.label:<{w}} {s.delta_bic:>10.1f} {s.p_value:>9.2g} {s.held_out_gain:>13.3f}x  "
@@ -270,6 +307,7 @@ class Diagnosis:
             "notes": self.notes,
             "not_tried": self.not_tried,
             "detection_limits": self.detection_limits,
+            "not_fitted": self.not_fitted,
             "per_log": self.per_log,
             "held_out_logs": list(self.held_out_logs),
             "modal_frequencies_hz": self.modal_frequencies_hz,
@@ -435,10 +473,11 @@ def _extended_intervals(base: FitResult, superset: Superset, current: CurrentMod
     return ext_intervals, ext_values
 
 
-def _causes(state: SearchState, ext_values: dict, chain: fd.Chain, signals: Signals, fit_logs) -> list[Cause]:
+def _causes(state: SearchState, ext_values: dict, plausibility: cat.Plausibility) -> list[Cause]:
     """A `Cause` per accepted entry, its parameters from `ext_values` (a continuous one) or
     its structural model's own fit (replaced by the stacked search's, `_stacked`), with the
-    warnings of fitted values the component does not plausibly reach (`catalogue.implausible`)."""
+    warnings of fitted values the component does not plausibly reach (`plausibility`): a
+    cause accepted with plausible values can reach such values in the final joint refit."""
     causes = []
     for accepted in state.accepted:
         wc, sc = accepted.candidate, accepted.score
@@ -449,7 +488,6 @@ def _causes(state: SearchState, ext_values: dict, chain: fd.Chain, signals: Sign
             }
         else:
             params = {n: ext_values[n] for n in wc.params}
-        positive_modes = signals.positive_modes
         causes.append(
             Cause(
                 wc.name,
@@ -460,13 +498,7 @@ def _causes(state: SearchState, ext_values: dict, chain: fd.Chain, signals: Sign
                 sc.held_out_gain,
                 held_out_gain_se=sc.held_out_gain_se,
                 together_with=list(accepted.together_with),
-                warnings=cat.implausible(
-                    wc.name,
-                    {n: p["value"] for n, p in params.items()},
-                    torque_scale=cat.characteristic_torque(chain, signals.torque_peak),
-                    log_duration=min(float(np.ptp(np.asarray(log.t, float))) for log in fit_logs),
-                    lowest_mode_hz=min(positive_modes) if positive_modes else None,
-                ),
+                warnings=plausibility.judge(wc, {n: p["value"] for n, p in params.items()}),
             )
         )
     return causes
@@ -530,9 +562,7 @@ def assemble(
     baseline: CurrentModel,
     state: SearchState,
     cands,
-    signals: Signals,
     modal: list,
-    fit_logs,
     not_tried: dict,
 ) -> Diagnosis:
     """The `Diagnosis` of a search that ended at `state` (totals: `_with_totals`): the extended
@@ -541,7 +571,7 @@ def assemble(
     search goes on from a structural model, `state.stack_on`, which reports them)."""
     current, step, problem = state.current, state.step, base.problem
     ext_intervals, ext_values = _extended_intervals(base, superset, current, step)
-    causes = _causes(state, ext_values, base.chain, signals, fit_logs)
+    causes = _causes(state, ext_values, options.plausibility)
     rms_base = _rms_per_channel(held.problem, _pad_used(baseline.ho, held.used), superset.sigma)
     rms_ext = _rms_per_channel(held.problem, _pad_used(current.ho, held.used), superset.sigma)
     ho_cost0, ho_cost1 = float(baseline.ho @ baseline.ho), float(current.ho @ current.ho)
@@ -565,8 +595,9 @@ def assemble(
     limits = {}
     if state.stack_on is None:
         options.say("detection limits of the candidates not named ...")
-        done = state.done
-        candidates = [c for c in cands if not c.structural and c.label not in done]
+        # (not for a candidate whose fit never left its start: the search did not test it)
+        skip = state.done | set(not_fitted_of(state.rounds))
+        candidates = [c for c in cands if not c.structural and c.label not in skip]
         limits = limits_at_end(
             superset, held, current, unknowns, candidates, step, options.bic_threshold, options.min_gain
         )

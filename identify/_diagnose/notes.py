@@ -37,7 +37,8 @@ def _after_continuous_at_noise(labels: set, scores, fits, problem, min_gain: flo
     residual to the noise (`_no_headroom` of its held-out residual; the decision goes to
     `notes`)."""
     passing = [s for s in scores if s.accepted and not s.members and s.label in fits["labels"]]
-    fitted = [s for s in scores if not s.screened and not s.members]
+    # (a candidate not fitted has no dBIC: `Score.not_fitted`)
+    fitted = [s for s in scores if not s.screened and not s.members and np.isfinite(s.delta_bic)]
     # the round's continuous results are said before the structural fits, which take long
     structural = f"fitting the structural candidates ({', '.join(sorted(labels))}; each a model of its own)"
     if not passing:

@@ -37,6 +37,14 @@ class Score:
     members: tuple = ()
     # the standard error of `held_out_gain` from the held-out samples (`gain_standard_error`)
     held_out_gain_se: float = float("nan")
+    # a candidate that passes both tests with fitted values it does not plausibly reach
+    # (`catalogue.Plausibility.judge`): the sentences saying which; it is not accepted.
+    # Empty for every other candidate (a value that fails the tests anyway is not judged).
+    implausible: list = dataclasses.field(default_factory=list)
+    # a candidate whose fit never left its starting values, from its own starts and wider
+    # ones (`continuous._never_left`): why, and its dBIC, p-value and held-out gain are NaN
+    # (no evidence for or against the effect); never accepted. Empty for a fitted one.
+    not_fitted: str = ""
 
     @property
     def label(self) -> str:
@@ -134,9 +142,30 @@ def gain_standard_error(r_base, r_ext) -> float:
 def round_verdicts(scores) -> dict:
     """Label -> `"named"` for a round's first accepted candidate (the one the search
     names), `"passes, not named (the named one is better)"` for the others that pass both
-    tests, `""` else: what the console, the summary and the report show."""
+    tests, `"passes, not named: implausible: ..."` for one that passes them with implausible
+    values (`Score.implausible`), `"not fitted: ..."` for one whose fit never left its
+    start (`Score.not_fitted`), `""` else: what the console, the summary and the report show."""
     named = next((s.label for s in scores if s.accepted), None)
-    return {
-        s.label: ("named" if s.label == named else "passes, not named (the named one is better)") if s.accepted else ""
-        for s in scores
-    }
+    return {s.label: _verdict(s, named) for s in scores}
+
+
+def _verdict(s: Score, named: str | None) -> str:
+    if s.accepted:
+        return "named" if s.label == named else "passes, not named (the named one is better)"
+    if s.not_fitted:
+        return f"not fitted: {s.not_fitted}"
+    if s.implausible:  # (the report says once what such a value usually means)
+        return f"passes, not named: implausible: {'; '.join(x for x in s.implausible if x != cat.STANDING_IN)}"
+    return ""
+
+
+def not_fitted_of(rounds) -> dict:
+    """The single catalogue candidates whose last score in `rounds` (lists of `Score`, in
+    order) is not fitted (`Score.not_fitted`): label -> `"round n: why"`. The search has
+    not tested them: no detection limit, no evidence against."""
+    last = {}
+    for r, scores in enumerate(rounds, start=1):
+        for s in scores:
+            if not s.members:
+                last[s.label] = (r, s)
+    return {lab: f"round {r}: {s.not_fitted}" for lab, (r, s) in last.items() if s.not_fitted}

@@ -74,7 +74,6 @@ def diagnose_logs(
     _check_arguments(catalogue, exclude, held_out_logs)
     noise = dict(noise or {})
     parameters = list(parameters)
-    options = SearchOptions(bic_threshold, min_gain, n_fit, max_steps, max_effects, pair_search, say)
     # the baseline misses an effect on purpose: no restarts for its poor fit (`fit`)
     # `grid_error=None`: the tight integration step (`identify.fit.GRID_ERROR`), which the
     # candidates' fits reuse: a candidate's fit moves into stiffer models (dry friction is a
@@ -91,6 +90,9 @@ def diagnose_logs(
         say(f"  warning: {n['text']}")
     modal = _modal_frequencies(base.chain)
     signals = _signals(base, fit_logs, held_out_logs, modal)
+    options = SearchOptions(
+        bic_threshold, min_gain, n_fit, max_steps, max_effects, pair_search, say, signals.plausibility(base.chain)
+    )
     cands, not_tried = _candidates(base, parameters, signals, catalogue, exclude)
     superset = superset_of(
         chain, measurement, channels, signals.driven, cands, parameters, fit_logs, sigma, len(base.problem.names)
@@ -111,9 +113,7 @@ def diagnose_logs(
         baseline=baseline,
         state=state,
         cands=cands,
-        signals=signals,
         modal=modal,
-        fit_logs=fit_logs,
         not_tried=not_tried,
     )
     if state.stack_on is not None and interrupted is None:
@@ -237,8 +237,18 @@ def _signals(base: FitResult, fit_logs, held_out_logs, modal) -> Signals:
             for check in ev.stiffening_checks_of(fitted_chain, fitted_outputs(base), key="simulated")
             if check["flagged"]
         }
+    log_duration = min(float(np.ptp(np.asarray(log.t, float))) for log in fit_logs)
     return Signals(
-        driven, dt_sample, torque_rms, torque_peak, rate_rms, offsets_fitted, positive_modes, max_f, stiffening_links
+        driven,
+        dt_sample,
+        torque_rms,
+        torque_peak,
+        rate_rms,
+        offsets_fitted,
+        positive_modes,
+        max_f,
+        stiffening_links,
+        log_duration,
     )
 
 
@@ -305,6 +315,7 @@ def _structural_setting(
         signals.max_frequency_hz,
         signals.nyquist_hz,
         options.say,
+        options.plausibility,
     )
 
 
@@ -330,11 +341,12 @@ def _round(
     if options.pair_search:
         pairs, pair_scores, pair_fits = pair_search(superset, held, options, state, cands, remaining, scores, fits)
         scores.extend(pair_scores)
-    scores.sort(key=lambda s: s.delta_bic)
+    scores.sort(key=_rank)
     state.rounds.append(scores)
     record_drops(state, scores, cands)
     _say_scores(scores, options.say)
     winners = [s for s in scores if s.accepted]
+    _note_implausible(scores, winners, state, options.say)
     if not winners:
         hint = _fits_but_does_not_predict(scores, options.bic_threshold, options.min_gain, signals.offsets_fitted)
         if hint:
@@ -349,12 +361,35 @@ def _round(
     return _accept(superset, held, options, structural, state, winner, candidate, fits)
 
 
+def _rank(s) -> tuple:
+    """A round's order: by dBIC, the candidates not fitted (no dBIC) last."""
+    return (bool(s.not_fitted), 0.0 if s.not_fitted else s.delta_bic)
+
+
+def _note_implausible(scores, winners, state: SearchState, say) -> None:
+    """A note (`Diagnosis.notes`) for each candidate of the round that passes both tests
+    but is not named because its fitted values are implausible (`Score.implausible`),
+    ranked above the one named (all of them when none is): what the search passed over."""
+    bar = winners[0].delta_bic if winners else float("inf")
+    for s in scores:
+        if s.implausible and s.delta_bic < bar:
+            text = (
+                f"{s.label} passes both tests (dBIC {s.delta_bic:.1f}, held-out gain {s.held_out_gain:.3f}x) but is "
+                f"not named: implausible: {'; '.join(s.implausible)}"
+            )
+            say(f"  round {state.round + 1}: {text}")
+            state.notes.append({"round": state.round + 1, "text": text})
+
+
 def _say_scores(scores, say) -> None:
     """The round's five best scores, as the console shows them."""
     width = max([32] + [len(s.label) for s in scores[:5]])
     verdicts = round_verdicts(scores)
     for s in scores[:5]:
         verdict = verdicts[s.label].upper() if verdicts[s.label] == "named" else verdicts[s.label]
+        if s.not_fitted:
+            say(f"  {s.label:<{width}} dBIC {'--':>10}  {verdict}")
+            continue
         outcome = (
             f"(predicted by one Gauss-Newton step; not fitted: {s.screen_reason})"
             if s.screened

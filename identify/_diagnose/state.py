@@ -35,15 +35,27 @@ class Signals:
     # the structural guesses' frequency: 2x the highest mode, at most Nyquist (Hz)
     max_frequency_hz: float
     stiffening_links: set[str]  # links the model check flags for geometric stiffening
+    log_duration: float  # the shortest fit log's duration, s
 
     @property
     def nyquist_hz(self) -> float:
         return 0.5 / self.sample_interval
 
+    def plausibility(self, chain: fd.Chain) -> cat.Plausibility:
+        """What a candidate's fitted values on the fitted rig `chain` are judged against
+        (`catalogue.Plausibility`): the torque scale of its peak torque, the shortest fit
+        log, the lowest mode."""
+        return cat.Plausibility(
+            torque_scale=cat.characteristic_torque(chain, self.torque_peak),
+            log_duration=self.log_duration,
+            lowest_mode_hz=min(self.positive_modes) if self.positive_modes else None,
+        )
+
 
 @dataclasses.dataclass(frozen=True)
 class SearchOptions:
-    """`diagnose_logs`' acceptance thresholds and budgets (see its arguments)."""
+    """`diagnose_logs`' acceptance thresholds and budgets (see its arguments), and what a
+    candidate's fitted values must plausibly be on this rig to be accepted (`plausibility`)."""
 
     bic_threshold: float
     min_gain: float
@@ -52,6 +64,7 @@ class SearchOptions:
     max_effects: int
     pair_search: bool
     say: Callable[[str], None]
+    plausibility: cat.Plausibility
 
 
 @dataclasses.dataclass(frozen=True)

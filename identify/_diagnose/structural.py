@@ -33,7 +33,8 @@ class _StructuralFits:
     """What every structural candidate's fit shares in one diagnosis: the baseline
     (`base`, its free `parameters`), the superset measurement model (`measurement`), the
     fit and held-out logs, the channels and their noise `sigma`, the `N` residuals the
-    information criterion counts, and the acceptance thresholds."""
+    information criterion counts, and the acceptance thresholds (the plausible values
+    among them, `plausibility`)."""
 
     base: object  # the baseline's `FitResult`
     parameters: list
@@ -49,6 +50,7 @@ class _StructuralFits:
     max_frequency_hz: float
     nyquist_hz: float
     say: Callable[[str], None]
+    plausibility: cat.Plausibility
 
     def score(self, c, current: CurrentModel, rms_cur: float):
         return _structural_score(self, c, current, rms_cur)
@@ -95,7 +97,8 @@ def _rigid_limit(c, error, nyquist_hz: float) -> str | None:
 def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cur: float):
     """Fit a structural candidate as a model of its own (baseline parameters refitted from
     the baseline's values, accepted continuous effects kept at their fitted values), scored
-    against the model `current` (held-out RMS `rms_cur`). Returns `(score, model)` (a
+    against the model `current` (held-out RMS `rms_cur`); one that passes both tests with
+    implausible values (`catalogue.Plausibility`) is not accepted. Returns `(score, model)` (a
     `state.StructuralModel`), or, when the fit failed, the reason (a string, for
     `Diagnosis.notes`)."""
     base, parameters, sup_meas = setting.base, setting.parameters, setting.measurement
@@ -181,6 +184,8 @@ def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cu
     rms_c = float(np.sqrt(np.mean(r_ho[used] ** 2)))
     gain = rms_cur / rms_c if rms_c > 0 else np.inf
     vals = {n: float(v) for n, v in res.value.items() if n in new}
+    passes = bool(dbic < -bic_threshold and gain >= min_gain)
+    implausible = setting.plausibility.judge(c, vals) if passes else []
     # the new parameters' intervals from the structural model's own fit (exact Jacobian)
     intervals = {
         n: {"std_error": float(res.std_errors[i]), "ci95": [float(res.ci_low[i]), float(res.ci_high[i])]}
@@ -196,10 +201,11 @@ def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cu
         p_value,
         rms_ch,
         float(gain),
-        bool(dbic < -bic_threshold and gain >= min_gain),
+        passes and not implausible,
         k,
         intervals=intervals,
         held_out_gain_se=gain_standard_error(np.asarray(current.ho), r_ho[used]),
+        implausible=implausible,
     )
     fitted_params = [dataclasses.replace(p, guess=_value_of(res, p.name)) for p in params]
     model = StructuralModel(

@@ -147,15 +147,15 @@ def plot_scores(diag, folder: Path) -> Path:
     )
     for k, (ax, scores) in enumerate(zip(axes[0], diag.rounds or [[]])):
         labels = [s.label for s in scores]
-        vals = [s.delta_bic for s in scores]
-        colors = ["tab:green" if s.accepted else ("0.7" if s.screened else "tab:gray") for s in scores]
+        vals = [0.0 if s.not_fitted else s.delta_bic for s in scores]  # (no dBIC: no bar)
+        colors = ["tab:green" if s.accepted else ("0.7" if s.screened or s.not_fitted else "tab:gray") for s in scores]
         ax.barh(range(len(vals)), vals, color=colors)
         ax.set_yticks(range(len(vals)), labels, fontsize=7)
         ax.set_xscale("symlog", linthresh=10)
         ax.axvline(0, color="k", lw=0.5)
         ax.invert_yaxis()
         ax.set_xlabel("dBIC (negative = better than the model it extends)")
-        ax.set_title(f"round {k + 1} (green: accepted, light: screened out)", fontsize=9)
+        ax.set_title(f"round {k + 1} (green: accepted, light: screened out or not fitted)", fontsize=9)
     fig.tight_layout()
     path = folder / PLOT_FILES[4]
     fig.savefig(path, dpi=110)
@@ -210,6 +210,13 @@ def _causes(diag) -> list[str]:
             "No catalogue entry explains the residual significantly (each needs dBIC < -10 on the fit data and "
             "a held-out RMS gain of at least 1.1x). The evidence below shows what the residual looks like."
         )
+    if diag.implausible:
+        labels = ", ".join(f"`{x}`" for x in diag.implausible)
+        lines.append("")
+        lines.append(
+            f"Not named, passing both tests only with implausible values: {labels} (see the candidates and the "
+            "notes): such a value usually stands in for an effect the catalogue lacks."
+        )
     lines.append("")
     return lines
 
@@ -236,7 +243,7 @@ def _held_out_gain(diag) -> list[str]:
         lines.append(
             f"The extended model's held-out residual of {c} is still "
             f"{diag.held_out['extended'][c] / floor[c]:.3g} times its noise floor: an effect is left "
-            "unexplained, or the noise is not white."
+            f"unexplained, or the noise is not white{diag.unexplained_hint}."
         )
     lines.append("")
     lines.append(
@@ -316,6 +323,9 @@ def _candidates(diag) -> list[str]:
         verdicts = round_verdicts(scores)
         for s in scores:
             verdict = f"**{verdicts[s.label]}**" if verdicts[s.label] == "named" else verdicts[s.label]
+            if s.not_fitted:
+                lines.append(f"| {s.label} | | | | | {verdict} |")
+                continue
             params = ", ".join(f"`{n}` = {v:.5g}" for n, v in s.params.items()) or (  # a gain near 1: 5 digits
                 f"(not fitted: {s.screen_reason})" if s.screened else ""
             )
@@ -323,6 +333,19 @@ def _candidates(diag) -> list[str]:
             p = "" if s.screened else f"{s.p_value:.2g}"
             dbic = f"({s.delta_bic:.1f})" if s.screened else f"{s.delta_bic:.1f}"
             lines.append(f"| {s.label} | {params} | {dbic} | {p} | {gain} | {verdict} |")
+        if any(s.not_fitted for s in scores):
+            lines.append("")
+            lines.append(
+                "A candidate *not fitted* never left its starting values, from its own starts and from wider ones: "
+                "the search did not test it, and its row is no evidence for or against the effect."
+            )
+        if any(s.implausible for s in scores):
+            lines.append("")
+            lines.append(
+                "A candidate that passes both tests with *implausible* values (outside what the component "
+                "plausibly does on a working rig, `catalogue.implausible`) is not named: such a value usually "
+                "stands in for an effect the catalogue lacks."
+            )
         if any(s.screened for s in scores):
             lines.append("")
             lines.append(
@@ -339,13 +362,13 @@ def _closing(diag) -> list[str]:
     if diag.notes:
         lines.append("")
         lines.extend(f"- {note_text(n)[:1].upper()}{note_text(n)[1:]}" for n in diag.notes)
-    if diag.detection_limits:
+    if diag.detection_limits or diag.not_fitted:
         lines.append("")
         lines.append("## Detection limits")
         lines.append("")
         lines.append(f"What the search could have found: {DETECTION_LIMITS_MEANING}.")
         lines.append("")
-        lines.extend(f"- {text}" for text in diag.detection_limit_lines())
+        lines.extend(f"- {text}" for text in diag.detection_limit_lines() + diag.not_fitted_lines())
     if diag.not_tried:
         lines.append("")
         lines.append("Not tried:")

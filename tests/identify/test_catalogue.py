@@ -168,6 +168,45 @@ def test_highpass_is_not_judged_without_a_mode():
     )
 
 
+def test_a_pair_is_implausible_when_either_member_is():
+    """Issue 61: a candidate that passes with implausible values is not named; for two
+    entries fitted together, either member's values make the pair implausible (each
+    judged by its own entry's rules), and the closing sentence is said once."""
+    judge = cat.Plausibility(**_CONTEXT)
+    friction = _entry("coulomb_friction", "joint1", ("joint1.coulomb",), ((1e-3,),))
+    tilt = cat.Candidate("base_tilt", "base", ("gravity[0]", "gravity[1]"), (False, False), ((0.0, 0.0),))
+    pair = cat.pair(friction, (1e-3,), tilt)
+    level = {"gravity[0]": 0.139, "gravity[1]": 0.217}  # 1.5 deg
+    assert judge.judge(pair, {"joint1.coulomb": 0.01, **level}) == []
+    out = judge.judge(pair, {"joint1.coulomb": 0.5, **level})
+    assert len(out) == 2 and "hold it still" in out[0] and out[1] == cat.STANDING_IN
+    out = judge.judge(pair, {"joint1.coulomb": 0.5, "gravity[0]": 2.0, "gravity[1]": 1.0})
+    assert len(out) == 3 and "a tilt of 13.2 deg" in out[1] and out.count(cat.STANDING_IN) == 1
+    # a single entry: as `implausible` says it
+    values = {"gravity[0]": 2.0, "gravity[1]": 1.0}
+    assert judge.judge(tilt, values) == cat.implausible("base_tilt", values, **_CONTEXT)
+
+
+def test_wider_starts_go_beyond_the_entrys_own():
+    """Issue 61: a fit that never leaves its starts is tried again from wider ones: a
+    log-scale parameter 10x above its largest start and 100x below its smallest, a signed
+    one at +-10x its scale (its largest start, or the given scale where every start is 0:
+    a channel's noise for an offset, a 0.5 deg tilt for in-plane gravity)."""
+    dry = _entry("coulomb_friction", "joint1", ("joint1.coulomb",), ((1e-6,), (1e-4,), (1e-3,)))
+    assert cat.wider_starts(dry, {}) == ((1e-2,), (1e-8,))
+    calib = cat.Candidate(
+        "sensor_gain_offset", "theta1", ("sensor.theta1.gain", "sensor.theta1.offset"), (True, False), ((1.0, 0.0),)
+    )
+    noise = {"theta1": 0.002}
+    scale = {n: cat.signed_scale(n, noise) for n in calib.params}
+    assert scale["sensor.theta1.offset"] == 0.002
+    assert cat.wider_starts(calib, scale) == ((10.0, 0.02), (0.01, -0.02))
+    tilt = cat.Candidate("base_tilt", "base", ("gravity[0]", "gravity[1]"), (False, False), ((0.0, 0.0),))
+    (above, below) = cat.wider_starts(tilt, {n: cat.signed_scale(n, {}) for n in tilt.params})
+    assert np.degrees(np.arcsin(np.hypot(*above) / 9.81)) < cat.MAX_TILT_DEG
+    assert above == pytest.approx((10 * cat.TILT_SCALE,) * 2) and below == pytest.approx((-10 * cat.TILT_SCALE,) * 2)
+
+
 def test_joint_elasticity_holds_the_rigid_joint_as_its_stiff_limit():
     """`catalogue.NESTED_LIMIT`'s claim, against the rigid model it extends: with the rotor
     at its first guess (the inertia taken off the hub), the elastic joint's hub angle and

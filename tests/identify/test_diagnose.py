@@ -416,6 +416,118 @@ def test_an_effect_above_its_detection_limit_is_named_and_one_below_is_not():
     assert below.rounds[0][0].held_out_gain < 1.1
 
 
+def test_a_hidden_effect_fitted_at_implausible_values_is_not_named(monkeypatch):
+    """Issue 61: on the real rig the search named a 52 ms encoder delay, a 29 deg tilt. A
+    candidate that passes both tests with implausible values is not named, and every
+    output says why. Here a hidden 30 ms delay on the pendulum, with the plausible delay
+    made 100x shorter (`catalogue.MAX_DELAY_FRACTION`: 8 ms on the 8 s logs): it passes and
+    is not named, alone or paired with drag (the pair search's leader: either member's
+    values make a pair implausible)."""
+    from identify._diagnose import catalogue as cat
+    from identify._report.json import jsonable
+
+    monkeypatch.setattr(cat, "MAX_DELAY_FRACTION", 1e-3)
+    m = meas.Measurement({"theta1": meas.Sensor(delay=0.03)})
+    diag = run(logs_of(pendulum(), 13, measurement=m), catalogue=("sensor_delay", "quadratic_damping"))
+    assert diag.named == [], diag.summary()
+    delay = next(s for s in diag.rounds[0] if s.label == "sensor_delay:theta1")
+    assert delay.delta_bic < -10 and delay.held_out_gain >= 1.1 and not delay.accepted, delay
+    assert delay.params["sensor.theta1.delay"] == pytest.approx(0.03, rel=0.1)
+    assert delay.implausible[0].startswith("sensor.theta1.delay = 0.0"), delay.implausible
+    assert "s: longer than 0.001 of the shortest log (8 s)" in delay.implausible[0]
+    for s in (s for s in diag.rounds[0] if s.members):
+        assert "sensor_delay:theta1" in s.members and not s.accepted and (s.implausible or s.delta_bic > -10), s
+    assert delay.implausible[-1] == cat.STANDING_IN  # (said once, below the table)
+    verdict = f"passes, not named: implausible: {'; '.join(delay.implausible[:-1])}"
+    assert verdict in diag.summary() and f"| {verdict} |" in diagnosis_report.markdown(diag)
+    assert "with *implausible* values" in diagnosis_report.markdown(diag)
+    # not "nothing explains the residual": what passed only implausibly is said first
+    assert diag.implausible[0] == "sensor_delay:theta1", diag.implausible
+    assert "not named, passing only with implausible values: sensor_delay:theta1" in diag.summary()
+    assert "passing both tests only with implausible values: `sensor_delay:theta1`" in diagnosis_report.markdown(diag)
+    row = next(r for r in jsonable(diag.to_dict())["rounds"][0] if r["name"] == "sensor_delay")
+    assert row["implausible"] == delay.implausible and row["accepted"] is False
+    (note,) = [n for n in diag.notes if n["text"].startswith("sensor_delay:theta1 passes both tests")]
+    assert note["round"] == 1 and "not named: implausible: sensor.theta1.delay" in note["text"]
+
+
+def _stuck_at_start(real, forced):
+    """A stand-in for the candidates' batched fit (`_fit_batch`, `real`) whose rows holding
+    a parameter `forced(call)` names (call: from 0) never leave their start: their
+    variables are returned as given, at the cost there, converged. Records each call's
+    starts (`.calls`: `(names of the rows' first new slot, natural values, batch size)`)."""
+    import jax
+    import jax.numpy as jnp
+
+    def fit_batch(joint, v0, idx, logf, sigma, step, max_steps):
+        out, costs, steps = real(joint, v0, idx, logf, sigma, step, max_steps)
+        ext = list(joint.problem.names[joint.nb :]) + [None]  # (a slot past the end is unused)
+        idx_h, xe = np.asarray(idx), np.asarray(v0.xe)
+        names = [[ext[i] for i in row] for row in idx_h]
+        fit_batch.calls.append(([row[0] for row in names], np.where(np.asarray(logf), np.exp(xe), xe)[:, 0], len(xe)))
+        held = forced(len(fit_batch.calls) - 1)
+        rows = np.asarray([any(n in held for n in row) for row in names])
+        if not rows.any():
+            return out, costs, steps
+        at_start = np.asarray(costs, dtype=float).copy()
+        for b in np.flatnonzero(rows):
+            r = joint_model_module._cost(joint, v0.take(b), idx[b], logf[b], sigma, step)
+            at_start[b] = float(jnp.sum(r**2))
+        mask = jnp.asarray(rows)
+        out = jax.tree_util.tree_map(lambda o, v: jnp.where(mask.reshape((-1,) + (1,) * (o.ndim - 1)), v, o), out, v0)
+        return out, jnp.asarray(at_start), jnp.where(mask, 0, steps)
+
+    fit_batch.calls = []
+    return fit_batch
+
+
+def test_a_candidate_whose_fit_never_leaves_its_start_is_retried_and_else_not_fitted(monkeypatch):
+    """Issue 61: on the real rig the dry-friction candidate stayed at exactly its neutral
+    start, and the report read that as "no evidence" (fitted by hand, the friction gave an
+    11x lower cost). Hidden drag; the candidates' fit (stand-in, `_stuck_at_start`) keeps
+    the drag at its starts in the first call only, the dry friction in every call. Both
+    are fitted again from wider starts (10x above the largest start, 100x below the
+    smallest) in one more call of the same batch size (no new program): the drag then
+    fits and is named as usual; the friction is "not fitted", with no dBIC, no detection
+    limit, and not ruled out, in the summary, the report and the JSON."""
+    from identify._report.json import jsonable
+
+    def forced(call):
+        return {"joint1.coulomb", "link1.drag"} if call == 0 else {"joint1.coulomb"}
+
+    fit_batch = _stuck_at_start(continuous_module._fit_batch, forced)
+    monkeypatch.setattr(continuous_module, "_fit_batch", fit_batch)
+    diag = run(logs_of(pendulum(drag=0.25), 12), catalogue=("quadratic_damping", "coulomb_friction"), max_effects=1)
+    assert_found(diag, "quadratic_damping", "link1.drag", 0.25)
+    (first, first_values, size), (second, second_values, size2) = fit_batch.calls[:2]
+    assert size2 == size == 6, [c[2] for c in fit_batch.calls]  # the retry reuses the round's program
+    for name in ("joint1.coulomb", "link1.drag"):
+        own = [v for n, v in zip(first, first_values) if n == name]
+        wider = sorted({v for n, v in zip(second, second_values) if n == name})
+        assert len(own) == 3 and wider == pytest.approx([min(own) / 100, 10 * max(own)], rel=1e-9), (name, own, wider)
+    scores = {s.label: s for s in diag.rounds[0]}
+    dry, drag = scores["coulomb_friction:joint1"], scores["quadratic_damping:link1"]
+    assert drag.accepted and not drag.not_fitted and drag.delta_bic < -10
+    assert not dry.accepted and dry.not_fitted.startswith("its fit never left its start from 5 starts (joint1.coulomb")
+    assert math.isnan(dry.delta_bic) and math.isnan(dry.held_out_gain) and diag.rounds[0][-1] is dry
+    # not tested: no detection limit, not ruled out, said in every output
+    assert diag.not_fitted == {dry.label: f"round 1: {dry.not_fitted}"}
+    assert dry.label not in diag.detection_limits
+    assert any(n["text"].startswith("coulomb_friction:joint1: not fitted: its fit never left") for n in diag.notes)
+    summary, report = diag.summary(), diagnosis_report.markdown(diag)
+    rows = [line.split(None, 2) for line in summary.splitlines() if line.startswith("  coulomb_friction:joint1 ")]
+    assert ["coulomb_friction:joint1", "--", f"not fitted: {dry.not_fitted}"] in rows, summary
+    assert f"| coulomb_friction:joint1 | | | | | not fitted: {dry.not_fitted} |" in report
+    assert "coulomb_friction:joint1: not fitted (round 1: its fit never left" in summary.split("detection limits")[1]
+    assert "- coulomb_friction:joint1: not fitted (round 1:" in report.split("## Detection limits")[1]
+    row = next(r for r in jsonable(diag.to_dict())["rounds"][0] if r["name"] == "coulomb_friction")
+    assert row["not_fitted"] == dry.not_fitted and row["delta_bic"] is None and row["accepted"] is False
+    floor = diag.held_out["noise_floor"]["theta1"]
+    left = dataclasses.replace(diag, held_out={**diag.held_out, "extended": {"theta1": 3 * floor}})
+    assert "; not ruled out: coulomb_friction:joint1, whose fits never left their starts" in left.summary()
+    assert "not ruled out: coulomb_friction:joint1" in diagnosis_report.markdown(left)
+
+
 @pytest.mark.slow
 def test_clearing_the_compiled_programs_mid_diagnosis_changes_nothing(monkeypatch):
     """The guard clears JAX's caches when the process nears vm.max_map_count; forced here at
@@ -739,12 +851,85 @@ def test_only_the_first_accepted_candidate_of_a_round_reads_named():
 
     from identify._diagnose.scores import round_verdicts
 
-    rows = [types.SimpleNamespace(label=k, accepted=a) for k, a in (("delay", True), ("lag", True), ("drag", False))]
+    rows = [
+        types.SimpleNamespace(label=k, accepted=a, not_fitted="", implausible=[])
+        for k, a in (("delay", True), ("lag", True), ("drag", False))
+    ]
     assert round_verdicts(rows) == {
         "delay": "named",
         "lag": "passes, not named (the named one is better)",
         "drag": "",
     }
+    # issue 61: one that passes with implausible values, or whose fit never left its start, is not named
+    tilt = types.SimpleNamespace(label="tilt", accepted=False, not_fitted="", implausible=["a tilt of 29 deg", "x"])
+    dry = types.SimpleNamespace(label="dry", accepted=False, not_fitted="its fit never left its start", implausible=[])
+    assert round_verdicts([tilt, dry, *rows]) == {
+        "tilt": "passes, not named: implausible: a tilt of 29 deg; x",
+        "dry": "not fitted: its fit never left its start",
+        "delay": "named",
+        "lag": "passes, not named (the named one is better)",
+        "drag": "",
+    }
+
+
+def test_a_candidate_that_passes_with_implausible_values_is_not_accepted():
+    """Issue 61: on a rig standing on a table the search named a 29 deg base tilt. A
+    candidate that passes both tests with values the component does not plausibly reach
+    (`catalogue.Plausibility`, from the search's signals) is scored, not accepted, and its
+    score says why; one that fails the tests anyway is not judged; a pair is implausible
+    when either member is. The round names the next that passes, and notes the one passed
+    over. (Stand-ins for the joint model: 400 held-out residuals halved, gain 2x.)"""
+    from identify._diagnose import catalogue as cat, search as search_module
+    from identify._diagnose.continuous import _fitted_score
+    from identify._diagnose.scores import round_verdicts
+    from identify._diagnose.state import Signals
+
+    rig = fd.Chain([fd.RigidLink(0.5, 0.1)], [fd.RigidJoint(damping=0.01)], [fd.Hub(inertia=0.02)], fd.Payload(0.05))
+    signals = Signals([0], 0.01, 0.05, 0.2, 1.0, set(), [], 50.0, set(), 8.0)
+    judge = signals.plausibility(rig)  # horizontal: the torque scale is the peak torque
+    assert (judge.torque_scale, judge.log_duration, judge.lowest_mode_hz) == (0.2, 8.0, None)
+    n = 400
+    held_problem = types.SimpleNamespace(
+        measured=np.zeros((1, n, 1)), valid=np.ones((1, n), bool), present=np.ones((1, 1), bool), channels=("theta1",)
+    )
+    superset = types.SimpleNamespace(
+        N=n,
+        joint=types.SimpleNamespace(nb=0),
+        problem=types.SimpleNamespace(y0_free=(), offset_free=()),
+        ext_names=["gravity[0]", "gravity[1]", "joint1.coulomb"],
+        neutral=[0.0, 0.0, 0.0],
+        sigma=np.ones(1),
+    )
+    held = types.SimpleNamespace(problem=held_problem, used=np.ones(n, bool))
+    ho = np.random.default_rng(3).standard_normal(n)
+    state = types.SimpleNamespace(current=types.SimpleNamespace(cost=1000.0, k=0, ho=2 * ho), round=0, notes=[])
+    said = []
+    options = types.SimpleNamespace(bic_threshold=10.0, min_gain=1.1, plausibility=judge, say=said.append)
+    tilt = cat.Candidate("base_tilt", "base", ("gravity[0]", "gravity[1]"), (False, False), ((0.0, 0.0),))
+    friction = cat.Candidate("coulomb_friction", "joint1", ("joint1.coulomb",), (True,), ((1e-3,),))
+
+    def score(c, values, cost=500.0):
+        return _fitted_score(superset, held, options, state, c, cost, np.asarray(values), ho)
+
+    tilted = score(tilt, [2.0, 1.0, 0.0])  # 13 deg
+    assert tilted.delta_bic < -10 and tilted.held_out_gain == pytest.approx(2.0)
+    assert not tilted.accepted and "a tilt of 13.2 deg" in tilted.implausible[0], tilted.implausible
+    level = score(tilt, [0.139, 0.217, 0.0], cost=600.0)  # 1.5 deg, the grid's
+    assert level.accepted and level.implausible == []
+    assert score(tilt, [2.0, 1.0, 0.0], cost=999.0).implausible == []  # fails the BIC test: not judged
+    pair = cat.pair(friction, (1e-3,), tilt)
+    assert not score(pair, [0.139, 0.217, 0.5]).accepted  # the friction holds the rig still
+    assert score(pair, [0.139, 0.217, 1e-3]).accepted
+    # the round: the best passes implausibly, the next is named; the one passed over is noted
+    dry = score(friction, [0.0, 0.0, 1e-3], cost=600.0)
+    scores = [tilted, dry]
+    verdicts = round_verdicts(scores)
+    assert verdicts[dry.label] == "named", verdicts
+    assert verdicts[tilted.label].startswith("passes, not named: implausible: a tilt of 13.2 deg")
+    search_module._note_implausible(scores, [dry], state, said.append)
+    (note,) = state.notes
+    assert note["round"] == 1 and note["text"].startswith("base_tilt:base passes both tests (dBIC ")
+    assert "but is not named: implausible: a tilt of 13.2 deg" in note["text"] and said[-1].endswith(note["text"])
 
 
 def test_an_elastic_joint_fit_that_runs_out_of_steps_far_above_nyquist_is_evidence_of_a_rigid_joint():
