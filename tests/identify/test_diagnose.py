@@ -416,6 +416,7 @@ def test_an_effect_above_its_detection_limit_is_named_and_one_below_is_not():
     assert below.rounds[0][0].held_out_gain < 1.1
 
 
+@pytest.mark.slow  # (~2 min; the acceptance rule itself: test_a_candidate_that_passes_with_implausible_values_...)
 def test_a_hidden_effect_fitted_at_implausible_values_is_not_named(monkeypatch):
     """Issue 61: on the real rig the search named a 52 ms encoder delay, a 29 deg tilt. A
     candidate that passes both tests with implausible values is not named, and every
