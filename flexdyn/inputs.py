@@ -85,16 +85,22 @@ class SampledTorque(AbstractInput):
       spacing is fine.
     - `values`: torques, N m, shape (T,) or (T, n_joints).
     - `hold`: `"linear"` (piecewise linear) or `"zoh"` (zero-order hold: each
-      sample held until the next, as a digital controller applies it).
+      sample held until the next, as a digital controller applies it); or one of
+      them per joint, a tuple of length `n_joints`.
 
     Outside `[times[0], times[-1]]` the end values are held.
+
+    Read with the wrong hold, a sampled torque is displaced in time: a controller's
+    command (held) read as linear leads the true input by half a sample (0.5 ms at
+    1 kHz), which a fitted actuator lag or sensor delay then absorbs; a continuous
+    signal's samples (a measured current) read as held lag it by half a sample.
     """
 
     times: Float[Array, " T"]
     values: Float[Array, "T n_joints"]
-    hold: str = eqx.field(static=True)
+    hold: str | tuple[str, ...] = eqx.field(static=True)
 
-    def __init__(self, times, values, hold: str = "linear"):
+    def __init__(self, times, values, hold: str | tuple[str, ...] = "linear"):
         times = as_float_array(times)
         values = as_float_array(values)
         if values.ndim == 1:
@@ -104,8 +110,7 @@ class SampledTorque(AbstractInput):
                 f"SampledTorque: expected times (T,) with T >= 2 and values (T,) or (T, n_joints), "
                 f"got {times.shape} and {values.shape}"
             )
-        if hold not in ("linear", "zoh"):
-            raise ValueError(f"SampledTorque.hold: expected 'linear' or 'zoh', got {hold!r}")
+        hold = check_hold(hold, values.shape[1])
         if not isinstance(times, jax.core.Tracer):
             t = np.asarray(times)
             if np.any(np.diff(t) <= 0) or not np.all(np.isfinite(t)):
@@ -118,14 +123,21 @@ class SampledTorque(AbstractInput):
             raise ValueError("SampledTorque.values: expected finite torques, found NaN or inf")
         self.times, self.values, self.hold = times, values, hold
 
+    def _per_joint(self) -> tuple[str, ...]:
+        return self.hold if isinstance(self.hold, tuple) else (self.hold,) * self.values.shape[1]
+
     def __call__(self, t, y=None):
         if self.hold == "linear":
             return jnp.stack([jnp.interp(t, self.times, v) for v in self.values.T])
         k = jnp.clip(jnp.searchsorted(self.times, t, side="right") - 1, 0, self.times.shape[0] - 1)
-        return self.values[k]
+        if self.hold == "zoh":
+            return self.values[k]
+        return jnp.stack(
+            [jnp.interp(t, self.times, v) if h == "linear" else v[k] for h, v in zip(self._per_joint(), self.values.T)]
+        )
 
     def jump_times(self):
-        return self.times if self.hold == "zoh" else None
+        return self.times if "zoh" in self._per_joint() else None
 
     def step_times(self):
         """With `hold="linear"`: the first and last sample of every run of equal samples (a
@@ -137,9 +149,24 @@ class SampledTorque(AbstractInput):
         all). Landing on the ends of the constant stretch puts the change inside the
         next step, whose error estimate sees it. A torque that changes at every sample
         has no stretch: every entry is `inf` and no step is clipped."""
-        if self.hold != "linear":
+        if "linear" not in self._per_joint():
             return None
         return constant_stretch_ends(self.times, self.values)
+
+
+HOLDS = ("linear", "zoh")
+
+
+def check_hold(hold, n_joints: int) -> str | tuple[str, ...]:
+    """`SampledTorque.hold` checked: one of `HOLDS`, or a tuple of them, one per joint (a
+    tuple of one kind collapses to it)."""
+    if isinstance(hold, str) and hold in HOLDS:
+        return hold
+    if isinstance(hold, (tuple, list)) and len(hold) == n_joints and all(h in HOLDS for h in hold):
+        return hold[0] if len(set(hold)) == 1 else tuple(hold)
+    raise ValueError(
+        f"SampledTorque.hold: expected 'linear' or 'zoh', or one of them per joint ({n_joints}), got {hold!r}"
+    )
 
 
 def constant_stretch_ends(times, values):

@@ -36,6 +36,7 @@ def log_data(spec: LogSpec, n_joints: int) -> LogData:
         offsets=tuple(spec.offsets),
         name=spec.name,
         set=dict(spec.set),
+        hold=spec.hold,
     )
 
 

@@ -61,6 +61,7 @@ class LogSpec:
     - `measured`: the entries of `initial` given as `"measured"` (the log's first sample).
     - `set`: this log's known parameter values that differ from the rig's (SI; a payload
       sweep: `{"payload.mass": 0.02}`), `identify.LogData.set`.
+    - `hold`: how its torque is read between samples (`identify.LogData.hold`).
     """
 
     name: str
@@ -74,6 +75,7 @@ class LogSpec:
     log: Log
     measured: tuple[str, ...] = ()
     set: dict[str, float] = dataclasses.field(default_factory=dict)
+    hold: str | tuple[str, ...] = "linear"
 
     @property
     def outputs(self) -> dict[str, np.ndarray]:

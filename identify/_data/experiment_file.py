@@ -35,6 +35,7 @@ _LOG_KEYS = (
     "stamp",
     "time_base",
     "rate_hz",
+    "hold",
 )
 
 

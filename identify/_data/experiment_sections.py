@@ -519,7 +519,28 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
         log=log,
         measured=tuple(measured),
         set=_log_set(r, chain, spec.get("set", {}), key + ("set",)),
+        hold=_log_hold(r, spec.get("hold", "linear"), key + ("hold",), log, chain.n_links),
     )
+
+
+def _log_hold(r: _Reader, value, key: tuple, log, n_joints: int) -> str | tuple[str, ...]:
+    """A log entry's `hold`: how its torque columns are read between samples, `"linear"`
+    (the default) or `"zoh"` for all of them, or a table per column (`{ torque1 = "zoh" }`,
+    the others linear); returned as `flexdyn.SampledTorque.hold` takes it (one per joint)."""
+    kinds = ("linear", "zoh")
+    if isinstance(value, str):
+        if value not in kinds:
+            raise r.error(key, f'expected "linear" or "zoh" (a digital controller\'s command), got {value!r}')
+        return value
+    holds = ["linear"] * n_joints
+    for column, kind in r.table(value, key).items():
+        if column not in log.inputs:
+            inputs = ", ".join(sorted(log.inputs)) or "none"
+            raise r.error(key + (column,), f"not a torque column of this log; expected one of: {inputs}")
+        if kind not in kinds:
+            raise r.error(key + (column,), f'expected "linear" or "zoh", got {_show(kind)}')
+        holds[int(column.removeprefix("torque")) - 1] = kind
+    return holds[0] if len(set(holds)) == 1 else tuple(holds)
 
 
 def _bag_timing(r: _Reader, spec: Mapping, key: tuple, bag: bool) -> dict:

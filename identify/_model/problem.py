@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import flexdyn as fd
+from flexdyn.inputs import check_hold
 
 from .._data import channels as ch, measurement as meas, noise_floor as nf
 from .._data.channels import state_names
@@ -37,6 +38,10 @@ class LogData:
     - `set`: known parameter values of this log that differ from the rig's, SI (a payload
       sweep: `{'payload.mass': 0.02}`); the rig's values elsewhere. A parameter set in any
       log cannot be a free one.
+    - `hold`: how `torque` is read between samples: `"linear"` (the default: samples of a
+      continuous signal) or `"zoh"` (held until the next sample: a digital controller's
+      command), or one of them per joint (`flexdyn.SampledTorque.hold`). The wrong one
+      displaces the input by half a sample, which a fitted lag or delay then absorbs.
     """
 
     t: np.ndarray
@@ -47,6 +52,7 @@ class LogData:
     offsets: tuple = ()
     name: str = "log"
     set: dict = dataclasses.field(default_factory=dict)
+    hold: str | tuple = "linear"
 
     @classmethod
     def from_log(cls, log, n_joints: int, **entries) -> LogData:
@@ -122,6 +128,8 @@ class Problem(eqx.Module):
     # the per-log free parameters (`Parameter.per_log`): (name, the index in `names` of each
     # log's own one, in log order), ...
     per_log: tuple[tuple[str, tuple[int, ...]], ...] = eqx.field(static=True, default=())
+    # how the torque samples are read between samples (`LogData.hold`, the same in every log)
+    hold: str | tuple[str, ...] = eqx.field(static=True, default="linear")
     # the free parameters' guesses, SI (an array: a static field would compile a program
     # per guess), so that `fit(problem)` needs no parameter list
     guess: jax.Array | None = None
@@ -387,6 +395,7 @@ def make_problem(
         declared=tuple(c for c in channels if noise.get(c) is not None),
         log_set_names=log_set_names,
         per_log=tuple(free.per_log),
+        hold=_common_hold(logs, chain.n_links),
         guess=jnp.asarray(_guesses_made(parameters, len(logs)), dtype=float),
     )
 
@@ -513,6 +522,27 @@ def _padded_logs(chain, logs, channels: list[str]) -> _PaddedLogs:
                 raise ValueError(f"log {log.name!r}: offset for channel {c!r}, which the log does not record")
             out.offset_free.append((l, channels.index(c)))
     return out
+
+
+def _common_hold(logs, nj: int) -> str | tuple[str, ...]:
+    """The logs' `hold`, one for the problem: the torque input of every log is read the same
+    way (one compiled simulation); logs that differ are an error naming them."""
+    holds = {}
+    for log in logs:
+        if log.torque is not None:
+            hold = log.hold if isinstance(log.hold, str) else tuple(log.hold)
+            try:
+                hold = check_hold(hold, nj)
+            except ValueError as e:
+                raise ValueError(f"log {log.name!r}: hold: {e}") from None
+            holds.setdefault(hold, []).append(log.name)
+    if len(holds) > 1:
+        listed = "; ".join(f"{hold!r}: {', '.join(map(repr, names))}" for hold, names in holds.items())
+        raise ValueError(
+            f"make_problem: the logs read their torque samples differently ({listed}); one problem reads every "
+            "log's the same way (a rig's controller holds its commands, or none does): set the same hold"
+        )
+    return next(iter(holds), "linear")
 
 
 def _torque_columns(log, nj: int) -> np.ndarray:

@@ -34,13 +34,15 @@ def simulate_log(
     rtol: float = 1e-11,
     atol: float = 1e-13,
     measurement=None,
+    hold: str | tuple[str, ...] = "linear",
 ) -> LogData:
     """A `LogData` of `chain` sampled at `t` (s).
 
     **Arguments:**
     - `initial`: initial-state entries by name (`theta1`, `q1_1`, `theta1_rate`, ...).
-    - `torque`: samples `(T, n_joints)` in N m at `t` (applied with linear
-      interpolation), or None.
+    - `torque`: samples `(T, n_joints)` in N m at `t`, or None; applied as `hold` reads
+      them (`"linear"`, or `"zoh"`: held until the next sample, as a digital controller
+      applies its commands; the returned `LogData.hold` says which).
     - `channels`: output channels to record (`identify.channels`).
     - `noise`: channel -> standard deviation of additive white Gaussian noise (SI).
     - `true_offsets`: channel -> constant sensor offset added to the record.
@@ -71,7 +73,7 @@ def simulate_log(
         applied = torque
         if measurement is not None:
             applied = np.asarray(meas.apply_actuators(measurement, jnp.asarray(t), jnp.asarray(torque)))
-        inp = fd.SampledTorque(t, applied, hold="linear")
+        inp = fd.SampledTorque(t, applied, hold=hold)
     traj = fd.simulate(chain, jnp.asarray(y0), jnp.asarray(t), inp, rtol=rtol, atol=atol)
     asm = fd.assemble(chain)
     inp_eval = inp if inp is not None else fd.ZeroTorque(chain.n_links)
@@ -102,4 +104,5 @@ def simulate_log(
         fit_initial=tuple(fit_initial),
         offsets=tuple(offsets),
         name=name,
+        hold=hold,
     )

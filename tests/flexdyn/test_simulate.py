@@ -252,6 +252,15 @@ def test_sampled_torque_linear_and_zoh():
     # One joint: values of shape (T,).
     one = fd.SampledTorque(times, values[:, 0])
     np.testing.assert_allclose(np.asarray(one(jnp.asarray(0.05), None)), [0.5])
+    # A hold per joint: joint 1 linear, joint 2 held (a tuple of one kind is that kind)
+    mixed = fd.SampledTorque(times, values, hold=("linear", "zoh"))
+    for t, (expected, k) in {0.05: (0.5, 0), 0.2: (0.0, 1), 0.45: (0.5, 2), 2.0: (2.0, 3)}.items():
+        np.testing.assert_allclose(np.asarray(mixed(jnp.asarray(t), None)), [expected, values[k, 1]], atol=1e-14)
+    np.testing.assert_array_equal(np.asarray(mixed.jump_times()), times)
+    assert mixed.step_times() is not None
+    assert fd.SampledTorque(times, values, hold=("zoh", "zoh")).hold == "zoh"
+    with pytest.raises(ValueError, match=r"one of them per joint \(2\), got \('zoh',\)"):
+        fd.SampledTorque(times, values, hold=("zoh",))
 
 
 def test_sampled_torque_after_a_rest_is_not_stepped_over():

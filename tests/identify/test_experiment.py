@@ -981,3 +981,47 @@ def test_a_log_with_decimal_commas_says_so_in_its_entry(tmp_path):
     body = RIG + '[[logs]]\nfile = "logs/run.mat"\ncolumns = { time = "t [s]", theta1 = "enc [deg]" }\ndecimal = ","\n'
     with pytest.raises(ExperimentError, match=msg("exp.toml, line 8: logs[1].decimal: applies to CSV logs")):
         load_experiment(experiment(tmp_path, body, log=False))
+
+
+DRIVEN = """
+[[logs]]
+file = "logs/drop.csv"
+columns = { time = "time [s]", theta1 = "theta1 [deg]", torque1 = "torque1 [N m]" }
+"""
+
+
+@pytest.mark.parametrize(
+    ("entry", "expected"),
+    [
+        ("", "linear"),
+        ('hold = "zoh"\n', "zoh"),
+        ('hold = "linear"\n', "linear"),
+        ('hold = { torque1 = "zoh" }\n', "zoh"),
+    ],
+)
+def test_a_logs_torque_hold(tmp_path, entry, expected):
+    """`hold`: how a log's torque samples are read between samples (docs/experiment-format.md),
+    carried to the fit's `LogData` and `Problem`."""
+    import identify
+
+    write_log(tmp_path / "logs" / "drop.csv", header=("time [s]", "theta1 [deg]", "torque1 [N m]"))
+    exp = load_experiment(experiment(tmp_path, RIG + DRIVEN + entry, log=False))
+    assert exp.logs[0].hold == expected
+    assert identify.log_data(exp.logs[0], 1).hold == expected
+    assert identify.problem_from_experiment(exp).hold == expected
+
+
+@pytest.mark.parametrize(
+    ("entry", "message"),
+    [
+        ('hold = "cubic"', ("logs[1].hold", 'expected "linear" or "zoh"', "'cubic'")),
+        ("hold = 1", ("logs[1].hold", "expected a table, got 1")),
+        ('hold = { torque2 = "zoh" }', ("logs[1].hold.torque2", "not a torque column of this log", "torque1")),
+        ('hold = { torque1 = "held" }', ("logs[1].hold.torque1", 'expected "linear" or "zoh"', "'held'")),
+    ],
+)
+def test_a_bad_torque_hold_names_its_key(tmp_path, entry, message):
+    write_log(tmp_path / "logs" / "drop.csv", header=("time [s]", "theta1 [deg]", "torque1 [N m]"))
+    path = experiment(tmp_path, RIG + DRIVEN + entry + "\n", log=False)
+    with pytest.raises(ExperimentError, match=msg(f"exp.toml, line {line_of(path, 'hold')}", *message)):
+        load_experiment(path)
