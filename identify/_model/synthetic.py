@@ -50,7 +50,8 @@ def simulate_log(
     - `measurement`: an `identify.measurement.Measurement` between the rig and the log
       (sensor gains, offsets, delays, high-pass filters, actuator lags): the torque in
       the returned log is the commanded one, the rig is driven by the lagged one, and
-      the recorded channels pass through the sensors before the noise is added.
+      the recorded channels pass through the sensors before the noise is added, and a
+      sensor with a `resolution` then records whole steps of it (an encoder's counts).
     """
     t = np.asarray(t, float)
     initial = dict(initial or {})
@@ -88,6 +89,7 @@ def simulate_log(
         values = meas.apply_sensors(measurement, tuple(channels), traj.ts, values, dvalues)
     values = np.asarray(values)
     rng = rng or np.random.default_rng(0)
+    steps = meas.resolutions(measurement, tuple(channels)) if measurement is not None else np.zeros(len(channels))
     outputs = {}
     for j, c in enumerate(channels):
         v = values[:, j].copy()
@@ -95,6 +97,8 @@ def simulate_log(
             v += true_offsets[c]
         if noise and noise.get(c):
             v += noise[c] * rng.standard_normal(v.shape)
+        if steps[j] > 0:  # a quantised sensor (`Sensor.resolution`) records whole steps
+            v = steps[j] * np.round(v / steps[j])
         outputs[c] = v
     return LogData(
         t=t,

@@ -130,3 +130,23 @@ def test_each_kind_measures_its_quantities_only(kind, channel, fits):
     assert (why is None) is fits
     if not fits:
         assert f"not {channel}" in why and why.endswith("or no kind")
+
+
+def test_a_synthetic_log_of_a_quantised_sensor_records_whole_steps():
+    """`simulate_log` with a `Sensor.resolution`: the channel holds whole steps (an
+    encoder's counts), within half a step of the noise-free record; others unchanged."""
+    import flexdyn as fd
+    from identify._model.synthetic import simulate_log
+
+    q = 2 * np.pi / 4096  # a 4096-count encoder, rad
+    chain = fd.rigs.rigid_pendulum()
+    t = np.arange(0.0, 2.0, 0.01)
+    common = dict(initial={"theta1": 0.3}, channels=("theta1",))
+    exact = simulate_log(chain, t, **common).outputs["theta1"]
+    m = meas.Measurement(sensors={"theta1": meas.Sensor(kind="encoder", resolution=q)})
+    counted = simulate_log(chain, t, measurement=m, **common).outputs["theta1"]
+    np.testing.assert_allclose(counted / q, np.round(counted / q), atol=1e-9)
+    assert np.max(np.abs(counted - exact)) <= 0.5 * q + 1e-12
+    assert len(np.unique(counted)) > 20  # (it moves across many counts)
+    plain = simulate_log(chain, t, measurement=meas.Measurement(), **common).outputs["theta1"]
+    np.testing.assert_array_equal(plain, exact)
