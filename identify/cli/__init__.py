@@ -6,6 +6,10 @@
                       [--any-rate]
     identify check EXPERIMENT.toml [--any-rate]
 
+Each command takes several experiment files, or a folder of them, too: they run one after
+the other in this process (`identify.cli.batch`), each into its own output folder, and a
+summary lists each file's exit status; the command's own is the largest of them.
+
 `check` reads the experiment file and its logs with every check a fit makes and prints
 what a fit would start from, in seconds (nothing compiled or written): exit 0 if a fit
 can start, 2 with the file, line and key if not.
@@ -57,6 +61,12 @@ import threading
 import warnings
 from pathlib import Path
 
+EXPERIMENTS_HELP = (
+    "the experiment file (TOML); several, or a folder of them, run one after the other in this process "
+    "(each in its own output folder: <stem>-fit, in --out if given; the programs compiled for the first are "
+    "reused by the others of the same rig), with a summary of each file's outcome"
+)
+
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -70,7 +80,7 @@ def _parser() -> argparse.ArgumentParser:
         description="Fit the free parameters of an experiment file (docs/experiment-format.md) to its fit logs, check "
         "the fit on its validation logs, print the results and write result.json and plots.",
     )
-    fit.add_argument("experiment", type=Path, help="the experiment file (TOML)")
+    fit.add_argument("experiments", type=Path, nargs="+", metavar="EXPERIMENT", help=EXPERIMENTS_HELP)
     fit.add_argument(
         "--out",
         type=Path,
@@ -131,7 +141,7 @@ def _parser() -> argparse.ArgumentParser:
         "print the rig, the free parameters, the logs and the set-up checks, and exit: 0 if a fit could start, 2 "
         "(with the file, line and key) if not. Nothing is compiled or written (a few seconds).",
     )
-    ck.add_argument("experiment", type=Path, help="the experiment file (TOML)")
+    ck.add_argument("experiments", type=Path, nargs="+", metavar="EXPERIMENT", help=EXPERIMENTS_HELP)
     ck.add_argument("--any-rate", action="store_true", help="as for fit")
     dg = sub.add_parser(
         "diagnose",
@@ -140,7 +150,7 @@ def _parser() -> argparse.ArgumentParser:
         "applicable model extension of the catalogue, name the significant cause(s) and write diagnosis.json, "
         "report.md and plots.",
     )
-    dg.add_argument("experiment", type=Path, help="the experiment file (TOML)")
+    dg.add_argument("experiments", type=Path, nargs="+", metavar="EXPERIMENT", help=EXPERIMENTS_HELP)
     dg.add_argument("--out", type=Path, default=None, help="output folder (default: ./<experiment stem>-diagnosis)")
     dg.add_argument(
         "--only",
@@ -199,7 +209,19 @@ def console_main() -> None:
 
 
 def _run(args) -> int:
-    """The command of `args`."""
+    """The command of `args`, on each of its experiments (`batch.run_batch`) or on its one."""
+    from .batch import experiment_files, run_batch
+
+    files = experiment_files(list(args.experiments))
+    if len(files) > 1:
+        suffix = {"fit": "fit", "diagnose": "diagnosis"}.get(args.command)
+        return run_batch(args, _run_one, suffix)
+    args.experiment = files[0]
+    return _run_one(args)
+
+
+def _run_one(args) -> int:
+    """The command of `args` on its experiment (`args.experiment`)."""
     if args.command == "fit":
         from .fit_command import run_fit
 

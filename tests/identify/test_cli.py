@@ -815,3 +815,75 @@ def test_check_takes_the_noise_floors_from_the_logs_as_the_fit_does(example):
     expected_floor, expected_count = noise_floors(problem)
     np.testing.assert_allclose(floor, expected_floor, rtol=1e-12)
     np.testing.assert_array_equal(count, expected_count)
+
+
+# ---------------------------------------------------------------------------
+# Several experiments in one process (identify.cli.batch)
+# ---------------------------------------------------------------------------
+
+
+def test_check_over_several_experiments_and_a_folder(capsys):
+    """`identify check A B FOLDER`: each in turn, one that fails does not stop the others,
+    the summary names each file's status and the command returns the largest."""
+    examples = EXAMPLE.parent
+    missing = examples / "no_such_experiment.toml"
+    code = main(["check", str(examples / "pendulum_friction" / "experiment.toml"), str(missing), str(EXAMPLE)])
+    out, err = capsys.readouterr()
+    assert code == 2
+    for k, path in enumerate(
+        [examples / "pendulum_friction" / "experiment.toml", missing, EXAMPLE / "experiment.toml"]
+    ):
+        assert f"identify check [{k + 1}/3]: {path}" in out
+    assert "identify check: 2 of 3 experiment(s) done (exit status 0)" in out
+    assert re.search(rf"exit 2 +[0-9.]+ s  {re.escape(str(missing))}", out)
+    assert f"identify check: not done: {missing} (2)" in err
+    assert out.count("ok: a fit can start") == 2
+
+
+def test_a_batch_runs_each_experiment_in_its_own_folder_and_goes_on_after_a_failure(tmp_path, capsys):
+    import argparse
+
+    from identify.cli import batch
+
+    a, b, c = (tmp_path / name / "experiment.toml" for name in ("a", "b", "c"))
+    seen = []
+
+    def run_one(args):
+        seen.append((args.experiment, args.out))
+        if args.experiment == b:
+            raise RuntimeError("a bug in one experiment")
+        return 3 if args.experiment == c else 0
+
+    args = argparse.Namespace(command="fit", experiments=[a, b, c], out=tmp_path / "results")
+    assert batch.run_batch(args, run_one, "fit") == 3
+    # the stems agree: each folder named after its experiment's folder too
+    assert seen == [(p, tmp_path / "results" / f"{p.parent.name}-experiment-fit") for p in (a, b, c)]
+    out, err = capsys.readouterr()
+    assert f"{b}: failed: RuntimeError: a bug in one experiment" in err
+    assert "1 of 3 experiment(s) done" in out and f"not done: {b} (1), {c} (3)" in err
+
+    def interrupted(args):
+        if args.experiment == b:
+            raise KeyboardInterrupt
+        return 0
+
+    assert batch.run_batch(args, interrupted, "fit") == 130
+    out, err = capsys.readouterr()
+    assert "interrupted at" in err and re.search(rf"not run +{re.escape(str(c))}", out)
+
+
+def test_batch_output_folders_and_folders_of_experiments(tmp_path):
+    from identify.cli import batch
+
+    assert batch.output_folders([Path("x/one.toml"), Path("y/two.toml")], None, "fit") == [None, None]
+    assert batch.output_folders([Path("x/one.toml")], tmp_path, "diagnosis") == [tmp_path / "one-diagnosis"]
+    for name in ("b.toml", "a.toml", "notes.txt"):
+        (tmp_path / "flat" / name).parent.mkdir(exist_ok=True)
+        (tmp_path / "flat" / name).write_text("")
+    (tmp_path / "nested" / "r1").mkdir(parents=True)
+    (tmp_path / "nested" / "r1" / "experiment.toml").write_text("")
+    assert batch.experiment_files([tmp_path / "flat", tmp_path / "nested"]) == [
+        tmp_path / "flat" / "a.toml",
+        tmp_path / "flat" / "b.toml",
+        tmp_path / "nested" / "r1" / "experiment.toml",
+    ]
