@@ -887,3 +887,33 @@ def test_batch_output_folders_and_folders_of_experiments(tmp_path):
         tmp_path / "flat" / "b.toml",
         tmp_path / "nested" / "r1" / "experiment.toml",
     ]
+
+
+@pytest.mark.slow  # (the first fit compiles ~100 programs: minutes on 2 cores)
+def test_a_second_experiment_of_the_same_rig_compiles_no_program(tmp_path, monkeypatch, capsys):
+    """`identify fit A B` with B a copy of A (the same rig, logs of the same shapes): the
+    second fit reuses every program the first compiled (XLA's backend compilations counted
+    through `jax.monitoring`), and both results agree."""
+    import jax
+
+    import identify.cli as cli
+
+    compiled, counts = [], []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda name, secs, **kw: compiled.append(name) if name.endswith("backend_compile_duration") else None
+    )
+
+    def counted(args, _run=cli._run_one):
+        before = len(compiled)
+        code = _run(args)
+        counts.append(len(compiled) - before)
+        return code
+
+    monkeypatch.setattr(cli, "_run_one", counted)
+    for name in ("a", "b"):
+        shutil.copytree(EXAMPLE, tmp_path / name)
+    code = main(["fit", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "out"), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    assert counts[0] > 10 and counts[1] == 0, counts
+    a, b = (json.loads((tmp_path / "out" / f"{n}-experiment-fit" / "result.json").read_text()) for n in "ab")
+    assert a["parameters"] == b["parameters"]
