@@ -482,6 +482,7 @@ def _stuck_at_start(real, forced):
     return fit_batch
 
 
+@pytest.mark.slow  # (~2 min, a whole diagnosis; CI's budget)
 def test_a_candidate_whose_fit_never_leaves_its_start_is_retried_and_else_not_fitted(monkeypatch):
     """Issue 61: on the real rig the dry-friction candidate stayed at exactly its neutral
     start, and the report read that as "no evidence" (fitted by hand, the friction gave an
