@@ -58,6 +58,7 @@ from .inputs import (
     SampledTorque as SampledTorque,
     ZeroTorque as ZeroTorque,
 )
+from .lagged_input import LaggedTorque as LaggedTorque
 from .linear import (
     LinearModel as LinearModel,
     Modes as Modes,
