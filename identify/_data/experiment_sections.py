@@ -520,6 +520,7 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
         measured=tuple(measured),
         set=_log_set(r, chain, spec.get("set", {}), key + ("set",)),
         hold=_log_hold(r, spec.get("hold", "linear"), key + ("hold",), log, chain.n_links),
+        hold_declared="hold" in spec,
     )
 
 
