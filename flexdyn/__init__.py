@@ -59,6 +59,12 @@ from .inputs import (
     ZeroTorque as ZeroTorque,
 )
 from .lagged_input import LaggedTorque as LaggedTorque
+from .sampled_loop import (
+    ClosedLoopRun as ClosedLoopRun,
+    DigitalController as DigitalController,
+    LinearFeedback as LinearFeedback,
+    simulate_closed_loop as simulate_closed_loop,
+)
 from .linear import (
     LinearModel as LinearModel,
     Modes as Modes,
