@@ -665,11 +665,7 @@ def generalised_forces(asm: AssembledChain, Q, Qd, torque):
     """F - dV/dQ - dR/dQ_dot (+ dry friction and drag, `flexdyn.nonlinear`) for joint
     torques `torque` [N m] (for a joint with a motor: its command, `motor_forces`)."""
     drive = motor_forces(asm, Qd, torque) if has_motors(asm.chain) else input_matrix(asm) @ torque
-    F = (
-        drive
-        - jax.grad(potential_energy, argnums=1)(asm, Q)
-        - jax.grad(dissipation, argnums=1)(asm, Qd)
-    )
+    F = drive - jax.grad(potential_energy, argnums=1)(asm, Q) - jax.grad(dissipation, argnums=1)(asm, Qd)
     if has_nonlinear_forces(asm.chain):
         F = F + nonlinear_forces(asm, Q, Qd)
     return F

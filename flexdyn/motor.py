@@ -41,15 +41,19 @@ loop hides `L`), so an inductance is only accepted with `drive="voltage"`.
 
 **Gear efficiency** `eta` (0 < eta <= 1). A gear passes on `eta` of the power when the
 motor drives the load and takes `1/eta` of the motor's torque (times `N`) from the load
-when the load drives the motor; either way the gear loses power, never makes it. The
-factor switches smoothly (C^1) between the two with the direction of the power flow,
+when the load drives the motor: either way it loses power, never makes it. Its losses are
+friction, so they are smoothed as `flexdyn.nonlinear`'s dry friction is, over the
+direction of the power flow:
 
-    e(x) = eta^(1 - 2 tanh(min(x, 0))^2),     x = sign(i) w / v_s,
+    e(x) = eta^tanh(x),     x = sign(i) w / v_s,
 
-so `e = eta` when the motor drives or stalls (`i w >= 0`: the catalogue's stall torque
-`eta N K_t V / R` at the output shaft) and tends to `1/eta` when it brakes at speed. The
-gear's loss `(1 - e) N K_t i s_dot` is then `>= 0` everywhere (tested). This is the
-constant-efficiency simplification: real gears lose more at light load and low speed.
+`e -> eta` when the motor drives (`i w > 0`), `-> 1/eta` when it brakes at speed, `e = 1`
+at rest (no motion, no loss, as the smoothed dry friction has none at rest). The gear's
+loss `(1 - e) N K_t i s_dot` is `>= 0` everywhere (tested). So the torque-speed line of a
+voltage `V` driving at `|w| >> v_s`, `eta N K_t (V - K_t w) / R`, has the catalogue's stall
+torque `eta N K_t V / R` (the Maxon catalogue's output-shaft figure) as its intercept; at
+exactly zero speed the smoothed gear passes `N K_t V / R`. This is the constant-efficiency
+simplification: real gears lose more at light load and low speed.
 
 **Voltage saturation** (`voltage_limit`, V, `None`: none): the amplifier applies
 `clip(V, -V_max, V_max)`. A current or torque amplifier's command needs the voltage
@@ -132,7 +136,9 @@ class DCMotor(eqx.Module):
         except (TypeError, ValueError):
             raise ValueError(f"DCMotor.smoothing_velocity: expected a number > 0 (rad/s), got {smoothing_velocity!r}")
         if not 0 < smoothing_velocity < float("inf"):
-            raise ValueError(f"DCMotor.smoothing_velocity: expected a finite number > 0 (rad/s), got {smoothing_velocity!r}")
+            raise ValueError(
+                f"DCMotor.smoothing_velocity: expected a finite number > 0 (rad/s), got {smoothing_velocity!r}"
+            )
         self.drive, self.smoothing_velocity = drive, smoothing_velocity
         name = "DCMotor."
         self.resistance = as_float_array(resistance, name + "resistance")
@@ -195,10 +201,10 @@ def quasi_static_current(motor: DCMotor, voltage, motor_speed):
 
 
 def efficiency_factor(motor: DCMotor, current, motor_speed):
-    """`e(x) = eta^(1 - 2 tanh(min(x, 0))^2)`, `x = sign(i) w / v_s` (module docstring):
-    `eta` while the motor drives or stalls, `-> 1/eta` while the load drives it."""
-    x = jnp.minimum(jnp.sign(current) * motor_speed / motor.smoothing_velocity, 0.0)
-    return motor.efficiency ** (1.0 - 2.0 * jnp.tanh(x) ** 2)
+    """`e(x) = eta^tanh(x)`, `x = sign(i) w / v_s` (module docstring): `-> eta` while the
+    motor drives, `-> 1/eta` while the load drives it, 1 at rest."""
+    x = jnp.sign(current) * motor_speed / motor.smoothing_velocity
+    return motor.efficiency ** jnp.tanh(x)
 
 
 def friction_torque(motor: DCMotor, motor_speed):
@@ -233,8 +239,9 @@ def motor_torque(motor: DCMotor, gear_ratio, command, joint_rate):
 
 
 def back_emf_damping(motor: DCMotor, gear_ratio):
-    """`N^2 K_t^2 / R`, N m s/rad: the damping on the joint rate of a voltage-driven motor
-    (a lossless gear; quasi-static current) whose terminals are held at a fixed voltage.
+    """`N^2 K_t^2 / R`, N m s/rad: the damping on the joint rate, at rest, of a voltage-driven
+    motor (quasi-static current) whose terminals are held at a fixed voltage (at speed, a
+    gear of efficiency `eta` makes it `N^2 K_t^2 / (eta R)` while the load drives the motor).
     A joint's viscous damping fitted on a model that leaves the motor out includes it, so
     it cannot be less (issue 61: `0.0016` fitted where the back-EMF alone gives `0.0815`)."""
     return gear_ratio**2 * motor.torque_constant**2 / motor.resistance
@@ -243,5 +250,5 @@ def back_emf_damping(motor: DCMotor, gear_ratio):
 def mechanical_time_constant(motor: DCMotor, gear_ratio, inertia):
     """`tau_m = J R / (eta N^2 K_t^2)`, s: the time constant of a voltage step's speed
     response of a load of total inertia `J` (kg m^2, at the joint, rotor's `N^2 J_m`
-    included) with no friction and no inductance."""
+    included) with no friction and no inductance (the motor driving at `|w| >> v_s`)."""
     return inertia * motor.resistance / (motor.efficiency * gear_ratio**2 * motor.torque_constant**2)
