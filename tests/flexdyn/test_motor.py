@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import scipy.linalg
 import scipy.integrate
+import scipy.linalg
 
 import flexdyn as fd
 from flexdyn.chain import checked_chain
