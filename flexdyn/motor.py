@@ -99,7 +99,10 @@ class DCMotor(eqx.Module):
     - `drive`: what the joint's input is (static): `"voltage"` (V), `"current"` (A) or
       `"torque"` (N m at the joint, `N K_t i`).
     - `smoothing_velocity`: v_s, rad/s on the motor shaft (static, a numerical choice): the
-      scale of the Coulomb `tanh` and of the efficiency's switch.
+      scale of the Coulomb `tanh` and of the efficiency's switch. The default, 1 rad/s (10
+      rpm, far below a motor's working speeds), keeps the switch wide enough for a fit's
+      fixed-step grid: at 0.1 rad/s a fit of a simulated log with `efficiency = 0.9` was
+      biased by 20 standard errors in the resistance, at 1 rad/s it was within one.
     """
 
     resistance: Scalar
@@ -122,7 +125,7 @@ class DCMotor(eqx.Module):
         coulomb=None,
         voltage_limit=None,
         drive: str = "voltage",
-        smoothing_velocity: float = 0.1,
+        smoothing_velocity: float = 1.0,
     ):
         if drive not in DRIVES:
             raise ValueError(f"DCMotor.drive: expected one of {', '.join(map(repr, DRIVES))}, got {drive!r}")
