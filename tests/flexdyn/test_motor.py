@@ -208,6 +208,7 @@ def test_energy_balance_of_a_saturating_braking_pendulum_drive(inductance):
     assert abs(work_in - (energy[-1] - energy[0]) - lost) < 1e-6 * scipy.integrate.simpson(np.abs(power_in), x=ts)
 
 
+@pytest.mark.slow  # (12 to 30 s on 2 cores, most of it compiling the reverse pass)
 def test_gradient_of_the_speed_in_the_resistance_matches_finite_differences():
     V = 5.0
     ts = jnp.linspace(0.0, 0.05, 3)
@@ -268,3 +269,11 @@ def test_bad_motors_are_named():
     assert float(assembled(0.5)) == 0.5
     with pytest.raises(Exception, match="motor1.efficiency must be <= 1"):
         assembled(1.5)
+
+
+def test_formulations_that_take_torques_refuse_motors():
+    chain = _chain(fd.DCMotor(R, K))
+    with pytest.raises(ValueError, match="not in the DeNOC formulation"):
+        fd.denoc.denoc_accelerations(chain, jnp.zeros(1), jnp.zeros(1), jnp.zeros(1))
+    with pytest.raises(ValueError, match="composite controller"):
+        fd.control.rigid_embedding(chain)
