@@ -48,6 +48,12 @@ def test_voltage_step_speed_follows_the_mechanical_time_constant_to_the_no_load_
     traj = _run(chain, lambda t: jnp.array([V]), ts)
     expected = V / (K * N) * (1.0 - np.exp(-ts / tau_m))
     np.testing.assert_allclose(traj.Qd[:, 0], expected, rtol=1e-6, atol=1e-7 * V / (K * N))
+    # observe's torque is the motor's torque on the joint, eta N K i, not its command (volts);
+    # at rest (t = 0) the smoothed gear loses nothing: N K V / R
+    torque = np.asarray(fd.observe(chain, traj, lambda t: jnp.array([V])).torque[:, 0])
+    closed_form = eta * N * K * (V - K * N * expected) / R
+    np.testing.assert_allclose(torque[1:], closed_form[1:], rtol=1e-6, atol=1e-7 * N * K * V / R)
+    assert torque[0] == pytest.approx(N * K * V / R, rel=1e-12)
     # the speed per volt at no load, 1 / (K_b N), does not depend on the gear's efficiency
     assert traj.Qd[-1, 0] / V == pytest.approx(1.0 / (K * N) * (1 - math.exp(-8)), rel=1e-6)
 
