@@ -42,3 +42,6 @@ def test_fit_of_a_voltage_driven_log_recovers_the_resistance_and_torque_constant
         value, se = result.value[name], result.std_errors[k]
         assert abs(value - truth) < 3 * se, (name, value, se, truth)
         assert se < 0.05 * truth, (name, se)
+    # the summary reports the back-EMF damping floor at the fitted values (issue 61)
+    r, k = result.value["motor1.resistance"], result.value["motor1.torque_constant"]
+    assert f"joint1: back-EMF damping N^2 K_t^2 / R = {N**2 * k**2 / r:.4g} N m s/rad" in result.summary()
