@@ -7,6 +7,7 @@ the linearisation; and the energy balance of a saturating, braking, gravity-load
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -283,3 +284,19 @@ def test_formulations_that_take_torques_refuse_motors():
         fd.denoc.denoc_accelerations(chain, jnp.zeros(1), jnp.zeros(1), jnp.zeros(1))
     with pytest.raises(ValueError, match="composite controller"):
         fd.control.rigid_embedding(chain)
+
+
+def test_new_motor_values_do_not_retrace_a_jitted_simulation():
+    # the motor's parameters are array leaves (drive, smoothing speed: static structure)
+    ts = jnp.linspace(0.0, 0.02, 3)
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def final_rate(chain):
+        return fd.simulate(chain, fd.initial_state(chain, [0.0]), ts, lambda t: jnp.array([5.0])).Qd[-1, 0]
+
+    base = _chain(fd.DCMotor(R, K, efficiency=0.9, coulomb=1e-3, voltage_limit=10.0))
+    first = final_rate(base)
+    names = ("motor1.resistance", "motor1.torque_constant", "motor1.efficiency", "motor1.coulomb")
+    second = final_rate(fd.with_parameters(base, dict(zip(names, (3.0, 0.06, 0.8, 2e-3)))))
+    assert float(first) != float(second)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import flexdyn as fd
+import identify
 from identify import ExperimentError, load_experiment
 
 
@@ -60,6 +61,10 @@ def test_a_voltage_driven_motor_from_the_experiment_file(tmp_path):
     log = exp.logs[0].log
     t = np.arange(20) * 0.01
     np.testing.assert_allclose(log.torque(1)[:, 0], 3.0 * np.sin(5 * t), atol=1e-6)  # volts, as recorded
+    # and the fit's problem: the motor's parameter free, the volts its logs' input
+    problem = identify.problem_from_experiment(exp)
+    assert tuple(problem.names) == ("motor1.torque_constant",)
+    np.testing.assert_allclose(np.asarray(problem.torque_v)[0, :, 0], 3.0 * np.sin(5 * t), atol=1e-6)
 
 
 def test_a_current_amplifier_reads_amperes(tmp_path):
