@@ -8,7 +8,9 @@ Design note (how the equations are formed, and why they are exact)
 (elastic joints only, referred to the link side), the link angle `theta_i`
 (relative to the tip frame of link i-1, or to the base x axis for i = 1) and the
 modal coordinates `q_i1..q_im` of link i (flexible links only, metres; see
-`flexdyn.modes`). The state is `y = [Q, Q_dot]`.
+`flexdyn.modes`); after all of them, the armature charge `charge_i` (C) of each joint
+driven by a `DCMotor` with an inductance, whose rate is the motor's current
+(`flexdyn.motor`). The state is `y = [Q, Q_dot]`.
 
 **Kinematics** (papers 002/004 eq. 1-5, with the elastic rotation kept as an
 angle). Link i has a body frame at its joint with origin `o_i` and absolute

@@ -137,7 +137,9 @@ class DCMotor(eqx.Module):
         try:
             smoothing_velocity = float(smoothing_velocity)
         except (TypeError, ValueError):
-            raise ValueError(f"DCMotor.smoothing_velocity: expected a number > 0 (rad/s), got {smoothing_velocity!r}")
+            raise ValueError(
+                f"DCMotor.smoothing_velocity: expected a number > 0 (rad/s), got {smoothing_velocity!r}"
+            ) from None
         if not 0 < smoothing_velocity < float("inf"):
             raise ValueError(
                 f"DCMotor.smoothing_velocity: expected a finite number > 0 (rad/s), got {smoothing_velocity!r}"
