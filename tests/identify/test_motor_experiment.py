@@ -122,3 +122,14 @@ def test_a_voltage_column_on_a_joint_without_a_motor_is_named(tmp_path):
     )
     with pytest.raises(ExperimentError, match=r"joint 1 has no motor.*\[rig.motors.joint1\]"):
         load_experiment(path)
+
+
+def test_an_inductive_motors_current_is_a_state_a_log_may_start_from(tmp_path):
+    path = _experiment(tmp_path, "resistance = 2.0\ntorque_constant = 0.05\ninductance = 1e-3", "voltage1")
+    text = path.read_text().replace('"u [V]" }', '"u [V]" }\ninitial = { charge1_rate = 0.2 }')
+    path.write_text(text)
+    exp = load_experiment(path)
+    assert exp.chain.coordinate_names() == ["theta1", "charge1"]
+    assert exp.logs[0].initial["charge1_rate"] == 0.2  # A
+    data = identify.log_data(exp.logs[0], 1)
+    assert data.initial["charge1_rate"] == 0.2
