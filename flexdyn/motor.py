@@ -7,8 +7,8 @@ joint, `None` for a joint driven by torque directly). The joint's input (the col
 (N m at the joint, `drive="torque"`, a torque amplifier: a current amplifier whose command
 is scaled by `N K_t`).
 
-**The motor and its gear** (Hughes & Drury, *Electric Motors and Drives*, 5th ed., ch. 3;
-the Maxon catalogue's "key information" formulas). The gear ratio `N` and the rotor inertia
+**The motor and its gear** (the permanent-magnet DC motor of Hughes & Drury, *Electric
+Motors and Drives*; the Maxon catalogue's "key information" formulas). The gear ratio `N` and the rotor inertia
 `J_m` are the joint's own (`joint.gear_ratio`, `joint.rotor_inertia`: the rotor's kinetic
 energy `1/2 J_m (N s_dot)^2` is already in the chain's), so the motor shaft turns at
 `w = N s_dot`, `s_dot` the rate of the joint's actuated coordinate (the link angle of a
@@ -32,9 +32,8 @@ rate, a physical floor under any fitted joint damping (`back_emf_damping`). With
 inductance `L > 0` (H) the current is a state: the armature's charge is a generalised
 coordinate `charge<i>` (C, after the mechanical ones) whose rate is the current, with
 "kinetic" (magnetic) energy `1/2 L i^2`, Rayleigh dissipation `1/2 R i^2` and generalised
-force `V - K_t w` (the Lagrange-Maxwell equations of electromechanics: Meirovitch,
-*Methods of Analytical Dynamics*, 1970, sec. 2.13; Crandall et al., *Dynamics of
-Mechanical and Electromechanical Systems*, 1968, ch. 6). The chain's own machinery then
+force `V - K_t w` (the Lagrange-Maxwell equations of electromechanics, as in Crandall et al., *Dynamics of
+Mechanical and Electromechanical Systems*, 1968). The chain's own machinery then
 integrates, linearises and differentiates it; the stored energy `1/2 L i^2` is part of
 `flexdyn.kinetic_energy`. A current or torque amplifier holds the current itself (its
 loop hides `L`), so an inductance is only accepted with `drive="voltage"`.
