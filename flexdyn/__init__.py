@@ -19,6 +19,7 @@ from . import (
     fixed_step as fixed_step,
     fused as fused,
     modes as modes,
+    motor as motor,
     nonlinear as nonlinear,
     params as params,
     response as response,
@@ -76,6 +77,7 @@ from .linear import (
     stable_step as stable_step,
     stiffness_matrix as stiffness_matrix,
 )
+from .motor import DCMotor as DCMotor
 from .parts import (
     ElasticJoint as ElasticJoint,
     FlexibleLink as FlexibleLink,

@@ -526,13 +526,13 @@ def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: floa
         )
         links = list(chain.links)
         links[i] = new
-        return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity), {}
+        return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity, chain.motors), {}
     if cand.name == "geometric_stiffening":
         # the same link with its axial-load stiffness (`flexdyn.FlexibleLink`'s option);
         # its parameters, EI included, are refitted from the baseline's values
         links = list(chain.links)
         links[i] = dataclasses.replace(chain.links[i], geometric_stiffening=True)
-        return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity), {}
+        return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity, chain.motors), {}
     if cand.name == "joint_elasticity":
         joint, hub = chain.joints[i], chain.hubs[i]
         # The motor's inertia (the hub's, if the rigid joint had no rotor) moves to the rotor
@@ -554,7 +554,7 @@ def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: floa
         hubs = list(chain.hubs)
         if not float(joint.rotor_inertia):
             hubs[i] = fd.Hub(mass=hub.mass, inertia=float(hub.inertia) - rotor)
-        return fd.Chain(chain.links, joints, hubs, chain.payload, chain.gravity), {
+        return fd.Chain(chain.links, joints, hubs, chain.payload, chain.gravity, chain.motors), {
             f"joint{index}.stiffness": k,
             f"joint{index}.rotor_inertia": rotor,
         }

@@ -1016,7 +1016,7 @@ def test_a_logs_torque_hold(tmp_path, entry, expected):
     [
         ('hold = "cubic"', ("logs[1].hold", 'expected "linear" or "zoh"', "'cubic'")),
         ("hold = 1", ("logs[1].hold", "expected a table, got 1")),
-        ('hold = { torque2 = "zoh" }', ("logs[1].hold.torque2", "not a torque column of this log", "torque1")),
+        ('hold = { torque2 = "zoh" }', ("logs[1].hold.torque2", "not an input column of this log", "torque1")),
         ('hold = { torque1 = "held" }', ("logs[1].hold.torque1", 'expected "linear" or "zoh"', "'held'")),
     ],
 )
