@@ -466,11 +466,20 @@ def _extended_intervals(base: FitResult, superset: Superset, current: CurrentMod
     natural += [(n, float(v.xe[s]), float(se_nat[joint.nb + s]), lg) for s, (n, _, lg) in enumerate(current.layout)]
     for n, x, se, lg in natural:
         val = math.exp(x) if lg else x
-        lo, hi = (math.exp(x - Z95 * se), math.exp(x + Z95 * se)) if lg else (x - Z95 * se, x + Z95 * se)
+        lo, hi = log_interval(x, se) if lg else (x - Z95 * se, x + Z95 * se)
         ext_intervals[n] = {"value": val, "std_error": val * se if lg else se, "ci95": [lo, hi]}
     for n, _, _ in current.layout:
         ext_values[n] = {**ext_intervals[n], "unit": _unit(superset.problem, n)}
     return ext_intervals, ext_values
+
+
+def log_interval(x: float, se: float) -> tuple[float, float]:
+    """The 95 % interval `exp(x -+ Z95 se)` of a parameter fitted through its logarithm
+    `x` with standard error `se`: an upper end beyond the floats is `inf`, not an
+    `OverflowError` (a parameter the data barely determine, e.g. an actuator lag near 0
+    on held commands, has an `se` of thousands; its interval is then (0, inf), honestly)."""
+    lo, hi = x - Z95 * se, x + Z95 * se
+    return (math.exp(lo) if lo > -745.0 else 0.0), (math.exp(hi) if hi < 709.0 else math.inf)
 
 
 def _causes(state: SearchState, ext_values: dict, plausibility: cat.Plausibility) -> list[Cause]:

@@ -989,3 +989,16 @@ def test_the_held_out_gains_standard_error_matches_its_scatter():
     assert cause.marginal(1.1) and not dataclasses.replace(cause, held_out_gain=1.2).marginal(1.1)
     assert not dataclasses.replace(cause, held_out_gain_se=float("nan")).marginal(1.1)
     assert math.isnan(scores_module.gain_standard_error(np.ones(20), np.ones(19)))  # not paired
+
+
+def test_a_log_scale_interval_beyond_the_floats_is_infinite_not_an_error():
+    """Found on the driven arm with held commands: an actuator lag near 0 (its derivative
+    vanishes there) had a standard error of thousands in its logarithm, and `math.exp` of
+    the interval's end raised `OverflowError` after the whole search had finished, losing
+    the diagnosis. The interval is `exp(x -+ 1.96 se)`, saturating at 0 and inf."""
+    from identify._diagnose.diagnosis import log_interval
+
+    lo, hi = log_interval(math.log(0.02), 0.1)
+    assert lo == pytest.approx(0.02 * math.exp(-1.959963984540054 * 0.1), rel=1e-9)
+    assert hi == pytest.approx(0.02 * math.exp(1.959963984540054 * 0.1), rel=1e-9)
+    assert log_interval(math.log(1e-6), 5000.0) == (0.0, math.inf)
