@@ -189,3 +189,60 @@ def test_a_structural_candidate_too_stiff_for_the_solver_is_not_fitted():
     assert state.notes == [{"round": 2, "text": text}]
     structural.record_drops(state, scores, [c])
     assert state.struct_drop == {}
+
+
+@pytest.mark.slow  # (~1-2 min: a fit's programs compile)
+def test_a_fit_that_walks_into_a_stiff_model_stops_keeping_the_finished_stage(monkeypatch):
+    """`fit(stop_when_stiff=True)`: when the second stage's start is too stiff for the solver
+    (a stand-in estimate there: `StepEstimate` itself is tested above), or its adaptive
+    solve ends on the step limit (a stand-in failure), the fit stops before that stage and
+    keeps the first: the result is the first stage's, marked (`FitResult.stopped`, the
+    summary, the JSON), not converged. Without the option the failure raises, as before."""
+    from identify._fit import fit as fit_module
+
+    t = np.linspace(0.0, 2.0, 401)
+    k = 1e2
+    problem = problem_of(two_inertia(k), 0.05 * np.sin(2 * np.pi * t), t)
+    params = [identify.Parameter("joint1.stiffness", k), identify.Parameter("joint1.damping", 0.01, 1e-6, 10.0)]
+    options = dict(n_stages=2, n_starts=1, frequency_init=False, estimate_noise=False, max_restarts=0)
+    estimate = stiff_start.StepEstimate(7000.0, 1e-5, 1.3e5, 100_000, "log", 2.0)
+    stage_step, stiff_at = fit_module._stage_step, fit_module.stiff_at
+    limit = identify.SimulationFailed(
+        "stand-in: the adaptive solver reached its limit of 100000 steps", horizon_s=2.0, values={}, logs={}
+    )
+
+    def second(real, stand_in):
+        calls = []
+
+        def call(problem, z, horizon, *rest):
+            calls.append(horizon)
+            if horizon is not None and float(horizon) > 1.5:
+                return stand_in()
+            return real(problem, z, horizon, *rest)
+
+        return call
+
+    def fail():
+        raise limit
+
+    for caught_by in ("estimate", "solve", "not asked"):
+        monkeypatch.setattr(fit_module, "stiff_at", second(stiff_at, lambda: estimate))
+        monkeypatch.setattr(fit_module, "_stage_step", second(stage_step, fail))
+        if caught_by == "solve":
+            monkeypatch.setattr(fit_module, "stiff_at", second(stiff_at, lambda: None))
+        if caught_by == "not asked":
+            with pytest.raises(identify.SimulationFailed, match="stand-in"):
+                identify.fit(problem, params, **options)
+            continue
+        said = []
+        result = identify.fit(problem, params, stop_when_stiff=True, progress=said.append, **options)
+        assert [s.horizon_s for s in result.stages] == [pytest.approx(1.0)], result.stages
+        assert result.stopped.startswith("stopped before the 2 s stage, keeping the 1 s one: "), result.stopped
+        why = (
+            "the model is too stiff for the solver: its highest natural frequency"
+            if caught_by == "estimate"
+            else "stand-in"
+        )
+        assert why in result.stopped and any(result.stopped in m for m in said), (result.stopped, said)
+        assert not result.converged and result.to_dict()["stopped"] == result.stopped
+        assert f"note: the fit {result.stopped}; the result is that stage's, over its horizon only" in result.summary()
