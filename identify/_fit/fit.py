@@ -134,12 +134,12 @@ def fit(
       optimistix's start (there, `tau` made the fit slower for the same convergence).
     - `stop_when_stiff`: before each stage's adaptive solve, estimate from the model's
       linearisation at the stage's starting values the steps its solves need
-      (`identify.stiff_start.estimate_steps`); when that exceeds the solver's step limit
+      (`estimate_steps` in `identify/_fit/stiff_start.py`); when that exceeds the solver's step limit
       (`Problem.max_steps`), or the adaptive solve fails after all, the growing horizon
       stops there and the result is the last finished stage's, marked
       (`FitResult.stopped`, its cost over that stage's horizon), instead of spending minutes
       on solves that end on the step limit and raise. Before any stage has finished it
-      raises `identify.stiff_start.TooStiff` (a `SimulationFailed`) at once. For a fit that
+      raises `TooStiff` (a `SimulationFailed`, its `estimate` the `StepEstimate`) at once. For a fit that
       may walk into a stiff model (`identify diagnose`'s structural candidates).
     - `progress`: callable taking a message string (e.g. `print`), or None.
     """

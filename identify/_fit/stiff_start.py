@@ -81,7 +81,8 @@ def estimate_steps(problem: Problem, theta, y0s=None, horizon: float | None = No
     """The `StepEstimate` of the log that needs the most steps at parameters `theta` (SI, in
     `problem.names` order) from initial states `y0s` `(L, 2n)` (default: the known ones,
     `Problem.y0_known`), over `horizon` (s from each log's onset, as `fit`'s stages; None:
-    the whole logs). Host-side (a linearisation and an eigenvalue problem per log)."""
+    the whole logs); None when no log has a finite linearisation. Host-side (a linearisation
+    and an eigenvalue problem per log)."""
     if not 0 < grid_safety <= 1:
         raise ValueError(f"estimate_steps: grid_safety expected a factor in (0, 1], got {grid_safety!r}")
     theta = jnp.asarray(theta, dtype=float)
@@ -95,7 +96,10 @@ def estimate_steps(problem: Problem, theta, y0s=None, horizon: float | None = No
             continue
         chain = chain_at(problem, theta, jnp.asarray(log_set[l]), l)
         y0 = jnp.asarray(y0s[l])
-        lam = np.linalg.eigvals(np.asarray(fd.linearize(chain, y0).A))
+        A = np.asarray(fd.linearize(chain, y0).A)
+        if not np.all(np.isfinite(A)):  # (no estimate: the solve itself will say what fails)
+            continue
+        lam = np.linalg.eigvals(A)
         step = fd.stable_step(chain, y0, solver="tsit5", safety=1.0)
         steps = span / (grid_safety * ADAPTIVE_OVER_STABLE * step) if math.isfinite(step) else 0.0
         est = StepEstimate(
