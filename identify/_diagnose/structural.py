@@ -198,7 +198,7 @@ def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cu
         thetas = jnp.zeros((1, len(ho_problem.names)))  # (every entry is an own value)
         r_ho, _, _ = _held_out_batch(ho_problem, thetas, v0, ho_own, jnp.asarray(sigma), res.step, 25)
     except TooStiff as e:
-        return _not_fitted(c, len(new), f"its start is {e.estimate.reason()}", say)
+        return _not_fitted(c, len(new), f"{e.where} its model is {e.estimate.reason()}", say)
     except (RuntimeError, ValueError) as e:
         reason = error_reason(e)
         say(f"  structural candidate {c.label} failed: {reason}")

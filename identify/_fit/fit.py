@@ -172,7 +172,7 @@ def fit(
     if stop_when_stiff:  # (the last stage must simulate the whole logs: checked over them)
         estimate = stiff_at(problem, z, None, grid_safety)
         if estimate is not None:
-            raise TooStiff(estimate, horizon_s=None, values=values_at(problem, z))
+            raise TooStiff(estimate, where="at its starting values", horizon_s=None, values=values_at(problem, z))
     stages, candidates = [], [z]
     several = n_starts > 1 or len(extra)
     if several and problem.names:
@@ -391,14 +391,30 @@ def _grow(problem, z, sigma, horizons, schedule: _Schedule, say, tau_first):
             say("  noise re-estimated: " + _noise_text(problem.channels, sigma, schedule.estimate_noise))
     if schedule.grid.error and step is not None:
         try:
+            _refuse_if_stiff(problem, z, h, schedule, "at the optimum")
             z, step, lin = _recheck_step(problem, z, sigma, h, step, lin, schedule, stages, say)
         except SimulationFailed as e:
             if not schedule.stop_when_stiff:
                 raise
-            stopped = f"the check of the integration step at the optimum failed ({_one_line(e)})"
-            say(f"  {stopped}: stopping with the stage that finished")
+            stopped = f"stopped before the check of its integration step at the optimum, keeping that step: {_why(e)}"
+            say(f"  {stopped}")
             return z, sigma, step, (lin, h), stages, stopped
     return z, sigma, step, (lin, h), stages, ""
+
+
+def _refuse_if_stiff(problem, z, horizon, schedule: _Schedule, where: str) -> None:
+    """With `schedule.stop_when_stiff`, raise `TooStiff` when the model at `z` is too stiff
+    for the solver over `horizon` (`stiff_start.stiff_at`); `where`: at which values."""
+    if not schedule.stop_when_stiff:
+        return
+    estimate = stiff_at(problem, z, horizon, schedule.grid.safety)
+    if estimate is not None:
+        raise TooStiff(estimate, where=where, horizon_s=float(horizon), values=values_at(problem, z))
+
+
+def _why(e: SimulationFailed) -> str:
+    """What stopped a fit (`_stiff_stop`), in a clause."""
+    return f"{e.where} the model is {e.estimate.reason()}" if isinstance(e, TooStiff) else _one_line(e)
 
 
 def _stiff_stop(problem, z, sigma, horizon, schedule: _Schedule, finished, say):
@@ -410,21 +426,14 @@ def _stiff_stop(problem, z, sigma, horizon, schedule: _Schedule, finished, say):
     there is nothing to keep."""
     if not schedule.stop_when_stiff:
         return _stage_step(problem, z, horizon, schedule.grid, sigma)
-    estimate = stiff_at(problem, z, horizon, schedule.grid.safety)
+    where = "at the values it reached" if finished is not None else "at the first stage's start"
     try:
-        if estimate is not None:
-            raise TooStiff(estimate, horizon_s=float(horizon), values=values_at(problem, z))
+        _refuse_if_stiff(problem, z, horizon, schedule, where)
         return _stage_step(problem, z, horizon, schedule.grid, sigma)
     except SimulationFailed as e:
         if finished is None:
             raise
-        why = e.estimate.reason() if isinstance(e, TooStiff) else _one_line(e)
-        stopped = (
-            f"stopped before the {float(horizon):.4g} s stage, keeping the {float(finished):.4g} s one: at the "
-            f"values it reached the model is {why}"
-            if isinstance(e, TooStiff)
-            else f"stopped before the {float(horizon):.4g} s stage, keeping the {float(finished):.4g} s one: {why}"
-        )
+        stopped = f"stopped before the {float(horizon):.4g} s stage, keeping the {float(finished):.4g} s one: {_why(e)}"
         say(f"  {stopped}")
         return stopped
 

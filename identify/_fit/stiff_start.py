@@ -123,16 +123,17 @@ def _span(t: np.ndarray, onset: float, horizon: float | None) -> float:
 class TooStiff(SimulationFailed):
     """`fit(stop_when_stiff=True)`'s refusal of a model too stiff for its solver before any
     stage finished (`StepEstimate.too_stiff`): raised at once, without a simulation.
-    `estimate`: the `StepEstimate`."""
+    `estimate`: the `StepEstimate`; `where`: at which values (`"at its starting values"`)."""
 
-    def __init__(self, estimate: StepEstimate, *, horizon_s: float | None, values: dict):
+    def __init__(self, estimate: StepEstimate, *, where: str, horizon_s: float | None, values: dict):
         super().__init__(
-            f"fit: the model at its starting values is {estimate.reason()}; not simulated",
+            f"fit: {where} the model is {estimate.reason()}; not simulated",
             horizon_s=horizon_s,
             values=values,
             logs={estimate.log: estimate.reason()},
         )
         self.estimate = estimate
+        self.where = where
 
 
 def stiff_at(problem: Problem, z, horizon: float | None, grid_safety: float) -> StepEstimate | None:

@@ -163,10 +163,10 @@ def test_a_structural_candidate_too_stiff_for_the_solver_is_not_fitted():
     est = stiff_start.StepEstimate(5070.0, 1e-5, 4e5, 100_000, "log0", 8.0)
     cand = types.SimpleNamespace(name="joint_elasticity", where="joint1", label="joint_elasticity:joint1")
     values = {"joint1.stiffness": 86.93, "joint1.rotor_inertia": 8.564e-8}
-    error = stiff_start.TooStiff(est, horizon_s=None, values=values)
+    error = stiff_start.TooStiff(est, where="at its starting values", horizon_s=None, values=values)
     assert structural._rigid_limit(cand, error, 100.0) is None
     said = []
-    score = structural._not_fitted(cand, 2, f"its start is {est.reason()}", said.append)
+    score = structural._not_fitted(cand, 2, f"at its starting values its model is {est.reason()}", said.append)
     assert isinstance(score, Score) and not score.accepted and math.isnan(score.delta_bic)
     assert "5.07e+03 Hz" in score.not_fitted and "limit of 100000 steps" in score.not_fitted
     assert not_fitted_of([[score]]) == {"joint_elasticity:joint1": f"round 1: {score.not_fitted}"}
