@@ -50,7 +50,7 @@ class StepEstimate:
       is at most `ADAPTIVE_OVER_STABLE` stable steps, so
       `span_s / (grid_safety * ADAPTIVE_OVER_STABLE * stable_step_s)`;
     - `budget`: the solver's step limit, `Problem.max_steps` (per log and solve);
-    - `log`: the log's name.
+    - `log`: the log's name; `span_s`: the time its stage's solve covers, s.
     """
 
     frequency_hz: float
