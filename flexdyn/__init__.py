@@ -19,6 +19,7 @@ from . import (
     fixed_step as fixed_step,
     fused as fused,
     modes as modes,
+    motor as motor,
     nonlinear as nonlinear,
     params as params,
     response as response,
@@ -58,6 +59,13 @@ from .inputs import (
     SampledTorque as SampledTorque,
     ZeroTorque as ZeroTorque,
 )
+from .lagged_input import LaggedTorque as LaggedTorque
+from .sampled_loop import (
+    ClosedLoopRun as ClosedLoopRun,
+    DigitalController as DigitalController,
+    LinearFeedback as LinearFeedback,
+    simulate_closed_loop as simulate_closed_loop,
+)
 from .linear import (
     LinearModel as LinearModel,
     Modes as Modes,
@@ -69,6 +77,7 @@ from .linear import (
     stable_step as stable_step,
     stiffness_matrix as stiffness_matrix,
 )
+from .motor import DCMotor as DCMotor
 from .parts import (
     ElasticJoint as ElasticJoint,
     FlexibleLink as FlexibleLink,

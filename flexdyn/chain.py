@@ -8,7 +8,9 @@ Design note (how the equations are formed, and why they are exact)
 (elastic joints only, referred to the link side), the link angle `theta_i`
 (relative to the tip frame of link i-1, or to the base x axis for i = 1) and the
 modal coordinates `q_i1..q_im` of link i (flexible links only, metres; see
-`flexdyn.modes`). The state is `y = [Q, Q_dot]`.
+`flexdyn.modes`); after all of them, the armature charge `charge_i` (C) of each joint
+driven by a `DCMotor` with an inductance, whose rate is the motor's current
+(`flexdyn.motor`). The state is `y = [Q, Q_dot]`.
 
 **Kinematics** (papers 002/004 eq. 1-5, with the elastic rotation kept as an
 angle). Link i has a body frame at its joint with origin `o_i` and absolute
@@ -113,6 +115,7 @@ from jaxtyping import Array, Float
 from ._checks import NONNEGATIVE, POSITIVE, as_float_array, checked_part
 from .kinematics import frames, modal_slice, quadratic_of, reach_length, stiffening_of
 from .modes import GAUSS_W, GAUSS_X, evaluate_shapes, mode_shapes
+from .motor import DCMotor, joint_torque, motor_torque, saturated
 from .nonlinear import backlash_energy, has_nonlinear_forces, nonlinear_forces
 from .parts import ElasticJoint, FlexibleLink, Hub, Payload, RigidJoint, RigidLink
 
@@ -132,6 +135,10 @@ class Chain(eqx.Module):
     - `payload`: `Payload` at the tip of the last link (default: none).
     - `gravity`: gravitational acceleration in the base frame, m/s^2, shape (2,)
       (default `(0, 0)`: a horizontal-plane arm; a vertical pendulum has `(0, -9.81)`).
+    - `motors`: tuple of `flexdyn.DCMotor` or `None`, one per joint (default: none, every
+      joint driven by its torque input directly). A joint with a motor reads its input as
+      the motor's command (a voltage, a current or a torque: `DCMotor.drive`); see
+      `flexdyn.motor`.
     """
 
     links: tuple[Link, ...]
@@ -139,9 +146,10 @@ class Chain(eqx.Module):
     hubs: tuple[Hub, ...]
     payload: Payload
     gravity: Float[Array, "2"]
+    motors: tuple[DCMotor | None, ...]
 
-    def __init__(self, links, joints=None, hubs=None, payload=None, gravity=(0.0, 0.0)):
-        for name, parts in (("links", links), ("joints", joints), ("hubs", hubs)):
+    def __init__(self, links, joints=None, hubs=None, payload=None, gravity=(0.0, 0.0), motors=None):
+        for name, parts in (("links", links), ("joints", joints), ("hubs", hubs), ("motors", motors)):
             if isinstance(parts, eqx.Module):
                 raise TypeError(
                     f"Chain.{name}: expected a list of parts, one per link "
@@ -153,18 +161,20 @@ class Chain(eqx.Module):
             raise ValueError("Chain.links: expected at least one link")
         joints = tuple(RigidJoint() for _ in range(n)) if joints is None else tuple(joints)
         hubs = tuple(Hub() for _ in range(n)) if hubs is None else tuple(hubs)
+        motors = (None,) * n if motors is None else tuple(motors)
         for name, parts, kinds in (
             ("links", links, (RigidLink, FlexibleLink)),
             ("joints", joints, (RigidJoint, ElasticJoint)),
             ("hubs", hubs, (Hub,)),
+            ("motors", motors, (DCMotor, type(None))),
         ):
             if len(parts) != n:
                 raise ValueError(f"Chain.{name}: expected {n} entries (one per link), got {len(parts)}")
             for k, part in enumerate(parts):
                 if not isinstance(part, kinds):
-                    expected = " or ".join(t.__name__ for t in kinds)
+                    expected = " or ".join("None" if t is type(None) else t.__name__ for t in kinds)
                     raise ValueError(f"Chain.{name}[{k}]: expected {expected}, got {type(part).__name__}")
-        self.links, self.joints, self.hubs = links, joints, hubs
+        self.links, self.joints, self.hubs, self.motors = links, joints, hubs, motors
         self.payload = Payload() if payload is None else payload
         if not isinstance(self.payload, Payload):
             raise ValueError(f"Chain.payload: expected Payload, got {type(self.payload).__name__}")
@@ -200,6 +210,7 @@ class Layout(NamedTuple):
     modal: tuple[tuple[int, ...], ...]
     actuated: tuple[int, ...]  # coordinate each joint torque acts on
     names: tuple[str, ...]
+    charge: tuple[int | None, ...] = ()  # armature charge of an inductive motor (flexdyn.motor), or None
 
     @property
     def n_dof(self) -> int:
@@ -225,7 +236,15 @@ def layout(chain: Chain) -> Layout:
         modal.append(idx)
         names.extend(f"q{i}_{j}" for j in range(1, link.n_modes + 1))
         k += link.n_modes
-    return Layout(tuple(rotor), tuple(theta), tuple(modal), tuple(actuated), tuple(names))
+    charge = []  # after every mechanical coordinate, so that theirs do not move
+    for i, motor in enumerate(chain.motors, start=1):
+        if motor is not None and motor.inductive:
+            charge.append(k)
+            names.append(f"charge{i}")
+            k += 1
+        else:
+            charge.append(None)
+    return Layout(tuple(rotor), tuple(theta), tuple(modal), tuple(actuated), tuple(names), tuple(charge))
 
 
 class LinkMatrices(eqx.Module):
@@ -402,7 +421,20 @@ def checked_chain(chain: Chain) -> Chain:
         hubs=[checked_part(p, f"hub{i + 1}") for i, p in enumerate(chain.hubs)],
         payload=checked_part(chain.payload, "payload"),
         gravity=chain.gravity,
+        motors=[None if m is None else checked_motor(m, f"motor{i + 1}") for i, m in enumerate(chain.motors)],
     )
+
+
+def checked_motor(motor: DCMotor, owner: str) -> DCMotor:
+    """`checked_part` for a motor, and its efficiency at most 1 (a run-time check when traced)."""
+    motor = checked_part(motor, owner)
+    eta = motor.efficiency
+    message = f"{owner}.efficiency must be <= 1"
+    if not isinstance(eta, jax.core.Tracer):
+        if not float(eta) <= 1.0:
+            raise ValueError(f"{message}, got {float(eta):g}")
+        return motor
+    return eqx.tree_at(lambda m: m.efficiency, motor, eqx.error_if(eta, eta > 1.0, message))
 
 
 def check_batch(chain: Chain, caller: str) -> None:
@@ -416,6 +448,7 @@ def check_batch(chain: Chain, caller: str) -> None:
         + [(f"joint{i + 1}", p) for i, p in enumerate(chain.joints)]
         + [(f"hub{i + 1}", p) for i, p in enumerate(chain.hubs)]
         + [("payload", chain.payload)]
+        + [(f"motor{i + 1}", p) for i, p in enumerate(chain.motors) if p is not None]
     )
     for owner, part in parts:
         for name, kind in part.PARAMETERS:
@@ -499,7 +532,11 @@ def kinetic_energy(asm: AssembledChain | Chain, Q, Qd):
         psi = phi + jnp.sum(lm.tip_slope * q)
         psi_dot = omega + jnp.sum(lm.tip_slope * qd)
     p = chain.payload
-    return T + 0.5 * p.mass * (vx * vx + vy * vy) + 0.5 * p.inertia * psi_dot**2
+    T = T + 0.5 * p.mass * (vx * vx + vy * vy) + 0.5 * p.inertia * psi_dot**2
+    for motor, k in zip(chain.motors, lay.charge):
+        if k is not None:  # the armature's magnetic energy, 1/2 L i^2 (flexdyn.motor)
+            T = T + 0.5 * motor.inductance * Qd[k] ** 2
+    return T
 
 
 def potential_energy(asm: AssembledChain | Chain, Q):
@@ -549,6 +586,9 @@ def dissipation(asm: AssembledChain, Qd):
             R = R + 0.5 * joint.spring_damping * (Qd[lay.rotor[i]] - Qd[lay.theta[i]]) ** 2
         qd = modal_slice(lay, Qd, i)
         R = R + 0.5 * jnp.sum(qd[:, None] * lm.damping * qd[None, :])
+    for motor, k in zip(chain.motors, lay.charge):
+        if k is not None:  # the armature's resistance, 1/2 R i^2 (flexdyn.motor)
+            R = R + 0.5 * motor.resistance * Qd[k] ** 2
     return R
 
 
@@ -592,14 +632,42 @@ def input_matrix(asm: AssembledChain | Chain) -> Float[Array, "n n_joints"]:
     return jnp.asarray(B)
 
 
+def has_motors(chain: Chain) -> bool:
+    """True when any joint is driven by a `DCMotor` (static structure)."""
+    return any(m is not None for m in chain.motors)
+
+
+def motor_forces(asm: AssembledChain, Qd, inputs):
+    """The generalised forces of the motors, shape (n_dof,), for the joints' inputs
+    `inputs` (their commands, V, A or N m, per `DCMotor.drive`; a joint without a motor:
+    its torque, N m): each motor's joint torque (`flexdyn.motor.joint_torque`) on its
+    joint's actuated coordinate, with the quasi-static current, or with the current
+    `Qd[charge]` of an inductive motor, whose charge coordinate gets the armature's
+    voltage balance `V - K_t w` (the resistance's `R i` is in `dissipation`, `L di/dt` in
+    the kinetic energy). A joint without a motor gets its input as a torque."""
+    lay, chain = asm.layout, asm.chain
+    F = jnp.zeros_like(Qd)
+    for j, (joint, motor) in enumerate(zip(chain.joints, chain.motors)):
+        s = lay.actuated[j]
+        if motor is None:
+            F = F.at[s].add(inputs[j])
+            continue
+        G, s_dot = joint.gear_ratio, Qd[s]
+        if motor.inductive:
+            k = lay.charge[j]
+            current, w = Qd[k], G * s_dot
+            F = F.at[s].add(joint_torque(motor, G, current, s_dot))
+            F = F.at[k].add(saturated(motor, inputs[j]) - motor.torque_constant * w)
+        else:
+            F = F.at[s].add(motor_torque(motor, G, inputs[j], s_dot))
+    return F
+
+
 def generalised_forces(asm: AssembledChain, Q, Qd, torque):
     """F - dV/dQ - dR/dQ_dot (+ dry friction and drag, `flexdyn.nonlinear`) for joint
-    torques `torque` [N m]."""
-    F = (
-        input_matrix(asm) @ torque
-        - jax.grad(potential_energy, argnums=1)(asm, Q)
-        - jax.grad(dissipation, argnums=1)(asm, Qd)
-    )
+    torques `torque` [N m] (for a joint with a motor: its command, `motor_forces`)."""
+    drive = motor_forces(asm, Qd, torque) if has_motors(asm.chain) else input_matrix(asm) @ torque
+    F = drive - jax.grad(potential_energy, argnums=1)(asm, Q) - jax.grad(dissipation, argnums=1)(asm, Qd)
     if has_nonlinear_forces(asm.chain):
         F = F + nonlinear_forces(asm, Q, Qd)
     return F

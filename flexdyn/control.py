@@ -131,6 +131,13 @@ from .linear import stiffness_matrix
 
 
 def _layout(chain):
+    model = chain.chain if isinstance(chain, AssembledChain) else chain
+    if isinstance(model, Chain) and any(m is not None for m in model.motors):
+        # (the slow/fast split and the controller's torques assume torque inputs)
+        raise ValueError(
+            "Chain.motors: the composite controller (paper 004) commands joint torques; a chain with DC motors "
+            "(flexdyn.motor) is not supported"
+        )
     return chain.layout if isinstance(chain, (Chain, AssembledChain)) else chain
 
 

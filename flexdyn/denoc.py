@@ -372,6 +372,11 @@ class _Recursion(NamedTuple):
 
 def _recursion(asm, Q, Qd=None):
     lay, chain = asm.layout, asm.chain
+    if any(m is not None for m in chain.motors):
+        raise ValueError(
+            "Chain.motors: DC motors (flexdyn.motor) are not in the DeNOC formulation (its inputs are joint "
+            "torques); use flexdyn.accelerations, or a chain without motors"
+        )
     for i, link in enumerate(chain.links, start=1):
         if getattr(link, "geometric_stiffening", False):
             raise ValueError(

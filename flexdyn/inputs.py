@@ -137,7 +137,14 @@ class SampledTorque(AbstractInput):
         )
 
     def jump_times(self):
-        return self.times if "zoh" in self._per_joint() else None
+        """With a held (`"zoh"`) joint: the sample times where a held torque changes
+        (`held_changes`), `inf` elsewhere. An adaptive solver lands a step on each and
+        restarts there, and only there: a bang-bang command held over thousands of
+        samples costs two restarts, not one per sample."""
+        held = tuple(j for j, h in enumerate(self._per_joint()) if h == "zoh")
+        if not held:
+            return None
+        return held_changes(self.times, self.values[:, held])
 
     def step_times(self):
         """With `hold="linear"`: the first and last sample of every run of equal samples (a
@@ -167,6 +174,15 @@ def check_hold(hold, n_joints: int) -> str | tuple[str, ...]:
     raise ValueError(
         f"SampledTorque.hold: expected 'linear' or 'zoh', or one of them per joint ({n_joints}), got {hold!r}"
     )
+
+
+def held_changes(times, values):
+    """`times` (shape (T,)) where held `values` (shape (T, n)) differ from the sample
+    before, `inf` elsewhere and at the first sample (a fixed-length array, so it may be
+    traced). Between two such times a zero-order-hold input is constant, so these are
+    its only discontinuities."""
+    changed = jnp.any(values[1:] != values[:-1], axis=1)
+    return jnp.concatenate([jnp.full(1, jnp.inf, times.dtype), jnp.where(changed, times[1:], jnp.inf)])
 
 
 def constant_stretch_ends(times, values):

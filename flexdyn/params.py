@@ -1,5 +1,6 @@
 """Named access to a chain's physical parameters: `'link1.EI'`, `'joint2.damping'`,
-`'hub1.inertia'`, `'payload.mass'`, `'link1.damping_ratio[0]'`, `'gravity[1]'`.
+`'hub1.inertia'`, `'payload.mass'`, `'link1.damping_ratio[0]'`, `'gravity[1]'`,
+`'motor1.resistance'` (a joint's `DCMotor`, if it has one).
 
 Numbering is 1-based from the base, as in the papers. These names are the
 vocabulary of experiment files and of fits (`identify`): any parameter listed by
@@ -17,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .chain import Chain
+from .motor import DCMotor
 from .parts import ElasticJoint, FlexibleLink, Hub, Payload, RigidJoint, RigidLink
 
 #: Fields that are physical parameters, per part type, with their SI unit.
@@ -42,6 +44,15 @@ PARAMETER_FIELDS: dict[type, dict[str, str]] = {
     },
     Hub: {"mass": "kg", "inertia": "kg m^2"},
     Payload: {"mass": "kg", "inertia": "kg m^2"},
+    DCMotor: {
+        "resistance": "ohm",
+        "torque_constant": "N m/A",
+        "efficiency": "1",
+        "inductance": "H",
+        "viscous": "N m s/rad",
+        "coulomb": "N m",
+        "voltage_limit": "V",
+    },
 }
 
 #: Optional fields (`None` on a part: the term is absent and so is the parameter).
@@ -51,21 +62,23 @@ OPTIONAL = {"drag", "coulomb", "backlash"}
 SIGNED = {"com", "gravity"}
 
 _NAME = re.compile(
-    r"^(?P<part>link|joint|hub)(?P<index>\d+)\.(?P<field>\w+)(\[(?P<k>\d+)\])?$|"
+    r"^(?P<part>link|joint|hub|motor)(?P<index>\d+)\.(?P<field>\w+)(\[(?P<k>\d+)\])?$|"
     r"^(?P<payload>payload)\.(?P<pfield>\w+)$|^(?P<gravity>gravity)\[(?P<g>[01])\]$"
 )
 
 
 def _part(chain: Chain, kind: str, index: int):
-    parts = {"link": chain.links, "joint": chain.joints, "hub": chain.hubs}[kind]
+    parts = {"link": chain.links, "joint": chain.joints, "hub": chain.hubs, "motor": chain.motors}[kind]
     return parts[index - 1]
 
 
 def parameter_names(chain: Chain) -> list[str]:
     """Every named scalar parameter of `chain`, in a stable order."""
     names = []
-    for kind, parts in (("link", chain.links), ("joint", chain.joints), ("hub", chain.hubs)):
+    for kind, parts in (("link", chain.links), ("joint", chain.joints), ("hub", chain.hubs), ("motor", chain.motors)):
         for i, part in enumerate(parts, start=1):
+            if part is None:  # a joint without a motor
+                continue
             for field in PARAMETER_FIELDS[type(part)]:
                 value = getattr(part, field)
                 if value is None:
@@ -96,11 +109,21 @@ def _locate(chain: Chain, name: str):
     if not 1 <= index <= n:
         raise _unknown(chain, name)
     part = _part(chain, kind, index)
+    if part is None:
+        raise UnknownParameterError(
+            f"parameter {name!r}: joint {index} has no motor (Chain(..., motors=[...]) gives joint {index} a "
+            f"flexdyn.DCMotor); this chain has: {', '.join(parameter_names(chain))}"
+        )
     fields = PARAMETER_FIELDS[type(part)]
     if field not in fields:
         raise _unknown(chain, name)
     if getattr(part, field) is None:
         # (say which term is missing and how to add it, not a plain KeyError)
+        if field not in OPTIONAL:  # a motor's inductance or voltage limit: no neutral value to add it at
+            raise UnknownParameterError(
+                f"parameter {name!r}: {kind} {index} has no {field} ({type(part).__name__}({field}=None)); "
+                f"build it with {type(part).__name__}(..., {field}=<a value> [{fields[field]}]) to make it a parameter"
+            )
         raise UnknownParameterError(
             f"parameter {name!r}: {kind} {index} has no {field} term ({type(part).__name__}({field}=None)); "
             f"build it with {type(part).__name__}(..., {field}=0.0), or add it with "
@@ -124,7 +147,7 @@ def absent_optional_term(chain: Chain, name: str) -> bool:
     if not 1 <= index <= len(chain.links):
         return False
     part = _part(chain, m["part"], index)
-    return m["field"] in PARAMETER_FIELDS[type(part)] and getattr(part, m["field"]) is None
+    return part is not None and m["field"] in PARAMETER_FIELDS[type(part)] and getattr(part, m["field"]) is None
 
 
 def with_optional_terms(chain: Chain, names) -> Chain:

@@ -29,6 +29,8 @@ from .chain import (
     accelerations,
     assemble,
     end_point,
+    has_motors,
+    motor_forces,
     root_curvatures,
     tip_deflections,
     total_energy,
@@ -384,8 +386,10 @@ class Outputs(eqx.Module):
     - `root_curvature`: v_i''(0) (1/m), proportional to root strain-gauge readings.
     - `end_point`, `end_point_acceleration`: tip of the last link in the base frame
       (m, m/s^2), shape (T, 2).
-    - `energy`: total mechanical energy T + V (J).
-    - `torque`: applied joint torques (N m).
+    - `energy`: total mechanical energy T + V (J) (and the inductive motors' magnetic
+      energy `1/2 L i^2`: `flexdyn.motor`).
+    - `torque`: applied joint torques (N m); a motor's torque on its joint
+      (`flexdyn.motor.joint_torque`, its own friction included), not its command.
     """
 
     ts: Array
@@ -460,6 +464,7 @@ def _observe(chain: Chain | AssembledChain, traj: Trajectory, torque: AbstractIn
     def one(t, Q, Qd):
         tau = torque(t, jnp.concatenate([Q, Qd]))
         Qdd = accelerations(asm, Q, Qd, tau)
+        applied = motor_forces(asm, Qd, tau)[jnp.asarray(lay.actuated)] if has_motors(asm.chain) else tau
         pos = lambda Q_: end_point(asm, Q_)  # noqa: E731
         vel = lambda Q_, Qd_: jax.jvp(pos, (Q_,), (Qd_,))[1]  # noqa: E731
         # a = J Qdd + (dJ/dt) Qd
@@ -481,7 +486,7 @@ def _observe(chain: Chain | AssembledChain, traj: Trajectory, torque: AbstractIn
             end_point=pos(Q),
             end_point_acceleration=acc,
             energy=total_energy(asm, Q, Qd),
-            torque=tau,
+            torque=applied,
         )
 
     out = jax.vmap(one)(traj.ts, traj.Q, traj.Qd)

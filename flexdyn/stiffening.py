@@ -75,7 +75,9 @@ def first_mode_stiffening(chain: Chain) -> dict[str, FirstModeStiffening]:
         raise TypeError(f"first_mode_stiffening: expected a flexdyn.Chain, got {type(chain).__name__}")
     if not any(isinstance(k, FlexibleLink) for k in chain.links):
         return {}
-    stiffened = Chain([_stiffened(k) for k in chain.links], chain.joints, chain.hubs, chain.payload, chain.gravity)
+    stiffened = Chain(
+        [_stiffened(k) for k in chain.links], chain.joints, chain.hubs, chain.payload, chain.gravity, chain.motors
+    )
     asm = assemble(stiffened)
     out = {}
     for i, (link, lm) in enumerate(zip(stiffened.links, asm.links)):

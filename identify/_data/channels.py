@@ -59,7 +59,28 @@ def channel_problem(chain: fd.Chain, channel: str) -> str | None:
         return f"joint {i} is rigid (no rotor angle alpha{i}); the rig has {describe(chain)}"
     if kind in ("tip", "curvature") and chain.links[i - 1].n_modes == 0:
         return f"link {i} is rigid (no deflection); the rig has {describe(chain)}"
+    if kind in u.INPUT_KINDS:
+        return input_problem(chain, kind, i)
     return None
+
+
+def input_problem(chain: fd.Chain, kind: str, i: int) -> str | None:
+    """None if joint `i` of `chain` is driven by an input of `kind` (`torque`: a joint
+    without a motor, or a motor behind a torque amplifier; `voltage`, `current`: a motor
+    with that drive), else why not."""
+    motor = chain.motors[i - 1]
+    drive = "torque" if motor is None else motor.drive
+    if kind == drive:
+        return None
+    if motor is None:
+        return (
+            f"joint {i} has no motor, so its input is a torque (torque{i}); a {kind} drives a motor: give joint {i} "
+            f'one with [rig.motors.joint{i}] (drive = "{kind}")'
+        )
+    return (
+        f"joint {i}'s motor is driven by {drive} (its input is {drive}{i}, {fd.motor.DRIVES[drive]}), not by "
+        f'{kind}; map the log\'s {drive} column to {drive}{i}, or set drive = "{kind}" in [rig.motors.joint{i}]'
+    )
 
 
 def check_channel(chain: fd.Chain, name: str) -> None:

@@ -138,7 +138,7 @@ def _resolve_unit(path, w: _Wanted, file_unit: str | None, where: str, calibrati
         raise LogError(f"{where}: unknown unit [{written}]; known units: {u.known_units()}", channel=w.channel)
     dim, dim_unit = u.channel_dimension(w.channel), u.unit_dimension(unit)
     cal = (calibration or {}).get(w.channel)
-    if dim_unit == u.VOLTAGE and dim != u.TIME:
+    if dim_unit == u.VOLTAGE and dim not in (u.TIME, u.VOLTAGE):  # (a motor's voltage is in SI already)
         if cal is None or cal.scale is None:
             raise LogError(
                 f"{where}: {w.channel} is in [{written}] and needs a calibration "

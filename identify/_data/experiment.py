@@ -76,6 +76,8 @@ class LogSpec:
     measured: tuple[str, ...] = ()
     set: dict[str, float] = dataclasses.field(default_factory=dict)
     hold: str | tuple[str, ...] = "linear"
+    # whether the experiment file says `hold` for this log (else the default, linear)
+    hold_declared: bool = False
 
     @property
     def outputs(self) -> dict[str, np.ndarray]:
@@ -106,11 +108,39 @@ class LogSpec:
                     f"torque column is unpowered in the model (torque columns mapped: {mapped}); map it in columns "
                     f"(e.g. torque2 = {header!r}) if it drives a joint"
                 )
+        if not self.hold_declared:
+            out.extend(_held_looking(self.name, self.log.inputs))
         return out
 
     def torque(self, n_joints: int) -> np.ndarray | None:
         """Applied torques, shape (T, n_joints), N m (`Log.torque`)."""
         return self.log.torque(n_joints)
+
+
+#: A torque column whose consecutive samples are equal at least this often is a staircase
+#: (`_held_looking`); a sampled continuous signal, even a quantised one, changes far more
+HELD_FRACTION = 0.5
+
+
+def _held_looking(log_name: str, inputs: dict) -> list[str]:
+    """A warning per torque column read linearly by default whose samples come in runs of
+    equal values (at least `HELD_FRACTION` of consecutive pairs equal, and some change):
+    the shape of a digital controller's held command, which read linearly leads the rig's
+    real input by half a sample."""
+    out = []
+    for column, values in sorted(inputs.items()):
+        v = np.asarray(values)
+        if v.size < 3:
+            continue
+        same = float(np.mean(v[1:] == v[:-1]))
+        if HELD_FRACTION <= same < 1.0:
+            out.append(
+                f"log {log_name!r}: {column} is piecewise constant ({100 * same:.0f} % of consecutive samples "
+                "equal) and is read linearly between samples (the default); if it logs a digital controller's "
+                f'command, declare hold = "zoh" (or {{ {column} = "zoh" }}) in this [[logs]] entry: read linearly, '
+                "a held command leads the real input by half a sample (docs/experiment-format.md, hold)"
+            )
+    return out
 
 
 def _looks_like_torque(header: str) -> bool:

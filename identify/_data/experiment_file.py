@@ -17,7 +17,7 @@ _TOP_KEYS = ("experiment", "rig", "parameters", "starts", "noise", "logs", "sens
 _EXPERIMENT_KEYS = ("name", "description", "strict", "min_samples")
 
 
-_RIG_KEYS = ("base", "options", "set", "gravity", "links", "joints", "hubs", "payload")
+_RIG_KEYS = ("base", "options", "set", "gravity", "links", "joints", "hubs", "payload", "motors")
 
 
 _LOG_KEYS = (

@@ -62,7 +62,48 @@ def _build_rig(r: _Reader, rig: Mapping) -> fd.Chain:
         chain = _explicit_rig(r, rig)
     else:
         raise r.error(("rig",), f"expected base = one of {', '.join(RIGS)}, or [[rig.links]] tables")
+    if "motors" in rig:
+        chain = _with_motors(r, chain, r.table(rig["motors"], ("rig", "motors")))
     return _apply_set(r, chain, r.table(rig.get("set", {}), ("rig", "set")))
+
+
+def _with_motors(r: _Reader, chain: fd.Chain, table: Mapping) -> fd.Chain:
+    """`chain` with the `[rig.motors.joint<i>]` tables' `flexdyn.DCMotor`s on their joints
+    (parameters `motor<i>.<field>`, SI: resistance in ohm, torque_constant in N m/A, ...;
+    `drive` one of `flexdyn.motor.DRIVES`)."""
+    motors = list(chain.motors)
+    for name, spec in table.items():
+        key = ("rig", "motors", name)
+        index = name.removeprefix("joint")
+        if not name.startswith("joint") or not index.isdigit() or not 1 <= int(index) <= chain.n_links:
+            raise r.error(key, f"expected a table joint<i> for i = 1 to {chain.n_links} (the joint the motor drives)")
+        spec = r.table(spec, key)
+        drive = spec.get("drive", "voltage")
+        if drive not in fd.motor.DRIVES:
+            listed = ", ".join(f'"{d}" ({unit})' for d, unit in fd.motor.DRIVES.items())
+            raise r.error(
+                key + ("drive",), f"expected one of {listed}: what the joint's input column is, got {_show(drive)}"
+            )
+        motor = _make_part(r, fd.DCMotor, spec, key, skip=("drive",))
+        if drive != motor.drive:
+            try:
+                motor = fd.DCMotor(**{f: getattr(motor, f) for f in _MOTOR_FIELDS}, drive=drive)
+            except ValueError as e:
+                raise r.error(key, str(e)) from None
+        motors[int(index) - 1] = motor
+    return fd.Chain(chain.links, chain.joints, chain.hubs, chain.payload, chain.gravity, motors)
+
+
+_MOTOR_FIELDS = (
+    "resistance",
+    "torque_constant",
+    "efficiency",
+    "inductance",
+    "viscous",
+    "coulomb",
+    "voltage_limit",
+    "smoothing_velocity",
+)
 
 
 def _named_rig(r: _Reader, rig: Mapping) -> fd.Chain:
@@ -520,6 +561,7 @@ def _log_entry(r: _Reader, chain: fd.Chain, spec: Mapping, k: int, strict: bool,
         measured=tuple(measured),
         set=_log_set(r, chain, spec.get("set", {}), key + ("set",)),
         hold=_log_hold(r, spec.get("hold", "linear"), key + ("hold",), log, chain.n_links),
+        hold_declared="hold" in spec,
     )
 
 
@@ -536,10 +578,10 @@ def _log_hold(r: _Reader, value, key: tuple, log, n_joints: int) -> str | tuple[
     for column, kind in r.table(value, key).items():
         if column not in log.inputs:
             inputs = ", ".join(sorted(log.inputs)) or "none"
-            raise r.error(key + (column,), f"not a torque column of this log; expected one of: {inputs}")
+            raise r.error(key + (column,), f"not an input column of this log; expected one of: {inputs}")
         if kind not in kinds:
             raise r.error(key + (column,), f'expected "linear" or "zoh", got {_show(kind)}')
-        holds[int(column.removeprefix("torque")) - 1] = kind
+        holds[u.channel_kind_index(column)[1] - 1] = kind
     return holds[0] if len(set(holds)) == 1 else tuple(holds)
 
 

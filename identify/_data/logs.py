@@ -114,13 +114,21 @@ class Log:
         return self.t.shape[0]
 
     def torque(self, n_joints: int) -> np.ndarray | None:
-        """Applied torques, shape (T, n_joints), N m: column j-1 is `torque<j>`, 0 for a joint
-        without one (unpowered). None if the log has no torque column at all."""
+        """The joints' inputs, shape (T, n_joints), SI: column j-1 is `torque<j>` (N m), or
+        the motor's `voltage<j>` (V) or `current<j>` (A); 0 for a joint without one
+        (unpowered). None if the log has no input column at all."""
         if not self.inputs:
             return None
         out = np.zeros((len(self), n_joints))
+        seen = {}
         for c, values in self.inputs.items():
-            j = int(c.removeprefix("torque"))
+            j = u.channel_kind_index(c)[1]
+            if j in seen:
+                raise ValueError(
+                    f"log {self.name!r} has both {seen[j]} and {c} for joint {j}; a joint has one input "
+                    f"(columns {self.sources.get(seen[j], seen[j])!r} and {self.sources.get(c, c)!r} of {self.path})"
+                )
+            seen[j] = c
             if not 1 <= j <= n_joints:
                 raise ValueError(
                     f"log {self.name!r} has {c}, the rig {n_joints} joint(s) "

@@ -31,8 +31,10 @@ that is linear between samples:
     l_{k+1} = y_{k+1} + (l_k - y_k) e^{-x} - (y_{k+1} - y_k) (1 - e^{-x}) / x,   x = 2 pi f_c h_k.
 
 **Actuator lag**: the applied torque `u_a` follows the commanded (logged) torque `u`
-through `T u_a' = u - u_a`, `u_a(t_0) = u(t_0)`, integrated by the same exact recursion
-(with `x = h_k / T`; `T = 0` is the identity).
+through `T u_a' = u - u_a`, `u_a(t_0) = u(t_0)`, solved exactly between samples for the
+command as the log's `hold` reads it (`flexdyn.LaggedTorque`; `T = 0` is the identity).
+On held commands the derivative in `T` vanishes at `T = 0` (see `flexdyn.LaggedTorque`),
+so a fit of the lag on held commands starts from `T > 0`.
 
 **Sensor kinds** (`Sensor.kind`, `KINDS`): what the sensor is, when it is known. A kind
 measures some channels only and cannot have some of the effects above; `identify.diagnose`
@@ -65,6 +67,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import flexdyn as fd
 from flexdyn._checks import as_float_array
 
 FIELDS = {"gain": "1", "offset": None, "delay": "s", "highpass": "Hz"}
@@ -341,27 +344,6 @@ def highpass(t, y, cutoff_hz):
     return y - _first_order(t, y, 2.0 * jnp.pi * cutoff_hz, jnp.zeros_like(y[0]))
 
 
-def lag(t, u, time_constant):
-    """First-order lag `T u_a' = u - u_a`, `u_a(t_0) = u(t_0)`, of samples `u` (T, ...)
-    (`time_constant = 0` returns `u`). Written with `r = T / h` so that it and its
-    derivative in `T` are exact at `T = 0` too (`u_a ~ u - T u'` to first order)."""
-    h = jnp.diff(t)
-    positive = time_constant > 0
-    T = jnp.where(positive, time_constant, 1.0)
-    hs = jnp.where(h > 0, h, 1.0)
-    decay = jnp.where(positive & (h > 0), jnp.exp(-hs / T), jnp.where(h > 0, 0.0, 1.0))
-    r = time_constant / hs
-    psi = jnp.where(h > 0, r * (1.0 - decay), 0.0)
-
-    def step(ua, k):
-        u0, u1 = u[k], u[k + 1]
-        ua1 = u1 + (ua - u0) * decay[k] - (u1 - u0) * psi[k]
-        return ua1, ua1
-
-    _, rest = jax.lax.scan(step, u[0], jnp.arange(t.shape[0] - 1))
-    return jnp.concatenate([u[:1], rest], axis=0)
-
-
 def delayed(t, y, ydot, delay):
     """`y(t - delay)` by cubic Hermite interpolation of samples `y` with derivatives
     `ydot` (both (T,)) at increasing times `t`; the first value is held before `t_0`."""
@@ -404,12 +386,14 @@ def needs_rates(m: Measurement, channels) -> bool:
     return any(c in m.sensors and m.sensors[c].delay is not None for c in channels)
 
 
-def apply_actuators(m: Measurement, t, torque):
-    """Applied torques `(T, n_joints)` from commanded ones (per-joint lag)."""
+def actuated_torque(m: Measurement, t, torque, hold):
+    """The torque the rig is driven by, as a `flexdyn` input: the commanded (logged)
+    samples `torque` `(T, n_joints)` at times `t`, read as `hold` says, through each
+    joint's actuator lag where `m` has one (`flexdyn.LaggedTorque`, exact between
+    samples; a joint without a lag gets time constant 0, the identity)."""
+    command = fd.SampledTorque(t, torque, hold=hold)
     if not any(v is not None for v in m.actuator_lag):
-        return torque
-    cols = []
-    for j in range(torque.shape[1]):
-        T = m.lag(j)
-        cols.append(torque[:, j] if T is None else lag(t, torque[:, j], T))
-    return jnp.stack(cols, axis=1)
+        return command
+    zero = jnp.zeros((), jnp.result_type(float))
+    lags = [zero if m.lag(j) is None else m.lag(j) for j in range(torque.shape[1])]
+    return fd.LaggedTorque(command, jnp.stack(lags))

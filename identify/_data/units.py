@@ -19,6 +19,13 @@ vocabulary), each with a dimension used to check a log's units:
 | `end_x/end_y`  | end-point position (base frame)                   | length       | m       |
 | `accel_x/_y`   | end-point acceleration (base frame)               | acceleration | m/s^2   |
 | `torque{i}`    | torque applied at joint i (input)                 | torque       | N m     |
+| `voltage{i}`   | voltage command of joint i's motor (input)        | voltage      | V       |
+| `current{i}`   | current command of joint i's motor (input)        | current      | A       |
+
+A joint's input is one of `torque{i}`, `voltage{i}`, `current{i}`: the last two drive a
+`flexdyn.DCMotor` on the joint (`[rig.motors.joint<i>]`) whose `drive` they match, a torque
+drives a joint without a motor or a motor behind a torque amplifier (`drive = "torque"`).
+A voltage channel's column in volts needs no calibration (it is already in SI).
 
 A strain gauge's column in a strain unit (`[ue]`) maps to `curvature{i}` with the gauge's
 distance from the neutral axis (`identify.logs.Calibration.neutral_axis_distance`).
@@ -38,6 +45,7 @@ CURVATURE = "curvature"
 ACCELERATION = "acceleration"
 TORQUE = "torque"
 VOLTAGE = "voltage"
+CURRENT = "current"
 FREQUENCY = "frequency"
 #: a strain gauge's reading (dimensionless); a curvature once divided by the gauge's
 #: distance from the neutral axis (`identify.logs.Calibration.neutral_axis_distance`)
@@ -52,6 +60,7 @@ SI_UNIT = {
     ACCELERATION: "m/s^2",
     TORQUE: "N m",
     VOLTAGE: "V",
+    CURRENT: "A",
     FREQUENCY: "Hz",
     STRAIN: "strain",
 }
@@ -79,6 +88,8 @@ UNITS: dict[str, tuple[str, float]] = {
     "mN m": (TORQUE, 1e-3),
     "V": (VOLTAGE, 1.0),
     "mV": (VOLTAGE, 1e-3),
+    "A": (CURRENT, 1.0),
+    "mA": (CURRENT, 1e-3),
     "Hz": (FREQUENCY, 1.0),
     "kHz": (FREQUENCY, 1e3),
 }
@@ -128,7 +139,7 @@ ALIASES = {
     "mN.m": "mN m",
 }
 
-_INDEXED = re.compile(r"^(theta|phi|alpha|tip|curvature|torque)([1-9][0-9]*)$")
+_INDEXED = re.compile(r"^(theta|phi|alpha|tip|curvature|torque|voltage|current)([1-9][0-9]*)$")
 _INDEXED_DIMENSION = {
     "theta": ANGLE,
     "phi": ANGLE,
@@ -136,12 +147,18 @@ _INDEXED_DIMENSION = {
     "tip": LENGTH,
     "curvature": CURVATURE,
     "torque": TORQUE,
+    "voltage": VOLTAGE,
+    "current": CURRENT,
 }
+
+#: The input channels' kinds: what drives joint i (`DCMotor.drive` for the last two).
+INPUT_KINDS = ("torque", "voltage", "current")
 _PLAIN = {"end_x": LENGTH, "end_y": LENGTH, "accel_x": ACCELERATION, "accel_y": ACCELERATION}
 
 #: The channel patterns, for error messages.
 CHANNEL_PATTERNS = (
-    "theta{i}, phi{i}, alpha{i}, tip{i}, curvature{i}, end_x, end_y, accel_x, accel_y (outputs); torque{i} (inputs)"
+    "theta{i}, phi{i}, alpha{i}, tip{i}, curvature{i}, end_x, end_y, accel_x, accel_y (outputs); "
+    "torque{i}, voltage{i}, current{i} (inputs)"
 )
 
 
@@ -217,12 +234,12 @@ def channel_kind_index(channel: str) -> tuple[str, int | None]:
 
 
 def is_input(channel: str) -> bool:
-    """True for input channels (joint torques)."""
-    return channel_kind_index(channel)[0] == "torque"
+    """True for input channels (a joint's torque, or its motor's voltage or current)."""
+    return channel_kind_index(channel)[0] in INPUT_KINDS
 
 
 def is_output(channel: str) -> bool:
-    """True for measured output channels (everything but `time` and torques)."""
+    """True for measured output channels (everything but `time` and the inputs)."""
     return channel != "time" and channel_dimension(channel) is not None and not is_input(channel)
 
 

@@ -531,13 +531,13 @@ def structural_model(
         )
         links = list(chain.links)
         links[i] = new
-        return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity), {}
+        return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity, chain.motors), {}
     if cand.name == "geometric_stiffening":
         # the same link with its axial-load stiffness (`flexdyn.FlexibleLink`'s option);
         # its parameters, EI included, are refitted from the baseline's values
         links = list(chain.links)
         links[i] = dataclasses.replace(chain.links[i], geometric_stiffening=True)
-        return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity), {}
+        return fd.Chain(links, chain.joints, chain.hubs, chain.payload, chain.gravity, chain.motors), {}
     if cand.name == "joint_elasticity":
         joint, hub = chain.joints[i], chain.hubs[i]
         # The motor's inertia (the hub's, if the rigid joint had no rotor) moves to the rotor
@@ -559,7 +559,7 @@ def structural_model(
         hubs = list(chain.hubs)
         if not float(joint.rotor_inertia):
             hubs[i] = fd.Hub(mass=hub.mass, inertia=float(hub.inertia) - rotor)
-        elastic = fd.Chain(chain.links, joints, hubs, chain.payload, chain.gravity)
+        elastic = fd.Chain(chain.links, joints, hubs, chain.payload, chain.gravity, chain.motors)
         if nyquist_hz is not None:
             elastic = aim_joint_mode(elastic, index, target_hz=min(max_frequency_hz, nyquist_hz), nyquist_hz=nyquist_hz)
             k = float(np.asarray(elastic.joints[i].stiffness))

@@ -196,6 +196,8 @@ class FitResult:
                 f"{n:<28} {self.values[i]:>12.{d}g} {self.std_errors[i]:>10.3g} {ci:>25} "
                 f"{self.guesses[i]:>12.4g} {100 * change:>7.1f}%  {unit}"
             )
+        if self.problem is not None:
+            lines.extend(back_emf_lines(self.chain))
         if self.problem is not None and self.problem.log_set_names:  # (`LogData.set`)
             values = np.asarray(self.problem.log_set)
             for k, n in enumerate(self.problem.log_set_names):
@@ -451,3 +453,21 @@ def fitted_outputs(result: FitResult) -> dict:
                 entry["residual"][c] = pred[l, k, j] - meas[l, k, j]
         out[name] = entry
     return out
+
+
+def back_emf_lines(chain: fd.Chain) -> list[str]:
+    """One line per joint driven by a voltage through a motor: its back-EMF damping
+    `N^2 K_t^2 / R` at the fitted values (`flexdyn.motor.back_emf_damping`; below the
+    electrical corner frequency `R / (2 pi L)` for an inductive motor).
+    The model has it through the motor, so the fitted `joint<i>.damping` is the damping
+    beyond it; a model of the same rig without the motor would need a joint damping of at
+    least this (issue 61: a fit that left the motor out went below it)."""
+    lines = []
+    for i, (joint, motor) in enumerate(zip(chain.joints, chain.motors), start=1):
+        if motor is not None and motor.drive == "voltage":
+            floor = float(fd.motor.back_emf_damping(motor, joint.gear_ratio))
+            lines.append(
+                f"joint{i}: back-EMF damping N^2 K_t^2 / R = {floor:.4g} N m s/rad through motor{i} (in the model; "
+                f"joint{i}.damping is the damping beyond it, and a model without the motor needs at least this)"
+            )
+    return lines

@@ -140,8 +140,7 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
         t_end = jnp.minimum(t[-1], onset + horizon)
         t_begin = jnp.where(t_end < t[-1], onset, t[0])
     ts = jnp.clip(t, t_begin, t_end)
-    torque_v = meas.apply_actuators(sensors, t, torque_v)
-    torque = fd.SampledTorque(_strictly_increasing(t), torque_v, hold=problem.hold)
+    torque = meas.actuated_torque(sensors, _strictly_increasing(t), torque_v, problem.hold)
     field = fd.ChainVectorField(asm, torque)
     if step is not None:
         solver, controller, dt0 = diffrax.Tsit5(), diffrax.ConstantStepSize(), step

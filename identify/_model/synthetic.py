@@ -71,10 +71,7 @@ def simulate_log(
     inp = None
     if torque is not None:
         torque = np.asarray(torque, float).reshape(len(t), -1)
-        applied = torque
-        if measurement is not None:
-            applied = np.asarray(meas.apply_actuators(measurement, jnp.asarray(t), jnp.asarray(torque)))
-        inp = fd.SampledTorque(t, applied, hold=hold)
+        inp = meas.actuated_torque(measurement or meas.Measurement(), t, torque, hold)
     traj = fd.simulate(chain, jnp.asarray(y0), jnp.asarray(t), inp, rtol=rtol, atol=atol)
     asm = fd.assemble(chain)
     inp_eval = inp if inp is not None else fd.ZeroTorque(chain.n_links)

@@ -1016,7 +1016,7 @@ def test_a_logs_torque_hold(tmp_path, entry, expected):
     [
         ('hold = "cubic"', ("logs[1].hold", 'expected "linear" or "zoh"', "'cubic'")),
         ("hold = 1", ("logs[1].hold", "expected a table, got 1")),
-        ('hold = { torque2 = "zoh" }', ("logs[1].hold.torque2", "not a torque column of this log", "torque1")),
+        ('hold = { torque2 = "zoh" }', ("logs[1].hold.torque2", "not an input column of this log", "torque1")),
         ('hold = { torque1 = "held" }', ("logs[1].hold.torque1", 'expected "linear" or "zoh"', "'held'")),
     ],
 )
@@ -1025,3 +1025,22 @@ def test_a_bad_torque_hold_names_its_key(tmp_path, entry, message):
     path = experiment(tmp_path, RIG + DRIVEN + entry + "\n", log=False)
     with pytest.raises(ExperimentError, match=msg(f"exp.toml, line {line_of(path, 'hold')}", *message)):
         load_experiment(path)
+
+
+@pytest.mark.parametrize(("entry", "warned"), [("", True), ('hold = "zoh"\n', False), ('hold = "linear"\n', False)])
+def test_a_staircase_torque_read_linearly_by_default_is_warned(tmp_path, entry, warned):
+    """A torque column in runs of equal samples (a command held by a 50 Hz controller,
+    logged at 100 Hz) read linearly only because nothing was declared: a warning that
+    names the column and `hold = "zoh"`; none once the hold is declared either way, and
+    none for a column that changes at every sample (`write_log`'s cosines)."""
+    path = tmp_path / "logs" / "drop.csv"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rows = ["time [s],theta1 [deg],torque1 [N m]"]
+    rows += [f"{0.01 * k:.2f},{math.cos(0.01 * k):.6f},{0.1 * ((k // 2) % 3):.3f}" for k in range(20)]
+    path.write_text("\n".join(rows) + "\n")
+    exp = load_experiment(experiment(tmp_path, RIG + DRIVEN + entry, log=False))
+    text = exp.summary()
+    assert ("torque1 is piecewise constant (53 % of consecutive samples equal)" in text) is warned, text
+    assert ('declare hold = "zoh"' in text) is warned
+    write_log(path, header=("time [s]", "theta1 [deg]", "torque1 [N m]"))
+    assert "piecewise constant" not in load_experiment(experiment(tmp_path, RIG + DRIVEN, log=False)).summary()

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import flexdyn as fd
 from identify._data import measurement as meas
 
 
@@ -30,15 +31,6 @@ def test_highpass_of_a_sine_has_the_first_order_gain_in_steady_state():
     assert gain == pytest.approx(f / math.hypot(f, fc), rel=1e-4)
 
 
-def test_lag_of_a_ramp_is_the_closed_form_and_zero_lag_is_the_identity():
-    # T u_a' = u - u_a, u = t, u_a(0) = 0  ->  u_a = t - T (1 - e^{-t/T})
-    T = 0.05
-    t = np.linspace(0.0, 0.5, 101)
-    ua = np.asarray(meas.lag(jnp.asarray(t), jnp.asarray(t), T))
-    np.testing.assert_allclose(ua, t - T * (1 - np.exp(-t / T)), rtol=1e-12, atol=1e-14)
-    np.testing.assert_array_equal(np.asarray(meas.lag(jnp.asarray(t), jnp.asarray(np.sin(t)), 0.0)), np.sin(t))
-
-
 def test_delay_by_hermite_interpolation():
     f, d = 1.3, 0.0137
     t = np.linspace(0.0, 2.0, 201)  # 77 samples per period
@@ -59,7 +51,7 @@ def test_delay_by_hermite_interpolation():
     "fn, neutral",
     [
         (lambda p, t, y: meas.highpass(t, y, p), 0.0),
-        (lambda p, t, y: meas.lag(t, y, p), 0.0),
+        (lambda p, t, y: jax.vmap(fd.LaggedTorque(fd.SampledTorque(t, y), p))(t)[:, 0], 0.0),
         (lambda p, t, y: meas.delayed(t, y, jnp.cos(t), p), 0.0),
     ],
 )
