@@ -61,6 +61,7 @@ import flexdyn as fd
 from flexdyn._checks import as_float_array
 
 from .._data import measurement as meas
+from .stiffness import aim_joint_mode
 
 NAMES = (
     "coulomb_friction",
@@ -510,8 +511,12 @@ def not_applicable(chain: fd.Chain, driven_joints, stiffening_links=()) -> dict:
     return why
 
 
-def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: float) -> tuple[fd.Chain, dict]:
-    """The chain of a structural candidate and the guesses of its new parameters."""
+def structural_model(
+    chain: fd.Chain, cand: Candidate, *, max_frequency_hz: float, nyquist_hz: float | None = None
+) -> tuple[fd.Chain, dict]:
+    """The chain of a structural candidate and the guesses of its new parameters. With the
+    logs' `nyquist_hz`, an elastic joint whose first guess rings above it with the link free
+    is moved down to `max_frequency_hz` (`stiffness.aim_joint_mode`)."""
     index = int(cand.where.lstrip("linkjoint"))
     i = index - 1
     if cand.name == "missing_mode":
@@ -554,8 +559,9 @@ def structural_model(chain: fd.Chain, cand: Candidate, *, max_frequency_hz: floa
         hubs = list(chain.hubs)
         if not float(joint.rotor_inertia):
             hubs[i] = fd.Hub(mass=hub.mass, inertia=float(hub.inertia) - rotor)
-        return fd.Chain(chain.links, joints, hubs, chain.payload, chain.gravity, chain.motors), {
-            f"joint{index}.stiffness": k,
-            f"joint{index}.rotor_inertia": rotor,
-        }
+        elastic = fd.Chain(chain.links, joints, hubs, chain.payload, chain.gravity, chain.motors)
+        if nyquist_hz is not None:
+            elastic = aim_joint_mode(elastic, index, target_hz=min(max_frequency_hz, nyquist_hz), nyquist_hz=nyquist_hz)
+            k = float(np.asarray(elastic.joints[i].stiffness))
+        return elastic, {f"joint{index}.stiffness": k, f"joint{index}.rotor_inertia": rotor}
     raise ValueError(f"{cand.name} is not structural")

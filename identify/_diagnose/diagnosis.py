@@ -132,7 +132,8 @@ class Diagnosis:
         fitted (the search did not rule them out), or ''."""
         if not self.not_fitted:
             return ""
-        return f"; not ruled out: {', '.join(self.not_fitted)}, whose fits never left their starts"
+        labels = ", ".join(self.not_fitted)
+        return f"; not ruled out: {labels}, which the search could not fit (the detection limits say why)"
 
     @property
     def left_unexplained(self) -> list[str]:

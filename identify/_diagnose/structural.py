@@ -18,6 +18,7 @@ from .._data import measurement as meas
 from .._fit.fit import fit
 from .._fit.result import FitResult
 from .._fit.steps import SimulationFailed
+from .._fit.stiff_start import TooStiff
 from .._model.parameters import Parameter
 from .._model.problem import make_problem
 from . import catalogue as cat
@@ -70,28 +71,45 @@ def _rigid_limit(c, error, nyquist_hz: float) -> str | None:
     """For a `joint_elasticity` fit that failed because its simulation needed more steps
     than allowed (`identify.fit.SimulationFailed`): when the joint mode at the values where
     it failed is far above the logs' Nyquist frequency, the evidence that the fit was
-    making the joint rigid (None otherwise). The joint mode is at least
+    making the joint rigid (None otherwise; `_rigid_limit_at`). A fit refused at its start
+    (`TooStiff`) made nothing rigid: None."""
+    if c.name != "joint_elasticity" or not isinstance(error, SimulationFailed) or isinstance(error, TooStiff):
+        return None
+    if not any("limit of" in why for why in error.logs.values()):
+        return None
+    return _rigid_limit_at(c, error.values, nyquist_hz, "where its simulation ran out of steps")
+
+
+def _rigid_limit_at(c, values: dict, nyquist_hz: float, where: str) -> str | None:
+    """The evidence that a `joint_elasticity` fit was making the joint rigid, from the
+    `values` (name -> SI) it reached (`where`: what happened there), or None: when the
+    joint mode there is far above the logs' Nyquist frequency. The joint mode is at least
     `sqrt(k / J_rotor) / (2 pi)` (the rotor on its spring against a locked link; a free
     link raises it: `omega^2 = k (1/J_rotor + 1/J_link)`). An elastic-joint fit to logs
     with another effect can drive the joint mode kHz above Nyquist until its adaptive
     solve runs out of steps: that failure is evidence, not "no evidence either way"."""
-    if c.name != "joint_elasticity" or not isinstance(error, SimulationFailed):
-        return None
-    if not any("limit of" in why for why in error.logs.values()):
-        return None
-    k = error.values.get(f"{c.where}.stiffness")
-    rotor = error.values.get(f"{c.where}.rotor_inertia")
+    k = values.get(f"{c.where}.stiffness")
+    rotor = values.get(f"{c.where}.rotor_inertia")
     if k is None or rotor is None or not (k > 0 and rotor > 0):
         return None
     f_joint = math.sqrt(k / rotor) / (2 * math.pi)
     if f_joint < 10 * nyquist_hz:
         return None
     return (
-        f"the fit was making the joint rigid: where its simulation ran out of steps, the joint mode is at least "
+        f"the fit was making the joint rigid: {where}, the joint mode is at least "
         f"{f_joint:.3g} Hz ({c.where}.stiffness {k:.3g} N m/rad, rotor inertia {rotor:.3g} kg m^2), "
         f"{f_joint / nyquist_hz:.0f}x the logs' Nyquist frequency {nyquist_hz:.3g} Hz: evidence against an elastic "
         "joint the logs resolve"
     )
+
+
+def _not_fitted(c, k: int, reason: str, say) -> Score:
+    """The `Score` of structural candidate `c` (`k` new parameters) that the search could not
+    fit (`Score.not_fitted`: `reason`): no cost, dBIC, p-value or held-out gain (NaN), never
+    accepted, neither evidence against it nor a detection limit."""
+    say(f"  structural candidate {c.label}: not fitted: {reason}")
+    nan = float("nan")
+    return Score(c.name, c.where, {}, nan, nan, nan, {}, nan, False, k, not_fitted=reason)
 
 
 def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cur: float):
@@ -99,15 +117,18 @@ def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cu
     the baseline's values, accepted continuous effects kept at their fitted values), scored
     against the model `current` (held-out RMS `rms_cur`); one that passes both tests with
     implausible values (`catalogue.Plausibility`) is not accepted. Returns `(score, model)` (a
-    `state.StructuralModel`), or, when the fit failed, the reason (a string, for
-    `Diagnosis.notes`)."""
+    `state.StructuralModel`); when the fit failed, the reason (a string, for
+    `Diagnosis.notes`); when the model is too stiff for the solver at its start, or the fit
+    stopped in a stiff region short of the whole logs (`fit`'s `stop_when_stiff`), a
+    `Score` that is not fitted (`_not_fitted`; a fit that stopped while making the joint
+    rigid is evidence, a failure reason as above: `_rigid_limit_at`)."""
     base, parameters, sup_meas = setting.base, setting.parameters, setting.measurement
     channels, sigma, N, rtol, say = setting.channels, setting.sigma, setting.N, setting.rtol, setting.say
     fit_logs, held_out_logs = setting.fit_logs, setting.held_out_logs
     bic_threshold, min_gain, max_f = setting.bic_threshold, setting.min_gain, setting.max_frequency_hz
     values = {n: val for n, val, _ in current.layout}
     base_chain = base.chain
-    struct_chain, new = cat.structural_model(base_chain, c, max_frequency_hz=max_f)
+    struct_chain, new = cat.structural_model(base_chain, c, max_frequency_hz=max_f, nyquist_hz=setting.nyquist_hz)
     m = sup_meas
     if values:
         chain_vals, meas_vals = meas.split_values(values)
@@ -146,7 +167,16 @@ def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cu
             grid_error=None,  # as the baseline's (`diagnose_logs`)
             # (a per-log parameter's guess is one value for all logs: start them at their own too)
             extra_starts=_own_starts(base),
+            # a start too stiff for the solver is refused at once, and a fit that walks into
+            # a stiff model stops there (minutes each otherwise, before the step limit)
+            stop_when_stiff=True,
         )
+        if res.stopped:
+            rigid = _rigid_limit_at(c, res.value, setting.nyquist_hz, "where its fit stopped")
+            if rigid is not None:
+                say(f"  structural candidate {c.label}: its fit {res.stopped}")
+                return _FailedTowardRigid(f"its fit {res.stopped}", rigid)
+            return _not_fitted(c, len(new), f"its fit {res.stopped}", say)
         fitted = fd.with_parameters(struct_chain, res.shared_value)
         # the held-out logs' own values of the per-log parameters are their only free ones
         own = [
@@ -167,6 +197,8 @@ def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cu
         v0 = _held_out_start(ho_problem, ho_own, res)
         thetas = jnp.zeros((1, len(ho_problem.names)))  # (every entry is an own value)
         r_ho, _, _ = _held_out_batch(ho_problem, thetas, v0, ho_own, jnp.asarray(sigma), res.step, 25)
+    except TooStiff as e:
+        return _not_fitted(c, len(new), f"{e.where} its model is {e.estimate.reason()}", say)
     except (RuntimeError, ValueError) as e:
         reason = error_reason(e)
         say(f"  structural candidate {c.label} failed: {reason}")
@@ -257,7 +289,11 @@ def fit_structural_round(
     rms_cur = float(np.sqrt(np.mean(state.current.ho**2)))
     for c in [x for x in cands if x.structural and x.label not in done and x.label in state.struct_promising]:
         s = setting.score(c, state.current, rms_cur)
-        if isinstance(s, str):  # its fit failed: said, not dropped in silence
+        if isinstance(s, Score):  # not fitted (a model too stiff for the solver): no evidence either way
+            text = f"{c.label}: not fitted: {s.not_fitted}; it has no detection limit"
+            notes.append({"round": rnd + 1, "text": text})
+            scores.append(s)
+        elif isinstance(s, str):  # its fit failed: said, not dropped in silence
             evidence = getattr(s, "evidence", "no evidence either way")
             text = f"{c.label}: its fit failed ({s}); not scored; {evidence}"
             say(f"  round {rnd + 1}: {text}")
@@ -279,7 +315,7 @@ def record_drops(state: SearchState, scores, cands) -> None:
         {
             s.label: (state.current.cost - s.cost, s.k)
             for s in scores
-            if any(c.label == s.label and c.structural for c in cands)
+            if not s.not_fitted and any(c.label == s.label and c.structural for c in cands)
         }
     )
 

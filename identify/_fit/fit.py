@@ -35,7 +35,17 @@ from .quality import (
 from .result import FitResult, _finish
 from .stage import Stage
 from .starts import _extra_starts, _frequency_initialise, initial_variables, multi_start
-from .steps import GRID_ERROR, GRID_RECHECK, _default_horizons, _Grid, _say_onsets, _stage_step, _step_error
+from .steps import (
+    GRID_ERROR,
+    GRID_RECHECK,
+    SimulationFailed,
+    _default_horizons,
+    _Grid,
+    _say_onsets,
+    _stage_step,
+    _step_error,
+)
+from .stiff_start import TooStiff, stiff_at, values_at
 
 
 def fit(
@@ -58,6 +68,7 @@ def fit(
     frequency_init: bool = True,
     first_damping: float = 1e-3,
     extra_starts: Sequence[dict] = (),
+    stop_when_stiff: bool = False,
     progress=None,
 ) -> FitResult:
     """Fit the free parameters (and per-log nuisances) of `problem`.
@@ -121,6 +132,15 @@ def fit(
       optimistix's damping 1, an undamped Gauss-Newton step at our residuals' scale).
       The multi-start stage and the stages that continue from an optimum keep
       optimistix's start (there, `tau` made the fit slower for the same convergence).
+    - `stop_when_stiff`: before each stage's adaptive solve, estimate from the model's
+      linearisation at the stage's starting values the steps its solves need
+      (`estimate_steps` in `identify/_fit/stiff_start.py`); when that exceeds the solver's step limit
+      (`Problem.max_steps`), or the adaptive solve fails after all, the growing horizon
+      stops there and the result is the last finished stage's, marked
+      (`FitResult.stopped`, its cost over that stage's horizon), instead of spending minutes
+      on solves that end on the step limit and raise. Before any stage has finished it
+      raises `TooStiff` (a `SimulationFailed`, its `estimate` the `StepEstimate`) at once. For a fit that
+      may walk into a stiff model (`identify diagnose`'s structural candidates).
     - `progress`: callable taking a message string (e.g. `print`), or None.
     """
     _check_damping(first_damping)
@@ -147,7 +167,12 @@ def fit(
         cap=max(max_steps, early_max_steps),
         rtol=rtol,
         atol=atol,
+        stop_when_stiff=stop_when_stiff,
     )
+    if stop_when_stiff:  # (the last stage must simulate the whole logs: checked over them)
+        estimate = stiff_at(problem, z, None, grid_safety)
+        if estimate is not None:
+            raise TooStiff(estimate, where="at its starting values", horizon_s=None, values=values_at(problem, z))
     stages, candidates = [], [z]
     several = n_starts > 1 or len(extra)
     if several and problem.names:
@@ -169,7 +194,7 @@ def fit(
             say=say,
         )
         stages.append(stage)
-    attempts, failed = _attempts(
+    attempts, failed, stopped = _attempts(
         problem,
         candidates,
         horizons,
@@ -187,7 +212,13 @@ def fit(
     x = x_from_z(problem, z.phys)
     cov, blocks = _covariance_at(problem, x, z, sigma, step, *lin)
     result = _finish(problem, parameters, z, x, sigma, step, cov, stages, time.perf_counter() - start, kept.ms, blocks)
-    return dataclasses.replace(result, sigma_estimated=tuple(estimate_noise), failed_restarts=[failed] * bool(failed))
+    return dataclasses.replace(
+        result,
+        sigma_estimated=tuple(estimate_noise),
+        failed_restarts=[failed] * bool(failed),
+        stopped=stopped,
+        converged=result.converged and not stopped,
+    )
 
 
 class _Schedule(NamedTuple):
@@ -203,6 +234,7 @@ class _Schedule(NamedTuple):
     cap: int
     rtol: float
     atol: float
+    stop_when_stiff: bool = False  # `fit`'s option
 
 
 class _Attempt(NamedTuple):
@@ -229,26 +261,30 @@ def _attempts(
     no_other_start: bool,
     max_restarts: int,
     say: Callable,
-) -> list[_Attempt]:
+) -> tuple[list[_Attempt], str | None, str]:
     """Grow the horizon from the best start (`candidates[0]`); while that ends on a bound of
     a parameter or (`restart_poor_fit`) with a residual far above the model-free noise
     floor (a wrong basin), from the next-best ones, until an attempt ends the same
     misfit as an earlier one (`_same_misfit`), or until a restart's simulation fails (a
     restart may walk into a stiff region; the attempts that finished are kept). Returns the
-    attempts made, in order, and the failed restart's message (or None)."""
+    attempts made, in order, the failed restart's message (or None), and, when the first
+    attempt stopped in a stiff region (`fit`'s `stop_when_stiff`), where and why (else "";
+    no restart follows: its cost covers a shorter horizon than a finished attempt's)."""
     floors = noise_floors(problem)
     attempts, why = [], ""
     for attempt, z in enumerate(candidates):
         if attempt:
             say(f"  {why}: growing the horizon again from the first stage's optimum #{attempt + 1}")
         try:
-            z, sigma, step, lin, stages = _grow(problem, z, problem.sigma, horizons, schedule, say, tau_first)
+            z, sigma, step, lin, stages, stopped = _grow(problem, z, problem.sigma, horizons, schedule, say, tau_first)
+            if stopped and attempts:  # (a restart that stopped did not finish: as one that failed)
+                raise RuntimeError(stopped)
         except RuntimeError as e:  # (SimulationFailed; a solver's run-time check)
             if not attempts:
                 raise
             failed = f"the restart from the first stage's optimum #{attempt + 1} failed ({_one_line(e)})"
             say(f"  {failed}: keeping the attempt(s) before it")
-            return attempts, failed
+            return attempts, failed, ""
         x = x_from_z(problem, z.phys)
         bounded = bool(names_at_bounds(problem, np.asarray(x)))
         ms = _residual_ms(problem, z, sigma, step, lin)
@@ -257,6 +293,8 @@ def _attempts(
         score = nf.score(ms, *floors)
         same = _same_misfit(bounded, score, [(a.bounded, a.score) for a in attempts])
         attempts.append(_Attempt(bounded, score, z, sigma, step, lin, stages, ms))
+        if stopped:
+            return attempts, None, stopped
         if not bounded and not (restart_poor_fit and poor):
             break
         if same:  # the same misfit again: the model (or the data), not the start, is the cause
@@ -284,7 +322,7 @@ def _attempts(
                 )
                 + ": the misfit is more likely the model's or the data's than the start's"
             )
-    return attempts, None
+    return attempts, None, ""
 
 
 def _one_line(e: Exception) -> str:
@@ -314,20 +352,25 @@ def _stage_record(horizon, steps, cost, result) -> Stage:
 def _grow(problem, z, sigma, horizons, schedule: _Schedule, say, tau_first):
     """The growing-horizon stages (and the noise re-estimation rounds) from `z` with noise
     levels `sigma`; returns the last stage's `z`, noise levels, step, linearisation
-    (`_solve`) and horizon, and the stages' records."""
+    (`_solve`) and horizon, the stages' records, and (`schedule.stop_when_stiff`) where and
+    why the stages stopped in a stiff region ("" when they all ran: `_stiff_stop`)."""
     stages = []
-    step = lin = None
+    step = lin = finished = None
     for rnd in range(schedule.rounds):
         # The horizon grows in the first round only; later rounds (new noise weights) start
         # at the optimum, where the full horizon is safe.
         for k, h in enumerate(horizons if rnd == 0 else horizons[-1:]):
             last = rnd > 0 or k == len(horizons) - 1
-            step = _stage_step(problem, z, h, schedule.grid, sigma)
+            stage_step = _stiff_stop(problem, z, sigma, h, schedule, finished, say)
+            if isinstance(stage_step, str):
+                return z, sigma, step, (lin, finished), stages, stage_step
+            step = stage_step
             budget = jnp.asarray(schedule.max_steps if last else schedule.early_max_steps)  # traced
             tau = jnp.asarray(tau_first if (rnd == 0 and k == 0) else 0.0, dtype=float)
             z, result, steps, cost, lin = _solve(
                 problem, z, sigma, jnp.asarray(h), step, budget, tau, schedule.cap, schedule.rtol, schedule.atol
             )
+            finished = h
             stages.append(_stage_record(h, steps, cost, result))
             say(
                 f"  horizon {h:8.3f} s: {int(steps):3d} iterations, cost {float(cost):.6g} ({stages[-1].outcome}"
@@ -347,8 +390,52 @@ def _grow(problem, z, sigma, horizons, schedule: _Schedule, say, tau_first):
             sigma = new
             say("  noise re-estimated: " + _noise_text(problem.channels, sigma, schedule.estimate_noise))
     if schedule.grid.error and step is not None:
-        z, step, lin = _recheck_step(problem, z, sigma, h, step, lin, schedule, stages, say)
-    return z, sigma, step, (lin, h), stages
+        try:
+            _refuse_if_stiff(problem, z, h, schedule, "at the optimum")
+            z, step, lin = _recheck_step(problem, z, sigma, h, step, lin, schedule, stages, say)
+        except SimulationFailed as e:
+            if not schedule.stop_when_stiff:
+                raise
+            stopped = f"stopped before the check of its integration step at the optimum, keeping that step: {_why(e)}"
+            say(f"  {stopped}")
+            return z, sigma, step, (lin, h), stages, stopped
+    return z, sigma, step, (lin, h), stages, ""
+
+
+def _refuse_if_stiff(problem, z, horizon, schedule: _Schedule, where: str) -> None:
+    """With `schedule.stop_when_stiff`, raise `TooStiff` when the model at `z` is too stiff
+    for the solver over `horizon` (`stiff_start.stiff_at`); `where`: at which values."""
+    if not schedule.stop_when_stiff:
+        return
+    estimate = stiff_at(problem, z, horizon, schedule.grid.safety)
+    if estimate is not None:
+        raise TooStiff(estimate, where=where, horizon_s=float(horizon), values=values_at(problem, z))
+
+
+def _why(e: SimulationFailed) -> str:
+    """What stopped a fit (`_stiff_stop`), in a clause."""
+    return f"{e.where} the model is {e.estimate.reason()}" if isinstance(e, TooStiff) else _one_line(e)
+
+
+def _stiff_stop(problem, z, sigma, horizon, schedule: _Schedule, finished, say):
+    """The constant step of the stage at `horizon` from `z` (`_stage_step`, noise levels
+    `sigma`), or, with `schedule.stop_when_stiff`, why the stages stop there (a string): the
+    model at `z` is too stiff for the solver (`stiff_start.stiff_at`, before any
+    simulation), or its adaptive solve failed. Before any stage finished (`finished`: the
+    last finished stage's horizon, or None) those raise (`TooStiff`, `SimulationFailed`):
+    there is nothing to keep."""
+    if not schedule.stop_when_stiff:
+        return _stage_step(problem, z, horizon, schedule.grid, sigma)
+    where = "at the values it reached" if finished is not None else "at the first stage's start"
+    try:
+        _refuse_if_stiff(problem, z, horizon, schedule, where)
+        return _stage_step(problem, z, horizon, schedule.grid, sigma)
+    except SimulationFailed as e:
+        if finished is None:
+            raise
+        stopped = f"stopped before the {float(horizon):.4g} s stage, keeping the {float(finished):.4g} s one: {_why(e)}"
+        say(f"  {stopped}")
+        return stopped
 
 
 def _recheck_step(problem, z, sigma, horizon, step, lin, schedule: _Schedule, stages: list, say):

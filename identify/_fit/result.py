@@ -81,6 +81,11 @@ class FitResult:
     # restarts (`fit`'s `max_restarts`) whose simulation failed, each with its error: the
     # result is the best attempt that finished
     failed_restarts: list = dataclasses.field(default_factory=list)
+    # `fit(stop_when_stiff=True)`: where and why the growing horizon stopped in a model too
+    # stiff for the solver ("" when every stage ran). The result is then the last finished
+    # stage's, its cost over that stage's horizon only (not comparable with a whole fit's),
+    # and not converged.
+    stopped: str = ""
 
     @property
     def value(self) -> dict:
@@ -273,6 +278,8 @@ class FitResult:
             )
         for text in self.failed_restarts:
             lines.append(f"note: {text}; the result is the best attempt that finished")
+        if self.stopped:
+            lines.append(f"note: the fit {self.stopped}; the result is that stage's, over its horizon only")
         for w in self.identifiability:
             lines.append(
                 f"warning: the data cannot separate {w['combination']} (singular value ratio {w['ratio']:.2g})"
@@ -326,6 +333,7 @@ class FitResult:
             "noise_sigma": self.sigma,
             "noise_sigma_estimated": list(self.sigma_estimated),
             "failed_restarts": list(self.failed_restarts),
+            "stopped": self.stopped,
             # the SI unit of every per-channel value here (noise_sigma, fit_quality's
             # residual_rms and noise_floor; `identify fit` adds residual RMS in the same units)
             "channel_units": {c: ch.channel_unit(c) for c in self.sigma},

@@ -526,7 +526,10 @@ def test_a_candidate_whose_fit_never_leaves_its_start_is_retried_and_else_not_fi
     assert row["not_fitted"] == dry.not_fitted and row["delta_bic"] is None and row["accepted"] is False
     floor = diag.held_out["noise_floor"]["theta1"]
     left = dataclasses.replace(diag, held_out={**diag.held_out, "extended": {"theta1": 3 * floor}})
-    assert "; not ruled out: coulomb_friction:joint1, whose fits never left their starts" in left.summary()
+    assert (
+        "; not ruled out: coulomb_friction:joint1, which the search could not fit (the detection limits say why)"
+        in left.summary()
+    )
     assert "not ruled out: coulomb_friction:joint1" in diagnosis_report.markdown(left)
 
 
