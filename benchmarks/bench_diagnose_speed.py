@@ -107,7 +107,9 @@ def _trees(base: str | None, scratch: Path) -> dict[str, Path]:
     trees = {"this": ROOT}
     if base:
         where = scratch / f"base-{base}"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(where), base], check=True, capture_output=True)
+        subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(where), base], check=True, capture_output=True
+        )
         trees[base] = where
     return trees
 
@@ -130,16 +132,26 @@ def measure(args) -> list[dict]:
                             work = scratch / f"{label}-{job}-{kind.replace(' ', '_')}-{r}"
                             work.mkdir()
                             row = run_once(tree, argv, work, cache)
-                            print(f"round {r + 1} {job} [{label}] {kind}: {row['wall_s']:.1f} s wall, "
-                                  f"{row['programs']} programs", flush=True)
+                            print(
+                                f"round {r + 1} {job} [{label}] {kind}: {row['wall_s']:.1f} s wall, "
+                                f"{row['programs']} programs",
+                                flush=True,
+                            )
                             runs.setdefault((job, label, kind), []).append(row)
         finally:
             for label, tree in trees.items():
                 if tree != ROOT:
-                    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], capture_output=True)
+                    subprocess.run(
+                        ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], capture_output=True
+                    )
     for (job, label, kind), found in runs.items():
-        med = {k: statistics.median(float(f[k]) for f in found) for k in ("wall_s", "cpu_s", "programs", "trace_s", "lower_s", "compile_s", "run_s")}
-        rows.append({"job": job, "tree": label, "kind": kind, "rounds": len(found), "status": found[-1]["status"], **med})
+        med = {
+            k: statistics.median(float(f[k]) for f in found)
+            for k in ("wall_s", "cpu_s", "programs", "trace_s", "lower_s", "compile_s", "run_s")
+        }
+        rows.append(
+            {"job": job, "tree": label, "kind": kind, "rounds": len(found), "status": found[-1]["status"], **med}
+        )
     base_wall = {(r["job"], r["kind"]): r["wall_s"] for r in rows if r["tree"] == args.base}
     for r in rows:
         old = base_wall.get((r["job"], r["kind"]))

@@ -60,12 +60,6 @@ from .inputs import (
     ZeroTorque as ZeroTorque,
 )
 from .lagged_input import LaggedTorque as LaggedTorque
-from .sampled_loop import (
-    ClosedLoopRun as ClosedLoopRun,
-    DigitalController as DigitalController,
-    LinearFeedback as LinearFeedback,
-    simulate_closed_loop as simulate_closed_loop,
-)
 from .linear import (
     LinearModel as LinearModel,
     Modes as Modes,
@@ -91,6 +85,12 @@ from .program_cache import (
     ensure_mapping_headroom as ensure_mapping_headroom,
     mapping_count as mapping_count,
     mapping_limit as mapping_limit,
+)
+from .sampled_loop import (
+    ClosedLoopRun as ClosedLoopRun,
+    DigitalController as DigitalController,
+    LinearFeedback as LinearFeedback,
+    simulate_closed_loop as simulate_closed_loop,
 )
 from .simulation import (
     ChainVectorField as ChainVectorField,

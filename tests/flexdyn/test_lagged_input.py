@@ -72,7 +72,9 @@ def test_a_free_rotor_under_a_lagged_held_command_matches_an_independent_integra
     times = np.arange(0.0, 0.6, 0.005)
     values = rng.uniform(-0.05, 0.05, times.size)
     u = fd.LaggedTorque(fd.SampledTorque(times, values, hold="zoh"), T)
-    traj = fd.simulate(chain, fd.initial_state(chain, joint_angles=[0.0]), jnp.asarray(times), u, rtol=1e-11, atol=1e-13)
+    traj = fd.simulate(
+        chain, fd.initial_state(chain, joint_angles=[0.0]), jnp.asarray(times), u, rtol=1e-11, atol=1e-13
+    )
 
     def rhs(t, x, uk):
         theta, omega, ua = x
@@ -81,7 +83,9 @@ def test_a_free_rotor_under_a_lagged_held_command_matches_an_independent_integra
     x = np.array([0.0, 0.0, values[0]])
     expected = [0.0]
     for k in range(times.size - 1):
-        sol = scipy.integrate.solve_ivp(rhs, (times[k], times[k + 1]), x, args=(values[k],), method="DOP853", rtol=1e-12, atol=1e-14)
+        sol = scipy.integrate.solve_ivp(
+            rhs, (times[k], times[k + 1]), x, args=(values[k],), method="DOP853", rtol=1e-12, atol=1e-14
+        )
         x = sol.y[:, -1]
         expected.append(x[0])
     assert np.max(np.abs(expected)) > 1e-3  # it moves

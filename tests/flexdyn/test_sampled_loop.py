@@ -40,7 +40,9 @@ def _reference_loop(ticks, theta0, delay):
     u = 0.0 if delay else law(x)
     states, commands = [x.copy()], [u]
     for k in range(len(ticks) - 1):
-        sol = scipy.integrate.solve_ivp(rhs, (ticks[k], ticks[k + 1]), x, args=(u,), method="DOP853", rtol=1e-12, atol=1e-14)
+        sol = scipy.integrate.solve_ivp(
+            rhs, (ticks[k], ticks[k + 1]), x, args=(u,), method="DOP853", rtol=1e-12, atol=1e-14
+        )
         u = law(x) if delay else law(sol.y[:, -1])
         x = sol.y[:, -1]
         states.append(x.copy())
@@ -56,7 +58,9 @@ def test_a_pd_loop_with_saturation_matches_an_independent_discrete_time_simulati
     ticks = np.arange(1501) * PERIOD
     target = lambda t: jnp.array([REF, 0.0])  # noqa: E731
     controller = fd.DigitalController(fd.LinearFeedback([[KP, KD]], target), limit=LIMIT, delay=delay)
-    run = fd.simulate_closed_loop(chain, fd.initial_state(chain, [-0.3]), jnp.asarray(ticks), controller, rtol=1e-11, atol=1e-13)
+    run = fd.simulate_closed_loop(
+        chain, fd.initial_state(chain, [-0.3]), jnp.asarray(ticks), controller, rtol=1e-11, atol=1e-13
+    )
     states, commands = _reference_loop(ticks, -0.3, delay)
     assert np.sum(np.abs(commands) == LIMIT) > 10  # the actuator saturates
     assert abs(states[-1, 0] - REF) < 0.1  # and the loop settles near the reference
@@ -71,7 +75,9 @@ def test_an_unstable_loop_is_an_error_not_nans():
     chain = _pendulum()
     controller = fd.DigitalController(fd.LinearFeedback([[-1e6, 0.0]]))
     with pytest.raises(Exception, match="simulate_closed_loop: a controller period's solve failed"):
-        fd.simulate_closed_loop(chain, fd.initial_state(chain, [0.1]), jnp.asarray(np.arange(200) * 1e-2), controller, max_steps_per_tick=64)
+        fd.simulate_closed_loop(
+            chain, fd.initial_state(chain, [0.1]), jnp.asarray(np.arange(200) * 1e-2), controller, max_steps_per_tick=64
+        )
 
 
 def test_a_bad_limit_is_named():

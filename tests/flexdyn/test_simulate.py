@@ -336,7 +336,9 @@ def test_sampled_zoh_torque_reproduces_bang_bang(paper_002_reference):
     np.testing.assert_allclose(np.asarray(traj.Q), np.asarray(paper_002_reference.Q), rtol=0, atol=1e-9)
     jumps = np.asarray(sampled.jump_times())
     switches = np.asarray(bang.jump_times())
-    np.testing.assert_allclose(jumps[np.isfinite(jumps)], switches[(switches > times[0]) & (switches <= times[-1])], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        jumps[np.isfinite(jumps)], switches[(switches > times[0]) & (switches <= times[-1])], rtol=0, atol=1e-12
+    )
 
 
 # ---------------------------------------------------------------------------
