@@ -55,7 +55,7 @@ def test_nothing_but_dry_friction_is_named(diagnosis):
 def test_dry_friction_interval_contains_the_truth(diagnosis):
     """The residual is correlated over whole still stretches (lag-1 autocorrelation
     0.999), so the interval is the HAC one; the white one, [0.09427, 0.09493] N m,
-    excluded the truth by 55 of its standard errors."""
+    excluded the truth by 58 of its standard errors."""
     (cause,) = [c for c in diagnosis.causes if c.name == "coulomb_friction"]
     p = cause.parameters["joint1.coulomb"]
     lo, hi = p["ci95"]
