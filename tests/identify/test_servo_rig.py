@@ -40,14 +40,12 @@ def test_dry_friction_is_named_first_and_no_unphysical_cause(diagnosis):
     assert "sensor_highpass:theta1" in diagnosis.not_tried, diagnosis.not_tried
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="measured 2026-12-07: link1.drag 0.746 kg/m^2 (air on a 0.3 m arm gives ~0.01) is named in round 2 "
-    "(dBIC -2604, held-out gain 1.27x), standing in for the stiction the catalogue lacks: the held torque "
-    "often lies between the sliding (0.085) and breakaway (0.10 N m) levels, where the smoothed Coulomb model "
-    "slides and the true hub is held; dry friction is fitted 11 % high (0.0946 N m)",
-)
 def test_nothing_but_dry_friction_is_named(diagnosis):
+    """Before air drag had a plausible range (`catalogue.MAX_DRAG_COEFFICIENT`), a link
+    drag of 0.746 kg/m^2 (air on an arm this size gives ~0.01) was named in round 2
+    (dBIC -2604, held-out gain 1.27x), standing in for the stiction the catalogue lacks:
+    where the held torque lies between the sliding (0.085) and breakaway (0.10 N m)
+    levels, the true hub is held and the smoothed Coulomb model slides."""
     labels = [f"{c.name}:{c.where}" for c in diagnosis.causes]
     assert labels == ["coulomb_friction:joint1"], diagnosis.summary()
 
