@@ -19,10 +19,12 @@ the chain's parts), switched on at a neutral value that reproduces the baseline 
 `implausible(name, values, ...)` says when a candidate's fitted values are outside what
 the component plausibly does on a working rig (a calibration error beyond 2x, a tilt of
 more than 10 deg, dry friction above the torques that move the rig, a delay or lag longer
-than a tenth of the log, an AC-coupling corner above the lowest mode): such a value is
+than a tenth of the log, an AC-coupling corner above the lowest mode, more air drag than
+a flat plate as wide as the link is long): such a value is
 usually standing in for an effect the catalogue lacks, as two sensor gains of 12 and 17
 stood in for the missing geometric stiffening of a spinning link before the catalogue had
-that entry. A candidate that passes the search's tests with such values is not named
+that entry, and a link drag of 0.75 kg/m^2 for the stiction of a simulated servo rig
+(`tests/identify/test_servo_rig.py`). A candidate that passes the search's tests with such values is not named
 (`Plausibility.judge`, on one rig and its logs).
 
 `wider_starts(...)`: the starts a continuous candidate is fitted from again when its fit
