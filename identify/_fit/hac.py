@@ -143,12 +143,14 @@ def bartlett_long_run(g: np.ndarray, m: int) -> np.ndarray:
     n, p = g.shape
     size = 1 << int(np.ceil(np.log2(2 * n)))
     G = np.fft.rfft(g, size, axis=0)  # (f, p)
-    # cross[k, a, b] = sum_t g_{t,a} g_{t+k,b}
-    cross = np.fft.irfft(np.conj(G)[:, :, None] * G[:, None, :], size, axis=0)[: m + 1]
     w = 1.0 - np.arange(m + 1) / (m + 1.0)
-    gamma0 = cross[0]
-    rest = np.einsum("k,kab->ab", w[1:], cross[1:])
-    return gamma0 + rest + rest.T
+    out = np.empty((p, p))
+    for a in range(p):  # one row at a time: memory (f, p), not (f, p, p)
+        # cross[k, b] = sum_t g_{t,a} g_{t+k,b}
+        cross = np.fft.irfft(np.conj(G[:, a, None]) * G, size, axis=0)[: m + 1]
+        out[a] = w @ cross  # Gamma(0)[a] + sum_k w_k Gamma(k)[a]
+    # out = Gamma(0) + R with R = sum_{k>=1} w_k Gamma(k); Gamma(0) is symmetric
+    return out + out.T - g.T @ g
 
 
 def prewhitened_long_run(g: np.ndarray) -> tuple[np.ndarray, int]:
