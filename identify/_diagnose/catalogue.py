@@ -19,10 +19,12 @@ the chain's parts), switched on at a neutral value that reproduces the baseline 
 `implausible(name, values, ...)` says when a candidate's fitted values are outside what
 the component plausibly does on a working rig (a calibration error beyond 2x, a tilt of
 more than 10 deg, dry friction above the torques that move the rig, a delay or lag longer
-than a tenth of the log, an AC-coupling corner above the lowest mode): such a value is
+than a tenth of the log, an AC-coupling corner above the lowest mode, more air drag than
+a flat plate as wide as the link is long): such a value is
 usually standing in for an effect the catalogue lacks, as two sensor gains of 12 and 17
 stood in for the missing geometric stiffening of a spinning link before the catalogue had
-that entry. A candidate that passes the search's tests with such values is not named
+that entry, and a link drag of 0.75 kg/m^2 for the stiction of a simulated servo rig
+(`tests/identify/test_servo_rig.py`). A candidate that passes the search's tests with such values is not named
 (`Plausibility.judge`, on one rig and its logs).
 
 `wider_starts(...)`: the starts a continuous candidate is fitted from again when its fit
@@ -163,10 +165,23 @@ def pair(first: Candidate, first_values, second: Candidate) -> Candidate:
 PLAUSIBLE_GAIN = (0.5, 2.0)  # a sensor reading within 2x of its calibration
 MAX_TILT_DEG = 10.0  # a rig meant to be horizontal, levelled by eye
 MAX_DELAY_FRACTION = 0.1  # a delay or lag at most a tenth of the shortest log
+# Air drag per unit length of a link, `c = rho_air C_D w / 2` (kg/m^2; the quadratic drag
+# force per length `c v |v|`, Hoerner, *Fluid-Dynamic Drag*, 1965, ch. 3): at most that of
+# a flat plate broadside (C_D = 2) as wide as the link is long (w = L), in air at sea level
+# (1.2 kg/m^3): `c <= AIR_DENSITY MAX_DRAG_COEFFICIENT L / 2 = 1.2 L`. Paper 000's 25 mm
+# strip (C_D ~1.2) gives 0.018 kg/m^2, as fitted on the real pendulum.
+AIR_DENSITY = 1.2  # kg/m^3
+MAX_DRAG_COEFFICIENT = 2.0
 
 
 def implausible(
-    name: str, values: dict, *, torque_scale: float, log_duration: float, lowest_mode_hz: float | None
+    name: str,
+    values: dict,
+    *,
+    torque_scale: float,
+    log_duration: float,
+    lowest_mode_hz: float | None,
+    link_lengths: tuple[float, ...] = (),
 ) -> list[str]:
     """Sentences saying which fitted values of a named cause (`values`: parameter name ->
     SI value) are outside the plausible ranges above; empty when all are plausible.
@@ -174,9 +189,15 @@ def implausible(
     (dry friction above it would hold the rig still; above the RMS torque it need not: a
     hub standing still between moves is what friction does);
     `log_duration` (s): the shortest log's; `lowest_mode_hz`: the baseline's lowest
-    positive natural frequency (None if it has none)."""
+    positive natural frequency (None if it has none); `link_lengths` (m): link i's is
+    entry i - 1 (a link's air drag is judged only where its length is given)."""
     out = _implausible_values(
-        name, values, torque_scale=torque_scale, log_duration=log_duration, lowest_mode_hz=lowest_mode_hz
+        name,
+        values,
+        torque_scale=torque_scale,
+        log_duration=log_duration,
+        lowest_mode_hz=lowest_mode_hz,
+        link_lengths=link_lengths,
     )
     return out + [STANDING_IN] if out else out
 
@@ -186,7 +207,13 @@ STANDING_IN = "the value is probably standing in for an effect the catalogue lac
 
 
 def _implausible_values(
-    name: str, values: dict, *, torque_scale: float, log_duration: float, lowest_mode_hz: float | None
+    name: str,
+    values: dict,
+    *,
+    torque_scale: float,
+    log_duration: float,
+    lowest_mode_hz: float | None,
+    link_lengths: tuple[float, ...] = (),
 ) -> list[str]:
     """`implausible`'s sentences about the values, without the closing one."""
     out = []
@@ -206,6 +233,11 @@ def _implausible_values(
                 f"{n} = {v:.3g} N m: more than the torques that move the rig ({torque_scale:.3g} N m), "
                 "which would hold it still"
             )
+        elif name == "quadratic_damping" and field == "drag" and (limit := _max_drag(n, link_lengths)) < v:
+            out.append(
+                f"{n} = {v:.3g} kg/m^2: more air drag than a flat plate as wide as the link is long "
+                f"({limit:.3g} kg/m^2)"
+            )
         elif name == "sensor_highpass" and lowest_mode_hz is not None and v > lowest_mode_hz:
             out.append(
                 f"{n} = {v:.3g} Hz: a corner above the lowest mode ({lowest_mode_hz:.3g} Hz) would remove most "
@@ -223,6 +255,15 @@ def _implausible_values(
     return out
 
 
+def _max_drag(name: str, link_lengths: tuple[float, ...]) -> float:
+    """The most air drag per unit length link `name` (`link<i>.drag`) can have (kg/m^2;
+    `MAX_DRAG_COEFFICIENT` above); infinite where its length is not given."""
+    i = int(name.split(".", 1)[0].removeprefix("link")) - 1
+    if not 0 <= i < len(link_lengths):
+        return float("inf")
+    return 0.5 * AIR_DENSITY * MAX_DRAG_COEFFICIENT * float(link_lengths[i])
+
+
 @dataclasses.dataclass(frozen=True)
 class Plausibility:
     """What `implausible` judges a candidate's fitted values against on one rig and its
@@ -232,6 +273,7 @@ class Plausibility:
     torque_scale: float
     log_duration: float
     lowest_mode_hz: float | None
+    link_lengths: tuple[float, ...] = ()  # m, link i's at i - 1 (air drag's bound)
 
     def judge(self, cand: Candidate, values: dict) -> list[str]:
         """`implausible` of candidate `cand` at its fitted `values` (parameter name -> SI
@@ -246,6 +288,7 @@ class Plausibility:
                 torque_scale=self.torque_scale,
                 log_duration=self.log_duration,
                 lowest_mode_hz=self.lowest_mode_hz,
+                link_lengths=self.link_lengths,
             )
         return out + [STANDING_IN] if out else out
 

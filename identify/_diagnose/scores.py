@@ -58,7 +58,7 @@ class Cause:
     name: str
     where: str
     description: str
-    parameters: dict  # name -> {value, std_error, ci95, unit}
+    parameters: dict  # name -> {value, std_error, ci95, unit, method}: `method` "white" or "HAC ..." (`_fit/hac.py`)
     delta_bic: float
     held_out_gain: float
     # the other causes accepted together with this one (a pair found by the pair search;

@@ -44,11 +44,12 @@ class Signals:
     def plausibility(self, chain: fd.Chain) -> cat.Plausibility:
         """What a candidate's fitted values on the fitted rig `chain` are judged against
         (`catalogue.Plausibility`): the torque scale of its peak torque, the shortest fit
-        log, the lowest mode."""
+        log, the lowest mode, the links' lengths."""
         return cat.Plausibility(
             torque_scale=cat.characteristic_torque(chain, self.torque_peak),
             log_duration=self.log_duration,
             lowest_mode_hz=min(self.positive_modes) if self.positive_modes else None,
+            link_lengths=tuple(float(link.length) for link in chain.links),
         )
 
 

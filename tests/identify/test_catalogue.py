@@ -121,7 +121,7 @@ def test_geometric_stiffening_switches_the_option_on_one_link_and_keeps_its_para
     assert extended.joints == chain.joints and extended.hubs == chain.hubs
 
 
-_CONTEXT = {"torque_scale": 0.2, "log_duration": 3.0, "lowest_mode_hz": 2.9}
+_CONTEXT = {"torque_scale": 0.2, "log_duration": 3.0, "lowest_mode_hz": 2.9, "link_lengths": (0.3,)}
 
 
 @pytest.mark.parametrize(
@@ -136,6 +136,9 @@ _CONTEXT = {"torque_scale": 0.2, "log_duration": 3.0, "lowest_mode_hz": 2.9}
         ("sensor_highpass", {"sensor.tip1.highpass": 5.0}, "above the lowest mode (2.9 Hz)"),
         ("base_tilt", {"gravity[0]": 2.0, "gravity[1]": 1.0}, "a tilt of 13.2 deg"),
         ("base_tilt", {"gravity[0]": 12.0, "gravity[1]": 0.0}, "not a tilt"),
+        # the servo rig's stand-in for stiction (tests/identify/test_servo_rig.py): above
+        # a 0.3 m x 0.3 m flat plate's 1.2 kg/m^3 * 2 * 0.3 m / 2 = 0.36 kg/m^2
+        ("quadratic_damping", {"link1.drag": 0.746}, "(0.36 kg/m^2)"),
     ],
 )
 def test_implausible_values_are_named(name, values, words):
@@ -155,10 +158,19 @@ def test_implausible_values_are_named(name, values, words):
         # 1.5 deg, the grid's hidden tilt
         ("base_tilt", {"gravity[0]": 0.139, "gravity[1]": 0.217}),
         ("joint_elasticity", {"joint1.stiffness": 40.0, "joint1.rotor_inertia": 0.01}),
+        # the real pendulum's fitted drag (paper 000's 25 mm strip): rho C_D w / 2 = 0.018
+        ("quadratic_damping", {"link1.drag": 1.79e-2}),
+        ("quadratic_damping", {"link1.drag": 0.35}),
     ],
 )
 def test_plausible_values_pass(name, values):
     assert cat.implausible(name, values, **_CONTEXT) == []
+
+
+def test_drag_is_not_judged_without_the_links_length():
+    context = {**_CONTEXT, "link_lengths": ()}
+    assert cat.implausible("quadratic_damping", {"link2.drag": 50.0}, **context) == []
+    assert cat.implausible("quadratic_damping", {"link2.drag": 50.0}, **_CONTEXT) == []  # only link 1's given
 
 
 def test_highpass_is_not_judged_without_a_mode():
