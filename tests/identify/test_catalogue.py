@@ -406,6 +406,7 @@ def test_not_tried_names_each_entry_a_kind_rules_out_by_channel():
     assert out == {}
 
 
+@pytest.mark.slow  # a whole diagnosis (1-5 min on 2 cores): CI's 30-minute budget
 def test_a_declared_kind_reaches_the_diagnosis_through_the_experiment_file(tmp_path):
     """`[sensors.theta1] kind = "encoder"` in an experiment file: `identify.diagnose` tries
     only the encoder's delay and offset on theta1, and its `not_tried` names the high-pass

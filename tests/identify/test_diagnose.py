@@ -111,6 +111,7 @@ def test_main_job_diagnose_names_the_hidden_friction_of_the_example(tmp_path):
     assert main(["diagnose", str(EXAMPLE / "experiment.toml"), "--out", str(EXAMPLE / "logs"), "--quiet"]) == 2
 
 
+@pytest.mark.slow  # a whole diagnosis (1-5 min on 2 cores): CI's 30-minute budget
 def test_a_candidate_that_needs_a_finer_step_gets_one():
     """Dry friction, `-F_c tanh(v / 0.01 rad/s)`, is a stiff damper at rest. At the step of
     the frictionless baseline's fit (8.9 ms on the example) the friction model's outputs are
@@ -179,6 +180,7 @@ def test_coulomb_friction_hidden_with_a_random_magnitude():
     assert "linear" in [law["measured"]["best"] for law in laws], laws
 
 
+@pytest.mark.slow  # a whole diagnosis (1-5 min on 2 cores): CI's 30-minute budget
 def test_quadratic_damping_hidden_and_told_apart_from_dry_friction(monkeypatch):
     # The accepted model is refitted alone (`reconverge`) in a batch of 1, not padded to the
     # round's batch (`joint_model_module.FEW_SIZE_AFTER_S`: as when a round's call is slow): the small program
@@ -396,6 +398,7 @@ def test_no_effect_names_no_cause(monkeypatch):
     assert json.loads(json.dumps(checked.to_dict()["model_checks"]))[0]["flagged"] is True
 
 
+@pytest.mark.slow  # a whole diagnosis (1-5 min on 2 cores): CI's 30-minute budget
 def test_an_effect_above_its_detection_limit_is_named_and_one_below_is_not():
     """Oracle for `detection_limits` (a linearisation): the search itself. The limit of dry
     friction is read from a diagnosis of logs without it; the same logs (same noise) with
