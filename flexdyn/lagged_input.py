@@ -46,6 +46,7 @@ class LaggedTorque(AbstractInput):
     command: SampledTorque
     time_constant: Float[Array, " n_joints"]
     knots: Float[Array, "T n_joints"]  # u_a at each sample time (N m)
+    slopes: Float[Array, "T n_joints"]  # the command's slope after each sample (N m/s)
 
     def __init__(self, command: SampledTorque, time_constant):
         n = command.values.shape[1]
@@ -56,13 +57,15 @@ class LaggedTorque(AbstractInput):
             raise ValueError(f"LaggedTorque.time_constant: expected time constants >= 0 s, got {tc}")
         self.command = command
         self.time_constant = jnp.broadcast_to(tc, (n,))
-        self.knots = _knots(command, self.time_constant)
+        # (computed once here, not in every right-hand side's evaluation)
+        self.slopes = _slopes(command)
+        self.knots = _knots(command, self.slopes, self.time_constant)
 
     def __call__(self, t, y=None):
         times, values = self.command.times, self.command.values
         k = jnp.clip(jnp.searchsorted(times, t, side="right") - 1, 0, times.shape[0] - 1)
         s = jnp.maximum(t - times[k], 0.0)
-        m = _slopes(self.command)[k]
+        m = self.slopes[k]
         u = values[k] + m * s
         T = self.time_constant
         return u - T * m + (self.knots[k] - values[k] + T * m) * _decay(s, T)
@@ -90,11 +93,11 @@ def _slopes(command: SampledTorque):
     return jnp.where(linear, m, 0.0)
 
 
-def _knots(command: SampledTorque, T):
-    """`a_k = u_a(t_k)` for every sample, from `a_0 = u_0` (the closed form at `s = h_k`)."""
+def _knots(command: SampledTorque, m, T):
+    """`a_k = u_a(t_k)` for every sample, from `a_0 = u_0` (the closed form at `s = h_k`;
+    `m`: `_slopes`)."""
     times, values = command.times, command.values
     h = jnp.diff(times)
-    m = _slopes(command)
 
     def step(a, k):
         u_end = values[k] + m[k] * h[k]
