@@ -8,7 +8,8 @@ Two rigs from the papers:
   third log is held out (the layout of the shipped example).
 - `arm`: paper 002's flexible link (0.5 m, 0.2 kg/m, EI = 1 N m^2, D = 0.1 sqrt(K), one
   clamped-mass mode) on its 0.02 kg m^2 hub with a 50 g payload, horizontal plane, driven
-  by three bang-bang torques (paper 002's input, 0.1-0.2 N m), 3 s at 200 Hz, hub angle
+  by three bang-bang torques (paper 002's input, 0.1-0.2 N m) commanded at 200 Hz and held
+  between samples as a digital controller applies them (`hold="zoh"`), 3 s, hub angle
   (encoder, 1 mrad noise) and tip deflection (0.1 mm noise) recorded; the third log is held
   out. For `missing_mode` the rig records hub angle and root curvature (a strain gauge,
   2e-4 1/m noise) instead: the tip deflection cannot see the second mode.
@@ -117,6 +118,7 @@ def arm_logs(truth, seed, measurement=None, channels=("theta1", "tip1"), noise=N
                 rng=rng,
                 name=f"bangbang_{k}",
                 measurement=measurement,
+                hold="zoh",
             )
         )
     return logs

@@ -34,6 +34,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 import flexdyn as fd
+from flexdyn.held_steps import clipped_constant_steps
 from flexdyn.simulation import adaptive_controller as _adaptive_controller
 
 from .._data import channels as ch, measurement as meas
@@ -142,13 +143,14 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     ts = jnp.clip(t, t_begin, t_end)
     torque = meas.actuated_torque(sensors, _strictly_increasing(t), torque_v, problem.hold)
     field = fd.ChainVectorField(asm, torque)
+    # (fixed steps stop at a held torque's jumps, adaptive ones also at its constant
+    # stretches' ends: `fd.held_steps`, `fd.SampledTorque.step_times`)
     if step is not None:
-        solver, controller, dt0 = diffrax.Tsit5(), diffrax.ConstantStepSize(), step
+        solver, controller, dt0 = diffrax.Tsit5(), clipped_constant_steps(torque.jump_times()), step
     elif problem.dt is None:
-        # (steps clipped onto the torque's constant stretches' ends: `fd.SampledTorque.step_times`)
         solver, controller, dt0 = diffrax.Tsit5(), _adaptive_controller(torque, problem.rtol, problem.atol), None
     else:
-        solver, controller, dt0 = fd.RK4(), diffrax.ConstantStepSize(), problem.dt
+        solver, controller, dt0 = fd.RK4(), clipped_constant_steps(torque.jump_times()), problem.dt
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(field),
         solver,
