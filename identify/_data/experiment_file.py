@@ -6,12 +6,13 @@ import tomllib
 from pathlib import Path
 
 from .columns import MIN_SAMPLES
+from .controller_section import _controller
 from .experiment import Experiment
 from .experiment_sections import _build_rig, _free_parameters, _log_entry, _measurement, _noise, _starts
 from .files import absolute, file_problem
 from .toml_reader import ExperimentError, _Reader, _show
 
-_TOP_KEYS = ("experiment", "rig", "parameters", "starts", "noise", "logs", "sensors", "actuators")
+_TOP_KEYS = ("experiment", "rig", "parameters", "starts", "noise", "logs", "sensors", "actuators", "controller")
 
 
 _EXPERIMENT_KEYS = ("name", "description", "strict", "min_samples")
@@ -120,6 +121,16 @@ def load_experiment(path) -> Experiment:
                     "parameter in each log on its own: identify fit --independent)",
                 )
     starts = _starts(r, free, doc.get("starts", []))
+    controller = None
+    if "controller" in doc:
+        controller = _controller(r, chain, logs, r.table(doc["controller"], ("controller",)))
+    elif any(entry.log.references for entry in logs):
+        k, entry = next((k, e) for k, e in enumerate(logs, start=1) if e.log.references)
+        raise r.error(
+            ("logs", k, "columns"),
+            f"log {entry.name!r} maps a reference column ({', '.join(sorted(entry.log.references))}'s), but the file "
+            "has no [controller] to read it; declare the feedback law under [controller], or drop the column",
+        )
     return Experiment(
         path=path,
         name=name,
@@ -130,4 +141,5 @@ def load_experiment(path) -> Experiment:
         logs=tuple(logs),
         measurement=measurement,
         starts=starts,
+        controller=controller,
     )

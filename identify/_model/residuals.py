@@ -37,6 +37,7 @@ import flexdyn as fd
 from flexdyn.simulation import adaptive_controller as _adaptive_controller
 
 from .._data import channels as ch, measurement as meas
+from .closed_loop import closed_log_outputs
 
 
 def _values(problem, theta, log_values=None, log_index=None) -> dict:
@@ -140,6 +141,13 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
         t_end = jnp.minimum(t[-1], onset + horizon)
         t_begin = jnp.where(t_end < t[-1], onset, t[0])
     ts = jnp.clip(t, t_begin, t_end)
+    if problem.loop is not None:  # a closed-loop log: the rig under its controller
+        reference = problem.reference[0 if log_index is None else log_index]
+        out, run = closed_log_outputs(problem, asm, sensors, ts, torque_v, reference, y0, step)
+        ok = admissible & run.ok
+        if stats == "limit":
+            return out, ok, run.limited
+        return (out, ok, run.steps) if stats else (out, ok)
     torque = meas.actuated_torque(sensors, _strictly_increasing(t), torque_v, problem.hold)
     field = fd.ChainVectorField(asm, torque)
     if step is not None:

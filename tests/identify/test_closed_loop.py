@@ -1,0 +1,259 @@
+"""Closed-loop logs (issue 60, item 3): the rig simulated under its digital controller
+inside the residual, against an independent discrete-time simulation of the same loop
+(`tests/closed_loop_case.py`: SciPy's DOP853 on the pendulum's own equation of motion,
+restarted at each tick with the held, clipped command of a PD on the quantised encoder)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from closed_loop_case import (
+    ENCODER_ZERO,
+    LIMIT,
+    PERIOD,
+    closed_loop_log,
+    controller,
+    measurement,
+    pendulum,
+    reference,
+    reference_loop,
+)
+
+import identify
+
+
+def _problem(logs, delay=False, **options):
+    return identify.make_problem(
+        pendulum(),
+        [],
+        logs,
+        {"theta1": 1e-3, "voltage1": 1e-2},
+        measurement=measurement(),
+        controller=controller(delay),
+        **options,
+    )
+
+
+@pytest.mark.parametrize("delay", [False, True])
+def test_the_closed_loop_prediction_matches_an_independent_discrete_time_loop(delay):
+    """A PD step response of the motor-driven pendulum at 1 kHz for 1.2 s (the command
+    saturates after each step: the oracle checks it does): the model's hub angle and
+    commands agree with the oracle's to 1e-6 (rad, V)."""
+    t = np.arange(1201) * PERIOD
+    theta, _, volts = reference_loop(t, -0.3, reference(t), delay)
+    assert np.sum(np.abs(volts) == LIMIT) > 20
+    assert abs(theta[-1] - (-0.1)) < 0.05  # it settles near the last reference
+    problem = _problem([closed_loop_log(t, -0.3, "step", delay)], delay)
+    assert problem.channels == ("theta1", "voltage1")
+    pred, ok = identify.predict(problem, jnp.zeros(0), problem.y0_known)
+    assert bool(ok[0])
+    np.testing.assert_allclose(np.asarray(pred[0, :, 0]), theta + ENCODER_ZERO, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(pred[0, :, 1]), volts, rtol=0, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------
+# The experiment file's [controller]
+# ---------------------------------------------------------------------------
+
+_RIG = """
+[rig]
+gravity = [0.0, -9.81]
+
+[[rig.links]]
+type = "rigid"
+length = 0.3
+mass = 0.2
+
+[[rig.joints]]
+type = "rigid"
+damping = 2e-3
+rotor_inertia = 1e-5
+gear_ratio = 15.0
+
+[[rig.hubs]]
+inertia = 1e-3
+
+[rig.motors.joint1]
+resistance = 2.4
+torque_constant = 0.045
+
+[sensors.theta1]
+offset = 0.01
+resolution = {resolution}
+"""
+
+_CONTROLLER = """
+[controller]
+command = "voltage1"
+gains = {{ theta1 = {kp} }}
+rate_gains = {{ theta1 = {kd} }}
+references = ["theta1"]
+feedforward = "{ff} V"
+limit = "{limit} V"
+period = "1 ms"
+"""
+
+
+def _write_case(tmp_path, controller=None, columns=None, extra="", samples=300):
+    """An experiment file with one closed-loop log written from the oracle's loop (angles
+    in degrees): `(path, theta, volts)`."""
+    from closed_loop_case import ENCODER, KD, KP, V_FF
+
+    t = np.arange(samples) * PERIOD
+    ref = reference(t)
+    theta, _, volts = reference_loop(t, -0.3, ref)
+    recorded = ENCODER * np.round((theta + ENCODER_ZERO) / ENCODER)
+    rows = ["time [s],enc [deg],ref [deg],u [V]"] + [
+        f"{a:.17g},{np.degrees(b):.17g},{np.degrees(c):.17g},{d:.17g}" for a, b, c, d in zip(t, recorded, ref, volts)
+    ]
+    (tmp_path / "run.csv").write_text("\n".join(rows) + "\n")
+    if controller is None:
+        controller = _CONTROLLER.format(kp=KP, kd=KD, ff=V_FF, limit=LIMIT)
+    if columns is None:
+        columns = 'time = "time [s]", theta1 = "enc [deg]", theta1_ref = "ref [deg]", voltage1 = "u [V]"'
+    text = (
+        _RIG.format(resolution=ENCODER)
+        + controller
+        + extra
+        + f'\n[[logs]]\nfile = "run.csv"\ncolumns = {{ {columns} }}\nhold = "zoh"\ninitial = {{ theta1 = -0.3 }}\n'
+    )
+    path = tmp_path / "exp.toml"
+    path.write_text(text)
+    return path, theta, volts
+
+
+def test_an_experiment_file_declares_the_controller_and_its_logs_are_simulated_closed_loop(tmp_path):
+    """The file's [controller] and the log's theta1_ref column (in degrees) give the same
+    closed-loop prediction as the oracle's loop, to 1e-6."""
+    path, theta, volts = _write_case(tmp_path)
+    exp = identify.load_experiment(path)
+    assert exp.controller == controller()
+    assert set(exp.logs[0].log.references) == {"theta1"}
+    problem = identify.problem_from_experiment(exp)
+    assert problem.channels == ("theta1", "voltage1")
+    pred, ok = identify.predict(problem, jnp.zeros(0), problem.y0_known)
+    assert bool(ok[0])
+    np.testing.assert_allclose(np.asarray(pred[0, :, 0]), theta + ENCODER_ZERO, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(pred[0, :, 1]), volts, rtol=0, atol=1e-6)
+
+
+_BASE = dict(kp=20.0, kd=0.3, ff=0.5, limit=6.0)
+
+
+@pytest.mark.parametrize(
+    "controller, columns, extra, match",
+    [
+        ("\n[controller]\ngains = { theta1 = 1.0 }\n", None, "", r"controller: missing command"),
+        (_CONTROLLER.format(**_BASE).replace('"voltage1"', '"theta1"'), None, "", r"controller\.command.*not an input"),
+        (_CONTROLLER.format(**_BASE).replace('"voltage1"', '"torque1"'), None, "", r"controller\.command.*voltage"),
+        (
+            _CONTROLLER.format(**_BASE).replace("gains = { theta1", "gains = { accel_x"),
+            None,
+            "",
+            r"controller\.gains\.accel_x.*not a channel a controller reads",
+        ),
+        (
+            _CONTROLLER.format(**_BASE).replace("gains = { theta1", "gains = { tip1"),
+            None,
+            "",
+            r"controller\.gains\.tip1.*rigid",
+        ),
+        (
+            _CONTROLLER.format(**_BASE).replace("gains = { theta1 = 20.0", 'gains = { theta1 = "20 V/rad"'),
+            None,
+            "",
+            r"controller\.gains\.theta1.*expected a number in SI units \(V per SI unit",
+        ),
+        (
+            _CONTROLLER.format(**_BASE).replace('references = ["theta1"]', 'references = ["tip1"]'),
+            None,
+            "",
+            r"controller\.references.*'tip1' has no entry in gains",
+        ),
+        (
+            _CONTROLLER.format(**_BASE).replace('limit = "6.0 V"', 'limit = "-1 V"'),
+            None,
+            "",
+            r"controller\.limit.*saturation > 0",
+        ),
+        (
+            _CONTROLLER.format(**_BASE).replace('limit = "6.0 V"', 'limit = "6 N m"'),
+            None,
+            "",
+            r"controller\.limit.*expected a voltage",
+        ),
+        (_CONTROLLER.format(**_BASE) + "delay = 1\n", None, "", r"controller\.delay.*expected true"),
+        (_CONTROLLER.format(**_BASE) + "gain = 1\n", None, "", r"controller\.gain: unknown key"),
+        (
+            _CONTROLLER.format(**_BASE).replace('"1 ms"', '"2 ms"'),
+            None,
+            "",
+            r"controller\.period.*sampled every 0\.001 s.*period is 0\.002 s",
+        ),
+        (
+            _CONTROLLER.format(**_BASE),
+            'time = "time [s]", theta1 = "enc [deg]", theta1_ref = "ref [deg]"',
+            "",
+            r"logs\[1\]\.columns.*no voltage1 column",
+        ),
+        (
+            _CONTROLLER.format(**_BASE),
+            'time = "time [s]", theta1 = "enc [deg]", voltage1 = "u [V]"',
+            "",
+            r"logs\[1\]\.columns.*no theta1_ref column",
+        ),
+        ("", None, "", r"logs\[1\]\.columns.*theta1's\), but the file has no \[controller\]"),
+    ],
+)
+def test_a_bad_controller_section_is_named(tmp_path, controller, columns, extra, match):
+    path, _, _ = _write_case(tmp_path, controller, columns, extra, samples=20)
+    with pytest.raises(identify.ExperimentError, match=match):
+        identify.load_experiment(path)
+
+
+def test_a_per_log_offset_on_a_channel_the_controller_reads_is_refused(tmp_path):
+    path, _, _ = _write_case(tmp_path, samples=20)
+    path.write_text(path.read_text() + 'offsets = ["theta1"]\n')
+    with pytest.raises(
+        identify.ExperimentError, match=r"logs\[1\]\.offsets.*read by \[controller\].*sensor\.theta1\.offset"
+    ):
+        identify.load_experiment(path)
+
+
+def test_what_a_closed_loop_problem_cannot_hold_is_named():
+    t = np.arange(50) * PERIOD
+    log = closed_loop_log(t, -0.3, "step")
+    delayed = identify.Measurement({"theta1": identify.Sensor(delay=1e-3)})
+    with pytest.raises(ValueError, match=r"the law reads theta1, whose sensor has a delay"):
+        identify.make_problem(pendulum(), [], [log], measurement=delayed, controller=controller())
+    lagged = identify.Measurement(actuator_lag=(1e-3,))
+    with pytest.raises(ValueError, match=r"an actuator lag is not simulated in a closed loop"):
+        identify.make_problem(pendulum(), [], [log], measurement=lagged, controller=controller())
+    no_ref = dataclasses.replace(log, reference={})
+    with pytest.raises(ValueError, match=r"log 'step': no reference for theta1 \(theta1_ref\)"):
+        identify.make_problem(pendulum(), [], [no_ref], controller=controller())
+    offset = dataclasses.replace(log, offsets=("theta1",))
+    with pytest.raises(ValueError, match=r"log 'step': offsets for \['theta1'\], which the controller reads"):
+        identify.make_problem(pendulum(), [], [offset], controller=controller())
+    with pytest.raises(ValueError, match=r"controller\.command 'voltage2'"):
+        identify.make_problem(pendulum(), [], [log], controller=identify.Controller("voltage2", {"theta1": 1.0}))
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(command="theta1", gains={"theta1": 1.0}), r"Controller\.command: expected the input channel"),
+        (dict(command="voltage1", gains={"accel_x": 1.0}), r"Controller\.gains: 'accel_x' is not a channel"),
+        (dict(command="voltage1", gains={"theta1": float("nan")}), r"Controller\.gains\['theta1'\]: expected a finite"),
+        (dict(command="voltage1"), r"Controller: no gains"),
+        (dict(command="voltage1", gains={"theta1": 1.0}, limit=0.0), r"Controller\.limit"),
+        (dict(command="voltage1", gains={"theta1": 1.0}, period=-1e-3), r"Controller\.period"),
+        (dict(command="voltage1", rate_gains={"theta1": 1.0}, references=("theta1",)), r"Controller\.references"),
+    ],
+)
+def test_a_bad_controller_is_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        identify.Controller(**kwargs)
