@@ -59,8 +59,8 @@ def controller(delay=False):
     )
 
 
-def measurement():
-    return identify.Measurement({"theta1": identify.Sensor(offset=ENCODER_ZERO, resolution=ENCODER)})
+def measurement(resolution=ENCODER):
+    return identify.Measurement({"theta1": identify.Sensor(offset=ENCODER_ZERO, resolution=resolution)})
 
 
 def reference(t):
@@ -68,9 +68,14 @@ def reference(t):
     return np.where(t < 0.1, -0.3, np.where(t < 0.8, 0.4, -0.1))
 
 
-def reference_loop(t, theta0, ref, delay=False, values=None, first_command=0.0):
+def reference_loop(
+    t, theta0, ref, delay=False, values=None, first_command=0.0, reading_noise=None, resolution=ENCODER
+):
     """The loop, independently (DOP853 restarted at every tick): `(theta, omega,
-    commands)` at the ticks `t`, the command of tick k the one held from it."""
+    commands, readings)` at the ticks `t`, the command of tick k the one held from it;
+    `reading_noise` `(T,)` (rad): added to the angle the controller reads (an analog
+    sensor's noise) before its quantisation to `resolution` (rad)."""
+    noise = np.zeros(len(t)) if reading_noise is None else reading_noise
     v = {**TRUTH, **(values or {})}
     R, KT, HUB = v["motor1.resistance"], v["motor1.torque_constant"], v["hub1.inertia"]
     J = HUB + M * L**2 / 3 + JM * N**2
@@ -80,40 +85,36 @@ def reference_loop(t, theta0, ref, delay=False, values=None, first_command=0.0):
         current = (volts - KT * N * omega) / R
         return [omega, (N * KT * current - B * omega - M * G * (L / 2) * math.cos(theta)) / J]
 
-    def read(theta):
-        return ENCODER * round((theta + ENCODER_ZERO) / ENCODER)
+    def read(theta, k):
+        return resolution * round((theta + ENCODER_ZERO + noise[k]) / resolution)
 
     def law(k, m, m_prev):
         return float(np.clip(V_FF + KP * (ref[k] - m) - KD * (m - m_prev) / PERIOD, -LIMIT, LIMIT))
 
     x = np.array([theta0, 0.0])
-    m_prev = read(theta0)
+    m_prev = read(theta0, 0)
     computed = law(0, m_prev, m_prev)
     u = first_command if delay else computed
-    states, commands = [x.copy()], [u]
+    states, commands, readings = [x.copy()], [u], [m_prev]
     for k in range(len(t) - 1):
         sol = scipy.integrate.solve_ivp(rhs, (t[k], t[k + 1]), x, args=(u,), method="DOP853", rtol=1e-12, atol=1e-14)
         x = sol.y[:, -1]
-        m = read(x[0])
+        m = read(x[0], k + 1)
         now = law(k + 1, m, m_prev)
         u, m_prev = (computed if delay else now), m
         computed = now
         states.append(x.copy())
         commands.append(u)
+        readings.append(m)
     states = np.array(states)
-    return states[:, 0], states[:, 1], np.array(commands)
+    return states[:, 0], states[:, 1], np.array(commands), np.array(readings)
 
 
-def closed_loop_log(t, theta0, name, delay=False, rng=None, theta_noise=0.0, command_noise=0.0):
-    """A `LogData` of the loop (the oracle's), with the encoder channel `theta1` as
-    recorded (`theta + o`, quantised, plus Gaussian noise of `theta_noise` rad) and the
-    command column (plus `command_noise` V)."""
+def closed_loop_log(t, theta0, name, delay=False, reading_noise=None, resolution=ENCODER):
+    """A `LogData` of the loop (the oracle's): the angle channel `theta1` as the controller
+    read and logged it (`theta + o + reading_noise`, quantised) and the command column."""
     ref = reference(t)
-    theta, _, volts = reference_loop(t, theta0, ref, delay)
-    recorded = ENCODER * np.round((theta + ENCODER_ZERO) / ENCODER)
-    if rng is not None:
-        recorded = recorded + theta_noise * rng.standard_normal(t.shape)
-        volts = volts + command_noise * rng.standard_normal(t.shape)
+    _, _, volts, recorded = reference_loop(t, theta0, ref, delay, reading_noise=reading_noise, resolution=resolution)
     return identify.LogData(
         t=t,
         outputs={"theta1": recorded},

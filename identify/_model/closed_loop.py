@@ -155,7 +155,9 @@ def simulate_closed_log(
         y, u, pending, m_prev, rate_prev = carry
         t0, t1 = ts[k], ts[k + 1]
         moves = t1 > t0
-        t1s = jnp.where(moves, t1, t0 + 1.0)  # (a dummy span, discarded)
+        # (a period of zero length, past the solve's span or padding, gets a dummy span of
+        # one short step, its result discarded)
+        t1s = jnp.where(moves, t1, t0 + 1e-9)
         if step is not None or dt is not None:
             solver = diffrax.Tsit5() if step is not None else fd.RK4()
             size = step if step is not None else dt
@@ -200,6 +202,7 @@ def closed_log_outputs(problem, asm, sensors, ts, logged, reference, y0, step):
     (the command channel: the model's commands), and its `ClosedLog`. `ts`: the sample
     times clipped to the solve's span."""
     law = problem.loop
+    _check_loop_measurement(sensors, law.channels)
     run = simulate_closed_log(
         asm,
         law,
@@ -233,6 +236,24 @@ def closed_log_outputs(problem, asm, sensors, ts, logged, reference, y0, step):
     return jnp.stack([columns[c] for c in problem.channels], axis=1), run
 
 
+def _check_loop_measurement(measurement, channels) -> None:
+    """The sensor and drive effects a closed loop does not simulate, refused while
+    tracing (a measurement changed after `make_problem`, e.g. a diagnosis candidate)."""
+    for c in channels:
+        sensor = measurement.sensors.get(c)
+        for effect in ("delay", "highpass"):
+            if sensor is not None and getattr(sensor, effect) is not None:
+                raise ValueError(
+                    f"closed loop: the law reads {c}, whose sensor has a {effect}; a closed-loop simulation reads its "
+                    f"channels at the samples, without sensor dynamics: drop sensor.{c}.{effect}"
+                )
+    if any(v is not None for v in measurement.actuator_lag):
+        raise ValueError(
+            "closed loop: an actuator lag is not simulated in a closed loop (the command is held at each sample); "
+            "drop actuator<i>.lag"
+        )
+
+
 def check_closed_loop(chain, measurement, controller: Controller, logs) -> None:
     """Raise `ValueError` naming what a closed-loop problem cannot hold: a command of a
     joint the rig lacks or that drives it differently, a channel the rig lacks, a sensor
@@ -251,18 +272,10 @@ def check_closed_loop(chain, measurement, controller: Controller, logs) -> None:
             ch.check_channel(chain, c)
         except ValueError as e:
             raise ValueError(f"make_problem: controller: {e}") from None
-        sensor = measurement.sensors.get(c)
-        for effect in ("delay", "highpass"):
-            if sensor is not None and getattr(sensor, effect) is not None:
-                raise ValueError(
-                    f"make_problem: controller: the law reads {c}, whose sensor has a {effect}; a closed-loop "
-                    f"simulation reads its channels at the samples, without sensor dynamics: drop sensor.{c}.{effect}"
-                )
-    if any(v is not None for v in measurement.actuator_lag):
-        raise ValueError(
-            "make_problem: controller: an actuator lag is not simulated in a closed loop (the command is held at "
-            "each sample); drop actuator<i>.lag"
-        )
+    try:
+        _check_loop_measurement(measurement, controller.channels)
+    except ValueError as e:
+        raise ValueError(f"make_problem: controller: {e}") from None
     for log in logs:
         where = f"log {log.name!r}"
         if log.torque is None or np.asarray(log.torque).reshape(len(log.t), -1).shape[1] < joint:

@@ -43,7 +43,7 @@ def test_the_closed_loop_prediction_matches_an_independent_discrete_time_loop(de
     saturates after each step: the oracle checks it does): the model's hub angle and
     commands agree with the oracle's to 1e-6 (rad, V)."""
     t = np.arange(1201) * PERIOD
-    theta, _, volts = reference_loop(t, -0.3, reference(t), delay)
+    theta, _, volts, _ = reference_loop(t, -0.3, reference(t), delay)
     assert np.sum(np.abs(volts) == LIMIT) > 20
     assert abs(theta[-1] - (-0.1)) < 0.05  # it settles near the last reference
     problem = _problem([closed_loop_log(t, -0.3, "step", delay)], delay)
@@ -104,8 +104,7 @@ def _write_case(tmp_path, controller=None, columns=None, extra="", samples=300):
 
     t = np.arange(samples) * PERIOD
     ref = reference(t)
-    theta, _, volts = reference_loop(t, -0.3, ref)
-    recorded = ENCODER * np.round((theta + ENCODER_ZERO) / ENCODER)
+    theta, _, volts, recorded = reference_loop(t, -0.3, ref)
     rows = ["time [s],enc [deg],ref [deg],u [V]"] + [
         f"{a:.17g},{np.degrees(b):.17g},{np.degrees(c):.17g},{d:.17g}" for a, b, c, d in zip(t, recorded, ref, volts)
     ]
