@@ -46,7 +46,7 @@ def pendulum(values=None):
     return fd.Chain([fd.RigidLink(L, M)], [joint], [hub], gravity=(0.0, -G), motors=[motor])
 
 
-def controller(delay=False):
+def controller(delay=False, quantise=True):
     return identify.Controller(
         "voltage1",
         gains={"theta1": KP},
@@ -56,6 +56,7 @@ def controller(delay=False):
         limit=LIMIT,
         period=PERIOD,
         delay=delay,
+        quantise=quantise,
     )
 
 
@@ -68,13 +69,11 @@ def reference(t):
     return np.where(t < 0.1, -0.3, np.where(t < 0.8, 0.4, -0.1))
 
 
-def reference_loop(
-    t, theta0, ref, delay=False, values=None, first_command=0.0, reading_noise=None, resolution=ENCODER
-):
+def reference_loop(t, theta0, ref, delay=False, values=None, first_command=0.0, reading_noise=None, resolution=ENCODER):
     """The loop, independently (DOP853 restarted at every tick): `(theta, omega,
     commands, readings)` at the ticks `t`, the command of tick k the one held from it;
     `reading_noise` `(T,)` (rad): added to the angle the controller reads (an analog
-    sensor's noise) before its quantisation to `resolution` (rad)."""
+    sensor's noise) before its quantisation to `resolution` (rad; None: not rounded)."""
     noise = np.zeros(len(t)) if reading_noise is None else reading_noise
     v = {**TRUTH, **(values or {})}
     R, KT, HUB = v["motor1.resistance"], v["motor1.torque_constant"], v["hub1.inertia"]
@@ -86,7 +85,8 @@ def reference_loop(
         return [omega, (N * KT * current - B * omega - M * G * (L / 2) * math.cos(theta)) / J]
 
     def read(theta, k):
-        return resolution * round((theta + ENCODER_ZERO + noise[k]) / resolution)
+        m = theta + ENCODER_ZERO + noise[k]
+        return m if resolution is None else resolution * round(m / resolution)
 
     def law(k, m, m_prev):
         return float(np.clip(V_FF + KP * (ref[k] - m) - KD * (m - m_prev) / PERIOD, -LIMIT, LIMIT))

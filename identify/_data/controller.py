@@ -15,8 +15,8 @@ log's sample times `t_k` and held between them):
 
 - `m_c,k`: channel `c` as the controller read it: the model's output through the
   channel's sensor model (`Sensor.gain`, `Sensor.offset`: the value the log records, in
-  the fit's SI units and sign convention), rounded to the sensor's declared `resolution`
-  (`q round(m / q)`, an encoder's counts).
+  the fit's SI units and sign convention); with `quantise`, rounded to the sensor's
+  declared `resolution` (`q round(m / q)`, an encoder's counts).
 - `r_c,k`: the log's reference column for `c` (`<c>_ref`, e.g. `theta1_ref`) where `c` is
   in `references`, else 0 (regulation to zero, e.g. of a tip deflection).
 - the rate the controller computed: the backward difference of its readings over one
@@ -25,6 +25,15 @@ log's sample times `t_k` and held between them):
 - `sat`: clipping to `+-limit` (in the command's unit), if given.
 - `delay`: the command computed at `t_k` is applied from `t_{k+1}` (one sample of
   computation delay); the command held over the first sample is then the log's first.
+
+**Quantised readings** (`quantise`). Rounded, the model's loop is the rig's exactly (an
+encoder's counts and the rate steps of `q / h` they make), but the model's command then
+jumps wherever one of its readings crosses a count, so the fit's cost is piecewise
+constant in the parameters at a scale below their standard errors. Measured on the
+simulated servo pendulum of `tests/identify/test_closed_loop.py` (a 16-bit reading with
+3e-4 rad of analog noise, 2 logs of 0.8 s): rounded, the fit took 138 iterations and
+ended 2.5-4.6 standard errors from the truth; unrounded (the default: the rounding is
+part of the reading's noise), 23 iterations and 0.7-2.1.
 
 The log's command column at sample `k` records the command applied from `t_k` to
 `t_{k+1}`. Joints other than the commanded one keep their logged inputs, held over each
@@ -65,6 +74,8 @@ class Controller:
       intervals; the loop ticks at the log's samples, so a declared period must be
       theirs (`check_period`).
     - `delay`: one sample of computation delay.
+    - `quantise`: the readings rounded to their sensors' `resolution` (see the module
+      docstring); by default they are not.
     """
 
     command: str
@@ -75,6 +86,7 @@ class Controller:
     limit: float | None = None
     period: float | None = None
     delay: bool = False
+    quantise: bool = False
 
     def __post_init__(self):
         kind, joint = u.channel_kind_index(self.command)
@@ -108,8 +120,9 @@ class Controller:
             raise ValueError(f"Controller.limit: expected a saturation > 0 (command units) or None, got {self.limit!r}")
         if self.period is not None and not (_finite_number(self.period) and self.period > 0):
             raise ValueError(f"Controller.period: expected a sample period > 0 s or None, got {self.period!r}")
-        if not isinstance(self.delay, bool):
-            raise ValueError(f"Controller.delay: expected True or False, got {self.delay!r}")
+        for field in ("delay", "quantise"):
+            if not isinstance(getattr(self, field), bool):
+                raise ValueError(f"Controller.{field}: expected True or False, got {getattr(self, field)!r}")
 
     @property
     def joint(self) -> int:

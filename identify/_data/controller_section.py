@@ -15,7 +15,17 @@ from .toml_reader import _Reader, _show
 
 FEEDBACK_CHANNELS = "theta<i>, phi<i>, alpha<i>, tip<i>, curvature<i>, end_x, end_y"
 
-_CONTROLLER_KEYS = ("command", "gains", "rate_gains", "references", "feedforward", "limit", "period", "delay")
+_CONTROLLER_KEYS = (
+    "command",
+    "gains",
+    "rate_gains",
+    "references",
+    "feedforward",
+    "limit",
+    "period",
+    "delay",
+    "quantise",
+)
 
 
 def _controller(r: _Reader, chain: fd.Chain, logs: list[LogSpec], table: Mapping) -> Controller:
@@ -75,12 +85,16 @@ def _controller(r: _Reader, chain: fd.Chain, logs: list[LogSpec], table: Mapping
         period = _amount(r, table["period"], u.TIME, key + ("period",))
         if period <= 0:
             raise r.error(key + ("period",), f'expected a sample period > 0 or "samples", got {period!r}')
-    delay = table.get("delay", False)
+    delay, quantise = table.get("delay", False), table.get("quantise", False)
     if not isinstance(delay, bool):
         raise r.error(key + ("delay",), f"expected true (one sample of computation delay) or false, got {_show(delay)}")
+    if not isinstance(quantise, bool):
+        raise r.error(
+            key + ("quantise",), f"expected true (readings rounded to their resolution) or false, got {_show(quantise)}"
+        )
     try:
         controller = Controller(
-            command, gains["gains"], gains["rate_gains"], references, feedforward, limit, period, delay
+            command, gains["gains"], gains["rate_gains"], references, feedforward, limit, period, delay, quantise
         )
     except ValueError as e:
         raise r.error(key, str(e)) from None

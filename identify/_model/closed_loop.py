@@ -12,7 +12,7 @@ tolerances, or a constant step no longer than `step` that divides the period), i
 forward mode, so a fit's Jacobian goes through the loop. The commands `u_k` are an output
 of the model, compared with the log's command column.
 
-**Quantised readings.** A reading rounded to its sensor's resolution `q` is
+**Quantised readings** (`Controller.quantise`). A reading rounded to its sensor's resolution `q` is
 `m + stop_gradient(q round(m / q) - m)`: the rig's value exactly, differentiated as if
 unrounded. The true derivative of the rounding is 0 almost everywhere, which would hide
 the feedback from the fit's Jacobian; the rounding error itself is the reading's noise.
@@ -60,8 +60,9 @@ class FeedbackLaw(eqx.Module):
     @staticmethod
     def of(controller: Controller, resolution) -> FeedbackLaw:
         """The law of `controller`; `resolution`: each of `controller.channels`'
-        quantisation step (SI, 0 for none)."""
+        quantisation step (SI, 0 for none), used with `controller.quantise`."""
         chans = controller.channels
+        resolution = resolution if controller.quantise else [0.0] * len(chans)
         return FeedbackLaw(
             gain=jnp.asarray([float(controller.gains.get(c, 0.0)) for c in chans]),
             rate_gain=jnp.asarray([float(controller.rate_gains.get(c, 0.0)) for c in chans]),

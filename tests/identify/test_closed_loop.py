@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from closed_loop_case import (
+    ENCODER,
     ENCODER_ZERO,
     LIMIT,
     PERIOD,
@@ -25,28 +26,25 @@ from closed_loop_case import (
 import identify
 
 
-def _problem(logs, delay=False, **options):
-    return identify.make_problem(
-        pendulum(),
-        [],
-        logs,
-        {"theta1": 1e-3, "voltage1": 1e-2},
-        measurement=measurement(),
-        controller=controller(delay),
-        **options,
-    )
-
-
-@pytest.mark.parametrize("delay", [False, True])
-def test_the_closed_loop_prediction_matches_an_independent_discrete_time_loop(delay):
+@pytest.mark.parametrize("delay, quantise", [(False, True), (True, True), (False, False)])
+def test_the_closed_loop_prediction_matches_an_independent_discrete_time_loop(delay, quantise):
     """A PD step response of the motor-driven pendulum at 1 kHz for 1.2 s (the command
-    saturates after each step: the oracle checks it does): the model's hub angle and
+    saturates after each step: the oracle checks it does), the controller reading the
+    encoder's counts (`quantise`) or its unrounded value: the model's hub angle and
     commands agree with the oracle's to 1e-6 (rad, V)."""
     t = np.arange(1201) * PERIOD
-    theta, _, volts, _ = reference_loop(t, -0.3, reference(t), delay)
+    resolution = ENCODER if quantise else None
+    theta, _, volts, _ = reference_loop(t, -0.3, reference(t), delay, resolution=resolution)
     assert np.sum(np.abs(volts) == LIMIT) > 20
     assert abs(theta[-1] - (-0.1)) < 0.05  # it settles near the last reference
-    problem = _problem([closed_loop_log(t, -0.3, "step", delay)], delay)
+    problem = identify.make_problem(
+        pendulum(),
+        [],
+        [closed_loop_log(t, -0.3, "step", delay, resolution=resolution)],
+        {"theta1": 1e-3, "voltage1": 1e-2},
+        measurement=measurement(),
+        controller=controller(delay, quantise),
+    )
     assert problem.channels == ("theta1", "voltage1")
     pred, ok = identify.predict(problem, jnp.zeros(0), problem.y0_known)
     assert bool(ok[0])
@@ -94,13 +92,14 @@ references = ["theta1"]
 feedforward = "{ff} V"
 limit = "{limit} V"
 period = "1 ms"
+quantise = true
 """
 
 
 def _write_case(tmp_path, controller=None, columns=None, extra="", samples=300):
     """An experiment file with one closed-loop log written from the oracle's loop (angles
     in degrees): `(path, theta, volts)`."""
-    from closed_loop_case import ENCODER, KD, KP, V_FF
+    from closed_loop_case import KD, KP, V_FF
 
     t = np.arange(samples) * PERIOD
     ref = reference(t)
@@ -185,6 +184,7 @@ _BASE = dict(kp=20.0, kd=0.3, ff=0.5, limit=6.0)
             r"controller\.limit.*expected a voltage",
         ),
         (_CONTROLLER.format(**_BASE) + "delay = 1\n", None, "", r"controller\.delay.*expected true"),
+        (_CONTROLLER.format(**_BASE).replace("quantise = true", 'quantise = "yes"'), None, "", r"controller\.quantise"),
         (_CONTROLLER.format(**_BASE) + "gain = 1\n", None, "", r"controller\.gain: unknown key"),
         (
             _CONTROLLER.format(**_BASE).replace('"1 ms"', '"2 ms"'),
@@ -250,6 +250,7 @@ def test_what_a_closed_loop_problem_cannot_hold_is_named():
         (dict(command="voltage1"), r"Controller: no gains"),
         (dict(command="voltage1", gains={"theta1": 1.0}, limit=0.0), r"Controller\.limit"),
         (dict(command="voltage1", gains={"theta1": 1.0}, period=-1e-3), r"Controller\.period"),
+        (dict(command="voltage1", gains={"theta1": 1.0}, quantise=1), r"Controller\.quantise"),
         (dict(command="voltage1", rate_gains={"theta1": 1.0}, references=("theta1",)), r"Controller\.references"),
     ],
 )
