@@ -46,14 +46,14 @@ def pendulum(values=None):
     return fd.Chain([fd.RigidLink(L, M)], [joint], [hub], gravity=(0.0, -G), motors=[motor])
 
 
-def controller(delay=False, quantise=True):
+def controller(delay=False, quantise=True, limit=LIMIT):
     return identify.Controller(
         "voltage1",
         gains={"theta1": KP},
         rate_gains={"theta1": KD},
         references=("theta1",),
         feedforward=V_FF,
-        limit=LIMIT,
+        limit=limit,
         period=PERIOD,
         delay=delay,
         quantise=quantise,
@@ -69,11 +69,14 @@ def reference(t):
     return np.where(t < 0.1, -0.3, np.where(t < 0.8, 0.4, -0.1))
 
 
-def reference_loop(t, theta0, ref, delay=False, values=None, first_command=0.0, reading_noise=None, resolution=ENCODER):
+def reference_loop(
+    t, theta0, ref, delay=False, values=None, first_command=0.0, reading_noise=None, resolution=ENCODER, limit=LIMIT
+):
     """The loop, independently (DOP853 restarted at every tick): `(theta, omega,
     commands, readings)` at the ticks `t`, the command of tick k the one held from it;
     `reading_noise` `(T,)` (rad): added to the angle the controller reads (an analog
-    sensor's noise) before its quantisation to `resolution` (rad; None: not rounded)."""
+    sensor's noise) before its quantisation to `resolution` (rad; None: not rounded);
+    `limit`: the command's saturation (V)."""
     noise = np.zeros(len(t)) if reading_noise is None else reading_noise
     v = {**TRUTH, **(values or {})}
     R, KT, HUB = v["motor1.resistance"], v["motor1.torque_constant"], v["hub1.inertia"]
@@ -89,7 +92,7 @@ def reference_loop(t, theta0, ref, delay=False, values=None, first_command=0.0, 
         return m if resolution is None else resolution * round(m / resolution)
 
     def law(k, m, m_prev):
-        return float(np.clip(V_FF + KP * (ref[k] - m) - KD * (m - m_prev) / PERIOD, -LIMIT, LIMIT))
+        return float(np.clip(V_FF + KP * (ref[k] - m) - KD * (m - m_prev) / PERIOD, -limit, limit))
 
     x = np.array([theta0, 0.0])
     m_prev = read(theta0, 0)
@@ -110,11 +113,13 @@ def reference_loop(t, theta0, ref, delay=False, values=None, first_command=0.0, 
     return states[:, 0], states[:, 1], np.array(commands), np.array(readings)
 
 
-def closed_loop_log(t, theta0, name, delay=False, reading_noise=None, resolution=ENCODER):
+def closed_loop_log(t, theta0, name, delay=False, reading_noise=None, resolution=ENCODER, limit=LIMIT):
     """A `LogData` of the loop (the oracle's): the angle channel `theta1` as the controller
     read and logged it (`theta + o + reading_noise`, quantised) and the command column."""
     ref = reference(t)
-    _, _, volts, recorded = reference_loop(t, theta0, ref, delay, reading_noise=reading_noise, resolution=resolution)
+    _, _, volts, recorded = reference_loop(
+        t, theta0, ref, delay, reading_noise=reading_noise, resolution=resolution, limit=limit
+    )
     return identify.LogData(
         t=t,
         outputs={"theta1": recorded},

@@ -147,7 +147,9 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
         ok = admissible & run.ok
         if stats == "limit":
             return out, ok, run.limited
-        return (out, ok, run.steps) if stats else (out, ok)
+        # (the step count as a float: summed over the periods it is a strong int, which
+        # `identify.steps` divides a span by)
+        return (out, ok, run.steps.astype(out.dtype)) if stats else (out, ok)
     torque = meas.actuated_torque(sensors, _strictly_increasing(t), torque_v, problem.hold)
     field = fd.ChainVectorField(asm, torque)
     if step is not None:

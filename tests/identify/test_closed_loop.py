@@ -15,6 +15,7 @@ from closed_loop_case import (
     ENCODER_ZERO,
     LIMIT,
     PERIOD,
+    TRUTH,
     closed_loop_log,
     controller,
     measurement,
@@ -257,3 +258,63 @@ def test_what_a_closed_loop_problem_cannot_hold_is_named():
 def test_a_bad_controller_is_named(kwargs, match):
     with pytest.raises(ValueError, match=match):
         identify.Controller(**kwargs)
+
+
+# ---------------------------------------------------------------------------
+# A fit of closed-loop logs, and the open-loop replay of the same logs
+# ---------------------------------------------------------------------------
+
+ADC = 2 * np.pi / 65536  # rad: a potentiometer read by a 16-bit converter over one turn
+READING_NOISE = 3e-4  # rad, the potentiometer's analog noise, read by the controller too
+
+
+@pytest.mark.slow
+def test_a_fit_of_closed_loop_logs_recovers_the_motor_and_hub_where_the_open_loop_replay_fails():
+    """Two 0.8 s logs of the servo pendulum at 1 kHz (the oracle's loop; the controller
+    reads a noisy 16-bit angle and its rate by backward difference, so its commands carry
+    that noise), fitted from guesses 25-100 % off: closed loop, the motor's resistance and
+    torque constant and the hub's inertia come out with the truth inside their 95 %
+    intervals and the angle's residual at its noise floor. The same logs replayed open loop
+    (the logged command as the input) end 8x above the noise floor with the hub inertia
+    12 % off and every parameter many standard errors from the truth (measured: 8.2x;
+    +12.5 %; 7.7, 27 and 21 standard errors).
+
+    The limit is declared but not reached here: with the noise in the loop, a saturating
+    command's mean is not the clip of the noise-free law's (the model's), and on these logs
+    with a 6 V limit that biased the torque constant by about 2 standard errors (0.02 %)."""
+    rng = np.random.default_rng(3)
+    t = np.arange(800) * PERIOD
+    logs = [
+        closed_loop_log(
+            t, theta0, f"run{k}", reading_noise=READING_NOISE * rng.standard_normal(t.size), resolution=ADC, limit=100.0
+        )
+        for k, theta0 in enumerate((-0.3, -0.5))
+    ]
+    guess = {"motor1.resistance": 3.0, "motor1.torque_constant": 0.06, "hub1.inertia": 2e-3}
+    parameters = [identify.Parameter(n, g, g / 5, g * 5) for n, g in guess.items()]
+    noise = {"theta1": float(np.hypot(READING_NOISE, ADC / np.sqrt(12)))}
+    closed = identify.fit(
+        identify.make_problem(
+            pendulum(guess),
+            parameters,
+            logs,
+            noise,
+            measurement=measurement(ADC),
+            controller=controller(quantise=False, limit=100.0),
+        ),
+        n_starts=1,
+    )
+    opened = identify.fit(
+        identify.make_problem(pendulum(guess), parameters, logs, noise, measurement=measurement(ADC)), n_starts=1
+    )
+    z_closed, z_open = [], []
+    for k, name in enumerate(guess):
+        z_closed.append((closed.value[name] - TRUTH[name]) / closed.std_errors[k])
+        z_open.append((opened.value[name] - TRUTH[name]) / opened.std_errors[k])
+    assert closed.converged
+    assert np.all(np.abs(z_closed) < 1.96), z_closed
+    assert closed.fit_quality["theta1"]["ratio"] < 1.2, closed.fit_quality
+    assert opened.fit_quality["theta1"]["ratio"] > 4, opened.fit_quality
+    assert np.max(np.abs(z_open)) > 5, z_open
+    hub_error = [abs(r.value["hub1.inertia"] / TRUTH["hub1.inertia"] - 1) for r in (closed, opened)]
+    assert hub_error[0] < 0.01 and hub_error[1] > 10 * hub_error[0], hub_error
