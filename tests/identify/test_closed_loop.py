@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -318,3 +319,39 @@ def test_a_fit_of_closed_loop_logs_recovers_the_motor_and_hub_where_the_open_loo
     assert np.max(np.abs(z_open)) > 5, z_open
     hub_error = [abs(r.value["hub1.inertia"] / TRUTH["hub1.inertia"] - 1) for r in (closed, opened)]
     assert hub_error[0] < 0.01 and hub_error[1] > 10 * hub_error[0], hub_error
+
+
+def test_the_closed_loop_jacobian_is_the_finite_difference_one():
+    """The fit's Jacobian through the loop (`log_jacobian`, forward mode through every
+    period's solve and the law) against central differences of the residuals, in the
+    motor's, the hub's and a sensor offset the controller reads (unrounded readings:
+    the law is smooth there), with a free initial angle, adaptive and at a fixed step."""
+    from identify._model.residuals import log_jacobian, residuals
+
+    t = np.arange(120) * PERIOD
+    log = dataclasses.replace(closed_loop_log(t, -0.3, "step", resolution=None), fit_initial=("theta1",))
+    names = [*TRUTH, "sensor.theta1.offset"]
+    problem = identify.make_problem(
+        pendulum(),
+        [identify.Parameter(n, 1.0) for n in names[:3]] + [identify.Parameter(names[3], 0.0)],
+        [log],
+        {"theta1": 1e-3, "voltage1": 1e-2},
+        measurement=measurement(),
+        controller=controller(quantise=False),
+    )
+    theta = jnp.asarray([TRUTH[n] for n in names[:3]] + [ENCODER_ZERO]) * 1.05
+    y0 = jnp.asarray([-0.29])
+    off = jnp.zeros(0)
+    for step in (None, jnp.asarray(1e-3)):
+        jac = log_jacobian(problem, lambda s: s, theta, y0, off, problem.sigma, None, step)
+
+        @jax.jit
+        def r(th, y):
+            return residuals(problem, th, y, off, problem.sigma, None, step)[0]
+
+        for k in range(4):
+            e = jnp.zeros(4).at[k].set(1e-6 * max(abs(float(theta[k])), 1e-3))
+            fd_col = (r(theta + e, y0) - r(theta - e, y0)) / (2 * e[k])
+            np.testing.assert_allclose(np.asarray(jac.shared[0][:, k]), np.asarray(fd_col), rtol=1e-5, atol=1e-4)
+        fd_col = (r(theta, y0 + 1e-7) - r(theta, y0 - 1e-7)) / 2e-7
+        np.testing.assert_allclose(np.asarray(jac.y0[0][:, 0]), np.asarray(fd_col), rtol=1e-5, atol=1e-4)
