@@ -321,6 +321,7 @@ def test_a_fit_of_closed_loop_logs_recovers_the_motor_and_hub_where_the_open_loo
     assert hub_error[0] < 0.01 and hub_error[1] > 10 * hub_error[0], hub_error
 
 
+@pytest.mark.slow
 def test_the_closed_loop_jacobian_is_the_finite_difference_one():
     """The fit's Jacobian through the loop (`log_jacobian`, forward mode through every
     period's solve and the law) against central differences of the residuals, in the
