@@ -131,7 +131,10 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     docs/performance.md). The last stage simulates the whole log. Parameters or an
     initial state the model would refuse (`_admissible`) count as a failed solve.
     `log_values`: the log's row of `Problem.log_set`; `log_index`: its index (for per-log
-    parameters, `Problem.per_log`)."""
+    parameters, `Problem.per_log`, and a closed-loop problem's references).
+
+    A closed-loop problem (`Problem.loop`) runs each log under its controller instead
+    (`closed_loop.closed_log_outputs`), `torque_v` the logged commands."""
     theta, y0, admissible = _admissible(problem, theta, y0)
     asm = fd.assemble(chain_at(problem, theta, log_values, log_index))
     sensors = _measurement(problem, theta, log_values, log_index)
