@@ -328,6 +328,8 @@ def display_unit(channel: str) -> tuple[float, str]:
         return 1.0, "1/m"
     if channel.startswith("accel_"):
         return 1.0, "m/s^2"
+    if is_input(channel):  # (a closed-loop log's command: an output of the model too)
+        return 1.0, SI_UNIT[channel_dimension(channel)]
     return 1.0, "SI"
 
 
