@@ -124,6 +124,27 @@ class Controller:
             if not isinstance(getattr(self, field), bool):
                 raise ValueError(f"Controller.{field}: expected True or False, got {getattr(self, field)!r}")
 
+    def describe(self) -> str:
+        """The law in one line, SI: `voltage1 = clip(0.5 + 20 (theta1_ref - theta1) - 0.3
+        d(theta1)/dt, +-6), every 0.001 s, ...`."""
+        terms = [f"{self.feedforward:g}"] if self.feedforward else []
+        for c in self.channels:
+            if c in self.gains:
+                ref = u.reference_channel(c) if c in self.references else "0"
+                terms.append(f"{self.gains[c]:g} ({ref} - {c})")
+            if c in self.rate_gains:
+                terms.append(f"-{self.rate_gains[c]:g} d({c})/dt")
+        law = " + ".join(terms).replace("+ -", "- ")
+        if self.limit is not None:
+            law = f"clip({law}, +-{self.limit:g})"
+        period = "at the log's samples" if self.period is None else f"every {self.period:g} s"
+        extras = [s for s, on in (("one sample of delay", self.delay), ("quantised readings", self.quantise)) if on]
+        return (
+            f"{self.command} = {law}, {period} (zero-order hold, rates by backward difference"
+            + "".join(f", {e}" for e in extras)
+            + ")"
+        )
+
     @property
     def joint(self) -> int:
         """The commanded joint, 1-based."""

@@ -235,6 +235,8 @@ class Experiment:
         for n in meas.parameter_names(self.measurement):
             unit = meas.unit(n, channel_unit)
             lines.append(f"  measurement {n} = {float(meas.get_parameter(self.measurement, n)):g} {unit}".rstrip())
+        if self.controller is not None:
+            lines.append(f"  controller: {self.controller.describe()}")
         for entry in self.logs:
             lines.append(f"  [{entry.role}] " + entry.log.summary().replace("\n", "\n    "))
             estimated = [

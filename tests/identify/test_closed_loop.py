@@ -132,6 +132,10 @@ def test_an_experiment_file_declares_the_controller_and_its_logs_are_simulated_c
     exp = identify.load_experiment(path)
     assert exp.controller == controller()
     assert set(exp.logs[0].log.references) == {"theta1"}
+    assert (
+        "controller: voltage1 = clip(0.5 + 20 (theta1_ref - theta1) - 0.3 d(theta1)/dt, +-6), every 0.001 s "
+        "(zero-order hold, rates by backward difference, quantised readings)" in exp.summary()
+    )
     problem = identify.problem_from_experiment(exp)
     assert problem.channels == ("theta1", "voltage1")
     pred, ok = identify.predict(problem, jnp.zeros(0), problem.y0_known)
