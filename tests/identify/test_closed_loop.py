@@ -360,3 +360,57 @@ def test_the_closed_loop_jacobian_is_the_finite_difference_one():
             np.testing.assert_allclose(np.asarray(jac.shared[0][:, k]), np.asarray(fd_col), rtol=1e-5, atol=1e-4)
         fd_col = (r(theta, y0 + 1e-7) - r(theta, y0 - 1e-7)) / 2e-7
         np.testing.assert_allclose(np.asarray(jac.y0[0][:, 0]), np.asarray(fd_col), rtol=1e-5, atol=1e-4)
+
+
+def test_a_law_on_the_tip_deflection_is_flexdyns_state_feedback_on_a_flexible_link():
+    """A flexible link (one mode) under `torque1 = u_ff + K_theta (theta1_ref - m_theta) -
+    K_tip m_tip`, read through an encoder's zero offset and a gauge's gain: the tip
+    deflection is linear in the modal coordinate (`tip = c q`), so this is the state
+    feedback `u = K (y_ref - y) + u_ff'` with `K = [K_theta, K_tip g c, 0, 0]`,
+    `u_ff' = u_ff - K_theta o`, which `flexdyn.simulate_closed_loop` runs (checked against
+    SciPy in tests/flexdyn/test_sampled_loop.py). Both loops agree to 1e-9 (rad, N m)."""
+    import flexdyn as fd
+
+    chain = fd.Chain(
+        [fd.FlexibleLink(0.5, 0.4, 2.0, n_modes=1, damping_ratio=0.01)],
+        [fd.RigidJoint(damping=1e-3)],
+        [fd.Hub(inertia=2e-3)],
+    )
+    k_theta, k_tip, u_ff, gauge, zero, limit = 1.5, 40.0, 0.02, 1.3, 0.004, 0.6
+    t = np.arange(301) * PERIOD
+    ref = np.where(t < 0.05, 0.0, 0.5)
+    c = float(fd.tip_deflections(fd.assemble(chain), jnp.asarray([0.0, 1.0]))[0])  # m per m of q1_1
+    gain = [[k_theta, k_tip * gauge * c, 0.0, 0.0]]
+    run = fd.simulate_closed_loop(
+        chain,
+        jnp.zeros(4),
+        jnp.asarray(t),
+        fd.DigitalController(
+            fd.LinearFeedback(gain, lambda s: jnp.stack([jnp.interp(s, t, ref), 0.0, 0.0, 0.0]), u_ff - k_theta * zero),
+            limit=limit,
+        ),
+        rtol=1e-11,
+        atol=1e-13,
+    )
+    theta = np.asarray(run.trajectory.Q[:, 0]) + zero
+    tip = gauge * c * np.asarray(run.trajectory.Q[:, 1])
+    log = identify.LogData(
+        t=t,
+        outputs={"theta1": theta, "tip1": tip},
+        torque=np.asarray(run.commands),
+        name="tip",
+        hold="zoh",
+        reference={"theta1": ref},
+    )
+    sensors = identify.Measurement({"theta1": identify.Sensor(offset=zero), "tip1": identify.Sensor(gain=gauge)})
+    law = identify.Controller("torque1", {"theta1": k_theta, "tip1": k_tip}, {}, ("theta1",), u_ff, limit)
+    problem = identify.make_problem(
+        chain, [], [log], {"theta1": 1e-3, "tip1": 1e-4}, measurement=sensors, controller=law
+    )
+    problem = dataclasses.replace(problem, rtol=1e-11, atol=1e-13)
+    pred, ok = identify.predict(problem, jnp.zeros(0), problem.y0_known)
+    assert bool(ok[0]) and problem.channels == ("theta1", "tip1", "torque1")
+    assert np.sum(np.abs(np.asarray(run.commands)) == limit) > 5  # it saturates
+    np.testing.assert_allclose(np.asarray(pred[0, :, 0]), theta, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(pred[0, :, 1]), tip, rtol=0, atol=1e-9 * np.abs(tip).max())
+    np.testing.assert_allclose(np.asarray(pred[0, :, 2]), np.asarray(run.commands[:, 0]), rtol=0, atol=1e-9)
