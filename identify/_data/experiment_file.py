@@ -105,7 +105,8 @@ def load_experiment(path) -> Experiment:
     if not any(entry.role == "fit" for entry in logs):
         raise r.error(("logs",), 'every log has role = "validation"; expected at least one with role = "fit"')
 
-    noise = _noise(r, logs, r.table(doc.get("noise", {}), ("noise",)))
+    command = doc.get("controller", {}).get("command") if isinstance(doc.get("controller"), dict) else None
+    noise = _noise(r, logs, r.table(doc.get("noise", {}), ("noise",)), command if isinstance(command, str) else None)
     measurement = _measurement(r, chain, logs, doc)
     free, measurement, chain = _free_parameters(
         r, chain, measurement, logs, r.table(doc.get("parameters", {}), ("parameters",))

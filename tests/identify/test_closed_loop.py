@@ -144,6 +144,21 @@ def test_an_experiment_file_declares_the_controller_and_its_logs_are_simulated_c
     np.testing.assert_allclose(np.asarray(pred[0, :, 1]), volts, rtol=0, atol=1e-6)
 
 
+def test_the_commands_noise_level_may_be_declared(tmp_path):
+    """[noise] takes the command channel of [controller] (in its unit), and the problem
+    weighs the command by it; without [controller], voltage1 is not an output there."""
+    path, _, _ = _write_case(tmp_path, extra='\n[noise]\nvoltage1 = "20 mV"\ntheta1 = "0.05 deg"\n', samples=30)
+    exp = identify.load_experiment(path)
+    assert exp.noise["voltage1"] == pytest.approx(0.02)
+    problem = identify.problem_from_experiment(exp)
+    assert float(problem.sigma[problem.channels.index("voltage1")]) == pytest.approx(0.02)
+    assert "voltage1" in problem.declared
+    columns = 'time = "time [s]", theta1 = "enc [deg]", voltage1 = "u [V]"'
+    path, _, _ = _write_case(tmp_path, "", columns, '\n[noise]\nvoltage1 = "20 mV"\n', samples=30)
+    with pytest.raises(identify.ExperimentError, match=r"noise\.voltage1: not an output channel"):
+        identify.load_experiment(path)
+
+
 _BASE = dict(kp=20.0, kd=0.3, ff=0.5, limit=6.0)
 
 
