@@ -113,10 +113,11 @@ def reference_loop(
     return states[:, 0], states[:, 1], np.array(commands), np.array(readings)
 
 
-def closed_loop_log(t, theta0, name, delay=False, reading_noise=None, resolution=ENCODER, limit=LIMIT):
+def closed_loop_log(t, theta0, name, delay=False, reading_noise=None, resolution=ENCODER, limit=LIMIT, shift=0.0):
     """A `LogData` of the loop (the oracle's): the angle channel `theta1` as the controller
-    read and logged it (`theta + o + reading_noise`, quantised) and the command column."""
-    ref = reference(t)
+    read and logged it (`theta + o + reading_noise`, quantised), the command column, and
+    the reference (`reference(t) + shift`)."""
+    ref = reference(t) + shift
     _, _, volts, recorded = reference_loop(
         t, theta0, ref, delay, reading_noise=reading_noise, resolution=resolution, limit=limit
     )

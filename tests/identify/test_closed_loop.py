@@ -429,3 +429,31 @@ def test_a_law_on_the_tip_deflection_is_flexdyns_state_feedback_on_a_flexible_li
     np.testing.assert_allclose(np.asarray(pred[0, :, 0]), theta, rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.asarray(pred[0, :, 1]), tip, rtol=0, atol=1e-9 * np.abs(tip).max())
     np.testing.assert_allclose(np.asarray(pred[0, :, 2]), np.asarray(run.commands[:, 0]), rtol=0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_fit_independent_runs_each_closed_loop_log_with_its_own_references():
+    """`identify.fit_independent` on two closed-loop logs from different starts (each log
+    in the batch its own references and commands): each recovers the motor's resistance
+    and the hub's inertia within its 95 % interval (the second log's reference is the
+    first's shifted by -0.2 rad, and it starts 0.2 rad lower)."""
+    rng = np.random.default_rng(1)
+    t = np.arange(300) * PERIOD
+    noise = [READING_NOISE * rng.standard_normal(t.size) for _ in range(2)]
+    logs = [
+        closed_loop_log(t, -0.3, "run0", reading_noise=noise[0], resolution=ADC, limit=100.0),
+        closed_loop_log(t, -0.5, "run1", reading_noise=noise[1], resolution=ADC, limit=100.0, shift=-0.2),
+    ]
+    guess = {"motor1.resistance": 3.0, "hub1.inertia": 2e-3}
+    parameters = [identify.Parameter(n, g, g / 5, g * 5) for n, g in guess.items()]
+    problem = identify.make_problem(
+        pendulum(guess),
+        parameters,
+        logs,
+        {"theta1": float(np.hypot(READING_NOISE, ADC / np.sqrt(12)))},
+        measurement=measurement(ADC),
+        controller=controller(quantise=False, limit=100.0),
+    )
+    for result in identify.fit_independent(problem):
+        for k, name in enumerate(guess):
+            assert abs(result.value[name] - TRUTH[name]) < 1.96 * result.std_errors[k], (name, result.value[name])
