@@ -457,3 +457,25 @@ def test_fit_independent_runs_each_closed_loop_log_with_its_own_references():
     for result in identify.fit_independent(problem):
         for k, name in enumerate(guess):
             assert abs(result.value[name] - TRUTH[name]) < 1.96 * result.std_errors[k], (name, result.value[name])
+
+
+def test_new_gains_or_limits_do_not_compile_the_simulation_again():
+    """The law's numbers are arrays of the problem (`FeedbackLaw`), not static: a problem
+    with other gains, feedforward and limit runs the same compiled simulation."""
+    import equinox as eqx
+
+    from identify._model.residuals import predict
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def run(problem):
+        return predict(problem, jnp.zeros(0), problem.y0_known)
+
+    t = np.arange(60) * PERIOD
+    log = closed_loop_log(t, -0.3, "step")
+    outputs = []
+    for kp, kd, ff, limit in ((20.0, 0.3, 0.5, 6.0), (25.0, 0.2, 0.0, 4.0)):
+        law = identify.Controller("voltage1", {"theta1": kp}, {"theta1": kd}, ("theta1",), ff, limit, PERIOD)
+        problem = identify.make_problem(pendulum(), [], [log], {"theta1": 1e-3}, controller=law)
+        outputs.append(np.asarray(run(problem)[0]))
+    assert not np.allclose(outputs[0][0, :, 1], outputs[1][0, :, 1])  # (the commands differ)
