@@ -377,6 +377,7 @@ def test_the_closed_loop_jacobian_is_the_finite_difference_one():
         np.testing.assert_allclose(np.asarray(jac.y0[0][:, 0]), np.asarray(fd_col), rtol=1e-5, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_a_law_on_the_tip_deflection_is_flexdyns_state_feedback_on_a_flexible_link():
     """A flexible link (one mode) under `torque1 = u_ff + K_theta (theta1_ref - m_theta) -
     K_tip m_tip`, read through an encoder's zero offset and a gauge's gain: the tip
