@@ -12,9 +12,9 @@ tolerances, or a constant step no longer than `step` that divides the period), i
 forward mode, so a fit's Jacobian goes through the loop. The commands `u_k` are an output
 of the model, compared with the log's command column.
 
-**Quantised readings** (`Controller.quantise`). A reading rounded to its sensor's resolution `q` is
-`m + stop_gradient(q round(m / q) - m)`: the rig's value exactly, differentiated as if
-unrounded. The true derivative of the rounding is 0 almost everywhere, which would hide
+**Quantised readings** (`Controller.quantise`). A reading rounded to its sensor's
+resolution `q` is `m + stop_gradient(q round(m / q) - m)`: the rig's value exactly,
+differentiated as if unrounded. The true derivative of the rounding is 0 almost everywhere, which would hide
 the feedback from the fit's Jacobian; the rounding error itself is the reading's noise.
 """
 

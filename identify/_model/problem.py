@@ -377,6 +377,12 @@ def make_problem(
     log_set_names, log_set = _log_set(chain, measurement, logs, {p.name for p in parameters}, known)
     padded = _padded_logs(chain, logs, channels)
     loop, reference = None, None
+    referenced = [log.name for log in logs if log.reference]
+    if controller is None and referenced:
+        raise ValueError(
+            f"make_problem: log {referenced[0]!r} has a reference, but no controller was given to follow it; pass "
+            "controller=identify.Controller(...) (the law the rig ran), or drop the reference"
+        )
     if controller is not None:
         check_closed_loop(chain, measurement, controller, logs)
         padded, channels = _with_command(padded, channels, controller), [*channels, controller.command]

@@ -258,6 +258,8 @@ def test_what_a_closed_loop_problem_cannot_hold_is_named():
     offset = dataclasses.replace(log, offsets=("theta1",))
     with pytest.raises(ValueError, match=r"log 'step': offsets for \['theta1'\], which the controller reads"):
         identify.make_problem(pendulum(), [], [offset], controller=controller())
+    with pytest.raises(ValueError, match=r"log 'step' has a reference, but no controller was given"):
+        identify.make_problem(pendulum(), [], [log])
     with pytest.raises(ValueError, match=r"controller\.command 'voltage2'"):
         identify.make_problem(pendulum(), [], [log], controller=identify.Controller("voltage2", {"theta1": 1.0}))
 
