@@ -17,6 +17,8 @@
 - `diagnose(experiment)` / `diagnose_logs(...)`: what the fitted model gets wrong, which
   catalogue extension (`identify.catalogue`) explains it, the extended model and its gain
   on held-out data; `write_report` writes the JSON/Markdown report with plots.
+- `Controller`: the feedback law a rig ran while a log was recorded; `make_problem(...,
+  controller=)` (or an experiment's `[controller]`) simulates its logs closed loop.
 - `Measurement`, `Sensor`: sensor gain/offset/delay/high-pass and actuator lag between the
   model and the log (`identify.measurement`), fittable by name like the chain's parameters.
 """
@@ -29,6 +31,7 @@ if TYPE_CHECKING:
     from ._data import measurement as measurement, noise_floor as noise_floor
     from ._data.channels import check_channel as check_channel, state_names as state_names
     from ._data.columns import LogError as LogError
+    from ._data.controller import Controller as Controller
     from ._data.experiment import Experiment as Experiment, FreeParameter as FreeParameter, LogSpec as LogSpec
     from ._data.experiment_file import load_experiment as load_experiment
     from ._data.logs import Log as Log, load_log as load_log, write_log as write_log

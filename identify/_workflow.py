@@ -51,7 +51,15 @@ def problem_from_experiment(exp: Experiment, logs=None, *, per_log: bool = True,
     specs = exp.fit_logs if logs is None else logs
     data = [log_data(s, exp.chain.n_links) for s in specs]
     noise = {c: v for c, v in exp.noise.items() if v is not None}
-    return make_problem(exp.chain, parameters(exp, per_log), data, noise, measurement=exp.measurement, **solver)
+    return make_problem(
+        exp.chain,
+        parameters(exp, per_log),
+        data,
+        noise,
+        measurement=exp.measurement,
+        controller=exp.controller,
+        **solver,
+    )
 
 
 def fit_experiment(exp: Experiment, *, progress=None, **options) -> FitResult:
@@ -91,7 +99,9 @@ def evaluate_held_out(result: FitResult, exp: Experiment, logs=None, *, progress
         for p in result.problem.parameters
         if p.per_log
     ]
-    problem = make_problem(chain, own, data, dict(result.sigma), measurement=result.measurement)
+    problem = make_problem(
+        chain, own, data, dict(result.sigma), measurement=result.measurement, controller=exp.controller
+    )
     # (nuisances only: one stage; a per-log parameter: the fit's growing horizon and starts,
     # as for the fit logs, from the fit logs' median)
     options = {} if own else {"n_stages": 1}
@@ -133,6 +143,12 @@ def diagnose(experiment, *, progress=None, **options) -> Diagnosis:
         raise TypeError(
             f"diagnose: expected an Experiment (identify.load_experiment(path)), got {type(experiment).__name__} "
             f"{experiment!r}"
+        )
+    if experiment.controller is not None:
+        raise ValueError(
+            f"diagnose: {experiment.path} declares a [controller]; the diagnosis does not simulate closed-loop logs "
+            "yet (its candidates include sensor delays and actuator lags, which the loop does not model): use "
+            "identify fit"
         )
     options["fit_options"] = {"extra_starts": experiment.starts, **(options.get("fit_options") or {})}
 

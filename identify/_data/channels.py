@@ -49,6 +49,8 @@ def channel_problem(chain: fd.Chain, channel: str) -> str | None:
     (naming what the rig has)."""
     if u.channel_dimension(channel) is None:
         return f"{channel!r} is not a channel; expected time or one of {u.CHANNEL_PATTERNS}"
+    if u.is_reference(channel):
+        return channel_problem(chain, u.referenced_channel(channel))
     kind, i = u.channel_kind_index(channel)
     if i is None:
         return None
@@ -108,7 +110,10 @@ def state_names(chain: fd.Chain) -> list[str]:
 
 
 def channel_unit(name: str) -> str:
+    """SI unit of an output channel, or of an input channel (a closed-loop log's command)."""
     m = _CHANNEL.match(name)
+    if m is None and u.is_input(name):
+        return u.SI_UNIT[u.channel_dimension(name)]
     return UNITS[m[1] or m[3]]
 
 

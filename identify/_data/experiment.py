@@ -22,6 +22,7 @@ import flexdyn as fd
 from . import measurement as meas, units as u
 from .channels import channel_unit
 from .columns import Calibration
+from .controller import Controller
 from .logs import Log
 
 ROLES = ("fit", "validation")
@@ -174,6 +175,8 @@ class Experiment:
     - `starts`: `[[starts]]`, extra points for the fit's multi-start stage, each a dict of
       free parameter -> SI value (the others start at their guesses): `identify.fit`'s
       `extra_starts`.
+    - `controller`: `[controller]`, the feedback law every log ran under
+      (`identify.Controller`), or None (open loop).
     """
 
     path: Path
@@ -185,6 +188,7 @@ class Experiment:
     logs: tuple[LogSpec, ...]
     measurement: meas.Measurement = dataclasses.field(default_factory=meas.Measurement)
     starts: tuple[dict[str, float], ...] = ()
+    controller: Controller | None = None
 
     @property
     def fit_logs(self) -> tuple[LogSpec, ...]:
@@ -231,6 +235,8 @@ class Experiment:
         for n in meas.parameter_names(self.measurement):
             unit = meas.unit(n, channel_unit)
             lines.append(f"  measurement {n} = {float(meas.get_parameter(self.measurement, n)):g} {unit}".rstrip())
+        if self.controller is not None:
+            lines.append(f"  controller: {self.controller.describe()}")
         for entry in self.logs:
             lines.append(f"  [{entry.role}] " + entry.log.summary().replace("\n", "\n    "))
             estimated = [

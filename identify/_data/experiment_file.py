@@ -6,12 +6,13 @@ import tomllib
 from pathlib import Path
 
 from .columns import MIN_SAMPLES
+from .controller_section import _controller
 from .experiment import Experiment
 from .experiment_sections import _build_rig, _free_parameters, _log_entry, _measurement, _noise, _starts
 from .files import absolute, file_problem
 from .toml_reader import ExperimentError, _Reader, _show
 
-_TOP_KEYS = ("experiment", "rig", "parameters", "starts", "noise", "logs", "sensors", "actuators")
+_TOP_KEYS = ("experiment", "rig", "parameters", "starts", "noise", "logs", "sensors", "actuators", "controller")
 
 
 _EXPERIMENT_KEYS = ("name", "description", "strict", "min_samples")
@@ -104,7 +105,8 @@ def load_experiment(path) -> Experiment:
     if not any(entry.role == "fit" for entry in logs):
         raise r.error(("logs",), 'every log has role = "validation"; expected at least one with role = "fit"')
 
-    noise = _noise(r, logs, r.table(doc.get("noise", {}), ("noise",)))
+    command = doc.get("controller", {}).get("command") if isinstance(doc.get("controller"), dict) else None
+    noise = _noise(r, logs, r.table(doc.get("noise", {}), ("noise",)), command if isinstance(command, str) else None)
     measurement = _measurement(r, chain, logs, doc)
     free, measurement, chain = _free_parameters(
         r, chain, measurement, logs, r.table(doc.get("parameters", {}), ("parameters",))
@@ -120,6 +122,16 @@ def load_experiment(path) -> Experiment:
                     "parameter in each log on its own: identify fit --independent)",
                 )
     starts = _starts(r, free, doc.get("starts", []))
+    controller = None
+    if "controller" in doc:
+        controller = _controller(r, chain, logs, r.table(doc["controller"], ("controller",)))
+    elif any(entry.log.references for entry in logs):
+        k, entry = next((k, e) for k, e in enumerate(logs, start=1) if e.log.references)
+        raise r.error(
+            ("logs", k, "columns"),
+            f"log {entry.name!r} maps a reference column ({', '.join(sorted(entry.log.references))}'s), but the file "
+            "has no [controller] to read it; declare the feedback law under [controller], or drop the column",
+        )
     return Experiment(
         path=path,
         name=name,
@@ -130,4 +142,5 @@ def load_experiment(path) -> Experiment:
         logs=tuple(logs),
         measurement=measurement,
         starts=starts,
+        controller=controller,
     )

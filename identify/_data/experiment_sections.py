@@ -629,12 +629,15 @@ def _log_set(r: _Reader, chain: fd.Chain, table, key: tuple) -> dict[str, float]
     return out
 
 
-def _noise(r: _Reader, logs: list[LogSpec], table: Mapping) -> dict[str, float | None]:
+def _noise(r: _Reader, logs: list[LogSpec], table: Mapping, command: str | None = None) -> dict[str, float | None]:
+    """`[noise]`; `command`: a `[controller]`'s command channel, an output of the fit too."""
     measured = sorted({c for entry in logs for c in entry.log.outputs})
+    if command is not None and u.is_input(command):
+        measured.append(command)
     noise: dict[str, float | None] = {c: None for c in measured}
     for channel, value in table.items():
         key = ("noise", channel)
-        if u.channel_dimension(channel) is None or not u.is_output(channel):
+        if channel != command and (u.channel_dimension(channel) is None or not u.is_output(channel)):
             raise r.error(key, f"not an output channel; expected one the logs measure: {', '.join(measured)}")
         if channel not in noise:
             raise r.error(key, f"no log measures {channel}; the logs measure {', '.join(measured)}")

@@ -94,6 +94,8 @@ class Log:
     - `sampling`: a `Sampling` summary.
     - `sources`: channel -> where it came from (`'enc [deg]'`), for messages.
     - `ignored`: columns or variables in the file that no channel uses.
+    - `references`: a closed-loop log's reference columns, by the output channel they are
+      the reference of (`{'theta1': rad}` from a `theta1_ref` column; `identify.Controller`).
     """
 
     name: str
@@ -105,10 +107,11 @@ class Log:
     sampling: Sampling
     sources: dict[str, str] = dataclasses.field(repr=False)
     ignored: tuple[str, ...] = ()
+    references: dict[str, np.ndarray] = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def channels(self) -> list[str]:
-        return [*self.outputs, *self.inputs]
+        return [*self.outputs, *self.inputs, *(u.reference_channel(c) for c in self.references)]
 
     def __len__(self) -> int:
         return self.t.shape[0]
@@ -249,6 +252,7 @@ def load_log(
         sampling=sampling,
         sources=sources,
         ignored=tuple(ignored),
+        references={u.referenced_channel(k): v for k, v in channels.items() if u.is_reference(k)},
     )
 
 

@@ -158,7 +158,7 @@ _PLAIN = {"end_x": LENGTH, "end_y": LENGTH, "accel_x": ACCELERATION, "accel_y": 
 #: The channel patterns, for error messages.
 CHANNEL_PATTERNS = (
     "theta{i}, phi{i}, alpha{i}, tip{i}, curvature{i}, end_x, end_y, accel_x, accel_y (outputs); "
-    "torque{i}, voltage{i}, current{i} (inputs)"
+    "torque{i}, voltage{i}, current{i} (inputs); <output>_ref, e.g. theta1_ref (a controller's reference)"
 )
 
 
@@ -201,10 +201,37 @@ def split_header(text: str) -> tuple[str, str | None]:
     return m["name"].strip(), m["unit"].strip()
 
 
+#: A closed-loop log's reference of an output channel: `theta1_ref` (`identify.Controller`)
+_REFERENCE = re.compile(r"^(?P<channel>.+)_ref$")
+
+
+def referenced_channel(channel: str) -> str | None:
+    """`'theta1_ref'` -> `'theta1'`: the output channel a reference channel is the
+    reference of, or None if `channel` is not a reference."""
+    m = _REFERENCE.match(channel)
+    if m is None or _output_dimension(m["channel"]) is None or is_input(m["channel"]):
+        return None
+    return m["channel"]
+
+
+def is_reference(channel: str) -> bool:
+    return referenced_channel(channel) is not None
+
+
+def reference_channel(channel: str) -> str:
+    """`'theta1'` -> `'theta1_ref'`: the log channel holding an output's reference."""
+    return channel + "_ref"
+
+
 def channel_dimension(channel: str) -> str | None:
     """Dimension of a channel name (`'time'` included), or None if it is not a channel."""
     if channel == "time":
         return TIME
+    base = referenced_channel(channel)
+    return _output_dimension(channel if base is None else base)
+
+
+def _output_dimension(channel: str) -> str | None:
     m = _INDEXED.match(channel)
     if m:
         return _INDEXED_DIMENSION[m[1]]
@@ -239,8 +266,13 @@ def is_input(channel: str) -> bool:
 
 
 def is_output(channel: str) -> bool:
-    """True for measured output channels (everything but `time` and the inputs)."""
-    return channel != "time" and channel_dimension(channel) is not None and not is_input(channel)
+    """True for measured output channels (everything but `time`, the inputs and the
+    references)."""
+    return (
+        channel != "time"
+        and channel_dimension(channel) is not None
+        and not (is_input(channel) or is_reference(channel))
+    )
 
 
 _QUANTITY = re.compile(r"^\s*(?P<value>[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)\s*(?P<unit>\S.*?)?\s*$")
@@ -296,6 +328,8 @@ def display_unit(channel: str) -> tuple[float, str]:
         return 1.0, "1/m"
     if channel.startswith("accel_"):
         return 1.0, "m/s^2"
+    if is_input(channel):  # (a closed-loop log's command: an output of the model too)
+        return 1.0, SI_UNIT[channel_dimension(channel)]
     return 1.0, "SI"
 
 

@@ -79,6 +79,7 @@ def _split(problem: Problem) -> tuple[Problem, list[Problem]]:
             dataclasses.replace(
                 problem,
                 **{f: getattr(problem, f)[k : k + 1] for f in fields},
+                **({} if problem.reference is None else {"reference": problem.reference[k : k + 1]}),
                 y0_free=tuple((0, s) for s in per_log_y0[k]),
                 offset_free=tuple((0, c) for c in per_log_off[k]),
                 labels=(problem.log_names[k],),

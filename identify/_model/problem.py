@@ -18,9 +18,11 @@ from flexdyn.inputs import check_hold
 
 from .._data import channels as ch, measurement as meas, noise_floor as nf
 from .._data.channels import state_names
+from .._data.controller import Controller
 from .._data.logs import PLAUSIBLE_RATE_HZ
 from .._data.measurement import Measurement
 from .._data.units import display_unit
+from .closed_loop import FeedbackLaw, check_closed_loop, reference_array
 from .parameters import Parameter
 
 
@@ -42,6 +44,8 @@ class LogData:
       continuous signal) or `"zoh"` (held until the next sample: a digital controller's
       command), or one of them per joint (`flexdyn.SampledTorque.hold`). The wrong one
       displaces the input by half a sample, which a fitted lag or delay then absorbs.
+    - `reference`: a closed-loop log's reference samples at `t`, by the channel they are
+      the reference of (`{'theta1': ...}`, SI; `identify.Controller.references`).
     """
 
     t: np.ndarray
@@ -53,6 +57,7 @@ class LogData:
     name: str = "log"
     set: dict = dataclasses.field(default_factory=dict)
     hold: str | tuple = "linear"
+    reference: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
     def from_log(cls, log, n_joints: int, **entries) -> LogData:
@@ -65,6 +70,8 @@ class LogData:
         except ValueError as e:
             raise ValueError(f"LogData.from_log: {e}") from None
         entries.setdefault("name", log.name)
+        if getattr(log, "references", None):
+            entries.setdefault("reference", {c: np.asarray(v, float) for c, v in log.references.items()})
         return cls(
             t=np.asarray(log.t_relative, float),
             outputs={c: np.asarray(v, float) for c, v in log.outputs.items()},
@@ -133,6 +140,10 @@ class Problem(eqx.Module):
     # the free parameters' guesses, SI (an array: a static field would compile a program
     # per guess), so that `fit(problem)` needs no parameter list
     guess: jax.Array | None = None
+    # a closed-loop problem (`make_problem(controller=...)`): the rig's feedback law, and each
+    # log's references `(L, T, F)` of the law's channels (0 where none); None: open loop
+    loop: FeedbackLaw | None = None
+    reference: jax.Array | None = None
 
     @property
     def log_names(self) -> tuple[str, ...]:
@@ -328,6 +339,7 @@ def make_problem(
     dt: float | None = None,
     max_steps: int = 100_000,
     measurement: Measurement | None = None,
+    controller: Controller | None = None,
 ) -> Problem:
     """Build a `Problem`. `noise` maps channels to their standard deviation (SI); channels
     not in it start at 1 % of the channel's measured RMS and are re-estimated by `fit`
@@ -340,7 +352,12 @@ def make_problem(
     `rtol`, `atol` (adaptive Tsit5) or `dt` (fixed-step RK4) set the simulation. The
     default tolerances are tight on purpose: an adaptive solver's step choices make the
     loss a slightly noisy function of the parameters, which stalls Levenberg-Marquardt
-    near the optimum."""
+    near the optimum.
+
+    `controller` (`identify.Controller`): every log ran under this feedback law; each is
+    simulated closed loop (`identify/_model/closed_loop.py`) and its command column (the
+    law's output, `controller.command`) becomes an output channel too, compared with the
+    model's commands."""
     if not logs:
         raise ValueError("make_problem: expected at least one log")
     measurement = Measurement() if measurement is None else measurement
@@ -359,6 +376,18 @@ def make_problem(
         ch.check_channel(chain, c)
     log_set_names, log_set = _log_set(chain, measurement, logs, {p.name for p in parameters}, known)
     padded = _padded_logs(chain, logs, channels)
+    loop, reference = None, None
+    referenced = [log.name for log in logs if log.reference]
+    if controller is None and referenced:
+        raise ValueError(
+            f"make_problem: log {referenced[0]!r} has a reference, but no controller was given to follow it; pass "
+            "controller=identify.Controller(...) (the law the rig ran), or drop the reference"
+        )
+    if controller is not None:
+        check_closed_loop(chain, measurement, controller, logs)
+        padded, channels = _with_command(padded, channels, controller), [*channels, controller.command]
+        loop = FeedbackLaw.of(controller, meas.resolutions(measurement, controller.channels))
+        reference = jnp.asarray(reference_array(controller, logs, padded.t.shape[1]))
     noise = dict(noise or {})
     sigma = _noise_levels(chain, noise, channels, padded)
     onset = _onsets(logs, channels, noise, sigma, padded, meas.resolutions(measurement, channels))
@@ -397,6 +426,18 @@ def make_problem(
         per_log=tuple(free.per_log),
         hold=_common_hold(logs, chain.n_links),
         guess=jnp.asarray(_guesses_made(parameters, len(logs)), dtype=float),
+        loop=loop,
+        reference=reference,
+    )
+
+
+def _with_command(padded: _PaddedLogs, channels: list[str], controller: Controller) -> _PaddedLogs:
+    """A closed-loop problem's logs with the command column (`controller.command`) as their
+    last output channel: the law's output, which every log records."""
+    command = padded.torque_v[:, :, controller.joint - 1]
+    return padded._replace(
+        measured=np.concatenate([padded.measured, command[:, :, None]], axis=2),
+        present=np.concatenate([padded.present, np.ones((padded.present.shape[0], 1), bool)], axis=1),
     )
 
 

@@ -38,6 +38,7 @@ from flexdyn.held_steps import clipped_constant_steps
 from flexdyn.simulation import adaptive_controller as _adaptive_controller
 
 from .._data import channels as ch, measurement as meas
+from .closed_loop import closed_log_outputs
 
 
 def _values(problem, theta, log_values=None, log_index=None) -> dict:
@@ -131,7 +132,10 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     docs/performance.md). The last stage simulates the whole log. Parameters or an
     initial state the model would refuse (`_admissible`) count as a failed solve.
     `log_values`: the log's row of `Problem.log_set`; `log_index`: its index (for per-log
-    parameters, `Problem.per_log`)."""
+    parameters, `Problem.per_log`, and a closed-loop problem's references).
+
+    A closed-loop problem (`Problem.loop`) runs each log under its controller instead
+    (`closed_loop.closed_log_outputs`), `torque_v` the logged commands."""
     theta, y0, admissible = _admissible(problem, theta, y0)
     asm = fd.assemble(chain_at(problem, theta, log_values, log_index))
     sensors = _measurement(problem, theta, log_values, log_index)
@@ -141,6 +145,15 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
         t_end = jnp.minimum(t[-1], onset + horizon)
         t_begin = jnp.where(t_end < t[-1], onset, t[0])
     ts = jnp.clip(t, t_begin, t_end)
+    if problem.loop is not None:  # a closed-loop log: the rig under its controller
+        reference = problem.reference[0 if log_index is None else log_index]
+        out, run = closed_log_outputs(problem, asm, sensors, ts, torque_v, reference, y0, step)
+        ok = admissible & run.ok
+        if stats == "limit":
+            return out, ok, run.limited
+        # (the step count as a float: summed over the periods it is a strong int, which
+        # `identify.steps` divides a span by)
+        return (out, ok, run.steps.astype(out.dtype)) if stats else (out, ok)
     torque = meas.actuated_torque(sensors, _strictly_increasing(t), torque_v, problem.hold)
     field = fd.ChainVectorField(asm, torque)
     # (fixed steps stop at a held torque's jumps, adaptive ones also at its constant

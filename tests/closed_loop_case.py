@@ -1,0 +1,132 @@
+"""A motor-driven pendulum under a digital PD controller at 1 kHz, and an independent
+discrete-time simulation of its loop (SciPy), for the closed-loop identification tests.
+
+The rig: a uniform rod (mass `M`, length `L`) on a hub, in a vertical plane, on a joint
+with viscous damping `B`, driven through a gear `N` by a DC motor (resistance `R`, torque
+constant `KT`, rotor inertia `JM`, ideal gear) whose voltage the controller sets. With the
+quasi-static armature current `i = (V - KT N theta') / R` (flexdyn.motor's model, Hughes &
+Drury), its equation of motion is
+
+    (HUB + M L^2 / 3 + JM N^2) theta'' = N KT (V - KT N theta') / R - B theta'
+                                         - M G (L / 2) cos(theta)
+
+(theta from the horizontal). The controller reads the encoder, `m_k = q round((theta_k +
+o) / q)` (zero offset `o`), and commands
+
+    V_k = clip(V_FF + KP (r_k - m_k) - KD (m_k - m_{k-1}) / h, +-LIMIT)
+
+held over each period `h` (from tick k + 1 with one sample of delay).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.integrate
+
+import flexdyn as fd
+import identify
+
+L, M, B, G = 0.30, 0.20, 2e-3, 9.81
+N, JM = 15.0, 1e-5
+TRUTH = {"motor1.resistance": 2.4, "motor1.torque_constant": 0.045, "hub1.inertia": 1e-3}
+KP, KD, V_FF, LIMIT = 20.0, 0.3, 0.5, 6.0  # V/rad, V s/rad, V, V
+PERIOD = 1e-3  # s
+ENCODER = 2 * math.pi / 4096  # rad per count
+ENCODER_ZERO = 0.01  # rad
+
+
+def pendulum(values=None):
+    """The rig at `values` (the truth by default)."""
+    v = {**TRUTH, **(values or {})}
+    motor = fd.DCMotor(v["motor1.resistance"], v["motor1.torque_constant"])
+    joint = fd.RigidJoint(damping=B, rotor_inertia=JM, gear_ratio=N)
+    hub = fd.Hub(inertia=v["hub1.inertia"])
+    return fd.Chain([fd.RigidLink(L, M)], [joint], [hub], gravity=(0.0, -G), motors=[motor])
+
+
+def controller(delay=False, quantise=True, limit=LIMIT):
+    return identify.Controller(
+        "voltage1",
+        gains={"theta1": KP},
+        rate_gains={"theta1": KD},
+        references=("theta1",),
+        feedforward=V_FF,
+        limit=limit,
+        period=PERIOD,
+        delay=delay,
+        quantise=quantise,
+    )
+
+
+def measurement(resolution=ENCODER):
+    return identify.Measurement({"theta1": identify.Sensor(offset=ENCODER_ZERO, resolution=resolution)})
+
+
+def reference(t):
+    """Steps of the hub angle (rad): -0.3, then 0.4 from 0.1 s, -0.1 from 0.8 s."""
+    return np.where(t < 0.1, -0.3, np.where(t < 0.8, 0.4, -0.1))
+
+
+def reference_loop(
+    t, theta0, ref, delay=False, values=None, first_command=0.0, reading_noise=None, resolution=ENCODER, limit=LIMIT
+):
+    """The loop, independently (DOP853 restarted at every tick): `(theta, omega,
+    commands, readings)` at the ticks `t`, the command of tick k the one held from it;
+    `reading_noise` `(T,)` (rad): added to the angle the controller reads (an analog
+    sensor's noise) before its quantisation to `resolution` (rad; None: not rounded);
+    `limit`: the command's saturation (V)."""
+    noise = np.zeros(len(t)) if reading_noise is None else reading_noise
+    v = {**TRUTH, **(values or {})}
+    R, KT, HUB = v["motor1.resistance"], v["motor1.torque_constant"], v["hub1.inertia"]
+    J = HUB + M * L**2 / 3 + JM * N**2
+
+    def rhs(_, x, volts):
+        theta, omega = x
+        current = (volts - KT * N * omega) / R
+        return [omega, (N * KT * current - B * omega - M * G * (L / 2) * math.cos(theta)) / J]
+
+    def read(theta, k):
+        m = theta + ENCODER_ZERO + noise[k]
+        return m if resolution is None else resolution * round(m / resolution)
+
+    def law(k, m, m_prev):
+        return float(np.clip(V_FF + KP * (ref[k] - m) - KD * (m - m_prev) / PERIOD, -limit, limit))
+
+    x = np.array([theta0, 0.0])
+    m_prev = read(theta0, 0)
+    computed = law(0, m_prev, m_prev)
+    u = first_command if delay else computed
+    states, commands, readings = [x.copy()], [u], [m_prev]
+    for k in range(len(t) - 1):
+        sol = scipy.integrate.solve_ivp(rhs, (t[k], t[k + 1]), x, args=(u,), method="DOP853", rtol=1e-12, atol=1e-14)
+        x = sol.y[:, -1]
+        m = read(x[0], k + 1)
+        now = law(k + 1, m, m_prev)
+        u, m_prev = (computed if delay else now), m
+        computed = now
+        states.append(x.copy())
+        commands.append(u)
+        readings.append(m)
+    states = np.array(states)
+    return states[:, 0], states[:, 1], np.array(commands), np.array(readings)
+
+
+def closed_loop_log(t, theta0, name, delay=False, reading_noise=None, resolution=ENCODER, limit=LIMIT, shift=0.0):
+    """A `LogData` of the loop (the oracle's): the angle channel `theta1` as the controller
+    read and logged it (`theta + o + reading_noise`, quantised), the command column, and
+    the reference (`reference(t) + shift`)."""
+    ref = reference(t) + shift
+    _, _, volts, recorded = reference_loop(
+        t, theta0, ref, delay, reading_noise=reading_noise, resolution=resolution, limit=limit
+    )
+    return identify.LogData(
+        t=t,
+        outputs={"theta1": recorded},
+        torque=volts[:, None],
+        initial={"theta1": theta0},
+        name=name,
+        hold="zoh",
+        reference={"theta1": ref},
+    )
