@@ -12,8 +12,9 @@ with its `resolution`), wired reversed and declared `sign = -1`. Three 2.5 s log
 held out. The baseline model (hub inertia, joint damping and EI free) has no friction.
 
 The claim: dry friction is named with its true sliding value inside its 95 % interval,
-and no unphysical cause is named. Measured (2026-12-07, 54 min on 2 cores shared with
-other jobs, load ~9): friction named in round 2, 0.07502 N m, HAC interval [0.05894,
+and no unphysical cause is named. Measured (2026-12-07, on 2 cores shared with other
+jobs, load 8-10): this module 46 min (2 passed, 1 xfailed), the same diagnosis run as a
+script 54 min; friction named in round 2, 0.07502 N m, HAC interval [0.05894,
 0.09549]; but an actuator lag of 1.6e-35 s named in round 1 (the xfail below says why).
 """
 
@@ -24,7 +25,7 @@ import identify
 
 TRUTH = FlexibleServoRig()
 
-pytestmark = pytest.mark.slow  # ~55 min on 2 loaded cores
+pytestmark = pytest.mark.slow  # 46-54 min on 2 loaded cores (the module docstring)
 
 
 @pytest.fixture(scope="module")
