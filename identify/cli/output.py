@@ -93,7 +93,9 @@ def check_output_folder(out: Path, inputs: list[Path], force: bool, suffix: str 
             "Choose another folder with --out, or pass --force to write our files there anyway "
             "(other files are left untouched)."
         )
-    if not (out / MARKER).is_file():
+    # (a run killed between claiming the folder, its lock file, and marking it leaves
+    # only the lock: that folder is ours too)
+    if not (out / MARKER).is_file() and not (out / LOCK_FILE).is_file():
         raise _Refused(
             f"refusing to write into {out}: it exists and is not the output of a previous `identify` command "
             f"(no {MARKER} file). Choose another folder with --out, or pass --force."

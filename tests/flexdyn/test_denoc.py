@@ -483,6 +483,7 @@ STRUCTURE_NAMES = list(STRUCTURES)
 @pytest.mark.parametrize(
     "name", [STRUCTURE_NAMES[0], *(pytest.param(n, marks=pytest.mark.slow) for n in STRUCTURE_NAMES[1:])]
 )
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_forward_dynamics_derivatives_equal_denoc(name, rng):
     """`fd.accelerations` is differentiated by its own rule (the Lagrange residual at fixed
     Q_ddot, solved with M's factor), not through the construction of `M`. Its Jacobian

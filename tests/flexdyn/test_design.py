@@ -225,6 +225,7 @@ def test_rigid_joint_residuals_unchanged_in_length():
     assert shape == (11 * (2 + 2) + 2,)
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_design_says_whether_the_arm_reached_its_goal():
     """Review: an infeasible move (here 3 rad in 0.5 s with 0.05 N m) returned the same
     `result` as a good design, and nothing said that it ended far from its goal. Oracle
@@ -254,6 +255,7 @@ def test_design_says_whether_the_arm_reached_its_goal():
         design.design_move(infeasible, initial, max_steps=0)
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_reverse_mode_gradient_of_the_residuals_with_a_reverse_adjoint():
     """Review: `jax.grad` of a cost on `move_residuals` failed inside diffrax (the default
     forward-mode adjoint cannot be reversed); with `adjoint=RecursiveCheckpointAdjoint()`

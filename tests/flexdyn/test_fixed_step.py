@@ -93,6 +93,7 @@ def test_rk4_final_steps_not_aligned_with_jumps(reference):
     assert 12.0 < errs[0] / errs[1] < 20.0, errs
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_fixed_step_paths_ending_on_a_jump_stay_fourth_order():
     """Review: with the span ending exactly on an input jump (t1 = 0.5 s), `simulate(dt=...)`
     and `rk4_trajectory` read the torque after the jump in the last step's final stage: the
@@ -122,6 +123,7 @@ def test_rk4_final_conserves_energy_undamped():
     assert abs(float(e1 - e0)) < 1e-8 * abs(float(e0))
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_rk4_final_vmaps_over_payloads():
     import equinox as eqx
 
@@ -233,6 +235,7 @@ def test_discrete_adjoint_matches_finite_differences_across_input_jumps():
         assert abs(float(g[i]) - fd_i) <= 1e-6 * abs(fd_i) + 1e-9, (ARM_PARAMS[i], float(g[i]), fd_i)
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_discrete_adjoint_under_vmap_with_state_feedback():
     # A PD controller tracking a quintic move: the torque depends on the state, so each
     # stage's transpose carries the controller's own derivative into the state's cotangent.

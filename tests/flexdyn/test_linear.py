@@ -89,6 +89,7 @@ def test_derivatives_from_rest_need_dtmax():
         np.testing.assert_allclose(grad(Y0, fn, h / 4), want, rtol=1e-6, err_msg=fn.__name__)
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_mode_shape_gradients_are_finite_with_two_rigid_body_modes():
     """Found in a new-user review: an arm with two free joints has two rigid-body modes
     (omega^2 = 0 twice), where JAX's eigenvector derivative divides by zero; the reverse

@@ -352,6 +352,7 @@ def _paper_002_payload_run(mass):
     return fd.simulate(chain, y0, jnp.linspace(0.0, 0.5, 26), torque).Q
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_vmap_over_payload_masses_equals_separate_runs():
     """Issue test 7b: one vmapped simulation of 64 payloads = 64 simulations."""
     masses = jnp.linspace(0.0, 0.1, 64)

@@ -527,6 +527,7 @@ def test_the_compile_estimate_allows_for_a_single_core(monkeypatch, tmp_path):
     assert 10 < two < 20  # measured 10.6 s for this example on 2 cores (the docstring's)
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_fit_independent_fits_each_log_and_compares_them(tmp_path, capsys):
     """`identify fit --independent`: each fit log of the example on its own (the two drops
     from 0 and -45 deg, the same rig): every log's 95 % intervals hold the truth the logs

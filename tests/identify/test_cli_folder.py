@@ -98,6 +98,21 @@ def test_a_second_run_is_refused_while_the_first_holds_the_folder(tmp_path):
     OutputFolder.claim(out, [], force=False).release()  # released: claimable again
 
 
+def test_a_folder_left_by_a_run_killed_before_its_marker_is_claimable(tmp_path):
+    """SIGKILL between the claim's lock and its marker leaves the folder holding only the
+    lock file (seen in `test_cli_kill` under load); the next run may write there, and a
+    folder with our names but neither marker nor lock is still refused."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / LOCK_FILE).write_text("pid 1, since 2026-12-07 16:00:00\n")
+    OutputFolder.claim(out, [], force=False).release()
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / RESULT_FILE).write_text("not from identify")
+    with pytest.raises(_Refused, match=MARKER):
+        OutputFolder.claim(other, [], force=False)
+
+
 def test_abandoning_a_folder_it_created_removes_it(tmp_path):
     out = tmp_path / "new" / "out"
     folder = OutputFolder.claim(out, [], force=False)

@@ -74,6 +74,7 @@ def _hashes(folder):
     return {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_main_job_diagnose_names_the_hidden_friction_of_the_example(tmp_path):
     before = _hashes(EXAMPLE)
     out = tmp_path / "report"

@@ -1062,6 +1062,7 @@ def test_a_simulation_that_runs_out_of_steps_is_named_with_the_values_where_it_f
 WRONG_BASIN = {"link1.EI": 1.68, "joint1.damping": 0.00526, "hub1.inertia": 0.00279, "payload.mass": 0.118}
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 @pytest.mark.parametrize("restart", [True, False, "fails"])
 def test_a_fit_that_ends_in_a_wrong_basin_restarts_from_the_next_start(arm, monkeypatch, restart):
     """The growing horizon from the best start is sent to a wrong basin (its first attempt

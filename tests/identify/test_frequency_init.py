@@ -200,6 +200,7 @@ def _own_ei_logs(arm, t, torque, eis):
     ]
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_independent_fits_initialise_each_logs_own_stiffness(arm):
     """`fit_independent`: every log gets its own EI guess from its own spectrum (all logs'
     simulations batched). Two doublet logs of links with EI 0.8 and 1.25 N m^2, EI the one
@@ -390,6 +391,7 @@ def _two_link_problem(guess_ei1, guess_ei2):
     "guesses",
     [(0.5, 2.0), pytest.param((2.0, 0.5), marks=pytest.mark.slow), pytest.param((1.4, 1.4), marks=pytest.mark.slow)],
 )
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_both_links_of_a_sine_driven_two_link_arm(guesses):
     """Under sine drives well below the second link's flexural mode, the second tip's
     spectrum is the drives' lines whatever EI2 is (shape similarity 0.99-1.00 at every
@@ -435,6 +437,7 @@ def test_a_channel_with_a_free_gain_is_matched_in_shape_only(arm):
     assert found[False] < 0.9 * TRUTH["link1.EI"], said
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_a_lightly_damped_curvature_peak_is_matched_by_the_refinement():
     """Review case: a flexible link on a light hub (0.6 m, 0.3 kg/m, EI 2.3 N m^2, two
     modes at damping ratio 0.01, hub 4e-3 kg m^2), torque pulses, 3 s at 1 kHz, its root

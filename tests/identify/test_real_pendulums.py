@@ -191,6 +191,7 @@ def test_single_pendulum_drag_friction_file_is_the_viscous_file_with_the_law_cha
     assert [p.name for p in ext.free] == ["link1.inertia", "joint1.coulomb", "link1.drag"]
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_single_pendulum_drag_friction_beats_the_authors_on_validation(single_drag_friction, single_validation):
     """Issue 8's requirement, on the model the toolkit ends with: the viscous term replaced
     by dry joint friction plus air drag on the link (`experiment_drag_friction.toml`, the

@@ -175,6 +175,7 @@ def test_an_unbounded_log_scale_parameter_far_out_is_a_bad_point_not_an_error(x_
     np.testing.assert_allclose(parameters_module.exp_natural(jnp.asarray(3.0)), np.exp(3.0), rtol=1e-15)
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_a_per_log_parameter_reaches_its_own_log_only():
     """A per-log parameter (`Parameter.per_log`): log l simulates with its own value. The
     residuals equal those of the same logs with each log's value given as a known one

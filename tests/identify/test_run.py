@@ -96,6 +96,7 @@ def test_a_known_sensor_delay_in_the_experiment_file_is_applied(tmp_path):
     assert lo <= truth <= hi, fit_a.summary()
 
 
+@pytest.mark.slow  # (CI's 30-minute budget: one of the slowest in the fresh-clone run, 2026-12-07)
 def test_a_per_log_payload_in_the_experiment_file_is_fitted_and_checked_on_the_held_out_log(tmp_path):
     """`per_log = true` under `[parameters]`: a flexible link's logs at three tip masses
     nobody weighed, EI shared. The oracle is the values the logs were simulated with (each
