@@ -106,3 +106,23 @@ def _knots(command: SampledTorque, m, T):
 
     _, rest = jax.lax.scan(step, values[0], jnp.arange(times.shape[0] - 1))
     return jnp.concatenate([values[:1], rest], axis=0)
+
+
+class RelaxingHold(AbstractInput):
+    """One controller period of a held command `target` (per joint) applied through the
+    same first-order lags: from `start` (the applied torque at the period's start `t0`,
+    s) it relaxes as `u_a(t) = target + (start - target) e^{-(t - t0)/T}` (`T = 0`: the
+    command itself). `LaggedTorque`'s closed form for one held stretch, for a loop that
+    computes each command from the state (`identify`'s closed-loop logs). It declares no
+    jump inside the period (`step_times` is a lone `inf`)."""
+
+    target: Float[Array, " n_joints"]
+    start: Float[Array, " n_joints"]
+    t0: Float[Array, ""]
+    time_constant: Float[Array, " n_joints"]
+
+    def __call__(self, t, y=None):
+        return self.target + (self.start - self.target) * _decay(jnp.maximum(t - self.t0, 0.0), self.time_constant)
+
+    def step_times(self):
+        return jnp.full(1, jnp.inf, self.target.dtype)

@@ -70,39 +70,84 @@ def reference(t):
 
 
 def reference_loop(
-    t, theta0, ref, delay=False, values=None, first_command=0.0, reading_noise=None, resolution=ENCODER, limit=LIMIT
+    t,
+    theta0,
+    ref,
+    delay=False,
+    values=None,
+    first_command=0.0,
+    reading_noise=None,
+    resolution=ENCODER,
+    limit=LIMIT,
+    lag=0.0,
+    sensor_delay=0.0,
+    highpass_hz=0.0,
 ):
     """The loop, independently (DOP853 restarted at every tick): `(theta, omega,
     commands, readings)` at the ticks `t`, the command of tick k the one held from it;
     `reading_noise` `(T,)` (rad): added to the angle the controller reads (an analog
     sensor's noise) before its quantisation to `resolution` (rad; None: not rounded);
-    `limit`: the command's saturation (V)."""
+    `limit`: the command's saturation (V). `lag` (s): the amplifier applies the voltage
+    `va` with `lag va' = V - va` (an extra state, from `va = V_0`); `sensor_delay` (s):
+    the encoder reports the angle that long before each tick (read from the previous
+    ticks' DOP853 dense output; the first angle before the log); `highpass_hz`: the
+    encoder's reading passes a first-order analog high-pass of that cut-off, `theta - l`
+    with `l' = 2 pi highpass_hz (theta - l)`, `l(t_0) = 0` (an extra state; without a
+    delay), the filter's input read linearly between the ticks' angles, as
+    `identify.Measurement` defines a sampled channel's high-pass (its own DOP853 solve per
+    period)."""
+    assert not (highpass_hz and sensor_delay)
+    wc = 2 * math.pi * highpass_hz
     noise = np.zeros(len(t)) if reading_noise is None else reading_noise
     v = {**TRUTH, **(values or {})}
     R, KT, HUB = v["motor1.resistance"], v["motor1.torque_constant"], v["hub1.inertia"]
     J = HUB + M * L**2 / 3 + JM * N**2
 
     def rhs(_, x, volts):
-        theta, omega = x
-        current = (volts - KT * N * omega) / R
-        return [omega, (N * KT * current - B * omega - M * G * (L / 2) * math.cos(theta)) / J]
+        theta, omega, va, low = x
+        applied = va if lag > 0 else volts
+        current = (applied - KT * N * omega) / R
+        dva = (volts - va) / lag if lag > 0 else 0.0
+        alpha = (N * KT * current - B * omega - M * G * (L / 2) * math.cos(theta)) / J
+        return [omega, alpha, dva, 0.0]
 
-    def read(theta, k):
+    dense = []  # (t0, t1, the period's dense output)
+
+    def angle_at(s):
+        if s <= t[0] or not dense:
+            return theta0
+        for a, b, f in reversed(dense):
+            if a <= s <= b:
+                return float(f(s)[0])
+        raise AssertionError(f"no period holds t = {s}")
+
+    def read(theta, k, low=0.0):
+        theta = theta - low
+        if sensor_delay > 0:
+            theta = angle_at(t[k] - sensor_delay)
         m = theta + ENCODER_ZERO + noise[k]
         return m if resolution is None else resolution * round(m / resolution)
 
     def law(k, m, m_prev):
         return float(np.clip(V_FF + KP * (ref[k] - m) - KD * (m - m_prev) / PERIOD, -limit, limit))
 
-    x = np.array([theta0, 0.0])
     m_prev = read(theta0, 0)
     computed = law(0, m_prev, m_prev)
     u = first_command if delay else computed
+    x = np.array([theta0, 0.0, u, 0.0])
     states, commands, readings = [x.copy()], [u], [m_prev]
     for k in range(len(t) - 1):
-        sol = scipy.integrate.solve_ivp(rhs, (t[k], t[k + 1]), x, args=(u,), method="DOP853", rtol=1e-12, atol=1e-14)
+        sol = scipy.integrate.solve_ivp(
+            rhs, (t[k], t[k + 1]), x, args=(u,), method="DOP853", rtol=1e-12, atol=1e-14, dense_output=True
+        )
+        dense.append((t[k], t[k + 1], sol.sol))
         x = sol.y[:, -1]
-        m = read(x[0], k + 1)
+        if wc > 0:
+            ramp = lambda s, a=states[-1][0], b=x[0]: a + (b - a) * (s - t[k]) / (t[k + 1] - t[k])  # noqa: E731
+            x[3] = scipy.integrate.solve_ivp(
+                lambda s, z: [wc * (ramp(s) - z[0])], (t[k], t[k + 1]), [x[3]], rtol=1e-12, atol=1e-14, method="DOP853"
+            ).y[0, -1]
+        m = read(x[0], k + 1, x[3])
         now = law(k + 1, m, m_prev)
         u, m_prev = (computed if delay else now), m
         computed = now

@@ -321,17 +321,20 @@ def _phi(x):
     return jnp.where(small, 1.0 - 0.5 * x, -jnp.expm1(-xs) / xs)
 
 
+def first_order_step(l, u0, u1, h, rate):
+    """One sample interval `h` (s) of `l' = rate (u - l)` from `l`, `u` linear from `u0`
+    to `u1`: exact (`rate` >= 0, 1/s)."""
+    x = rate * h
+    return u1 + (l - u0) * jnp.exp(-x) - (u1 - u0) * _phi(x)
+
+
 def _first_order(t, u, rate, start):
     """Exact response `l` of `l' = rate (u - l)`, `l(t_0) = start`, to `u` linear between
     samples `t` (shape (T,) and (T, ...)). `rate` >= 0 (1/s), may be traced."""
     h = jnp.diff(t)
-    x = rate * h
-    decay = jnp.exp(-x)
-    phi = _phi(x)
 
     def step(l, k):
-        u0, u1 = u[k], u[k + 1]
-        l1 = u1 + (l - u0) * decay[k] - (u1 - u0) * phi[k]
+        l1 = first_order_step(l, u[k], u[k + 1], h[k], rate)
         return l1, l1
 
     _, rest = jax.lax.scan(step, start, jnp.arange(t.shape[0] - 1))
@@ -386,14 +389,19 @@ def needs_rates(m: Measurement, channels) -> bool:
     return any(c in m.sensors and m.sensors[c].delay is not None for c in channels)
 
 
+def lag_vector(m: Measurement, n_joints: int):
+    """`(n_joints,)` each joint's actuator lag (s, 0 for none), or None if none has one."""
+    if not any(v is not None for v in m.actuator_lag):
+        return None
+    zero = jnp.zeros((), jnp.result_type(float))
+    return jnp.stack([zero if m.lag(j) is None else m.lag(j) for j in range(n_joints)])
+
+
 def actuated_torque(m: Measurement, t, torque, hold):
     """The torque the rig is driven by, as a `flexdyn` input: the commanded (logged)
     samples `torque` `(T, n_joints)` at times `t`, read as `hold` says, through each
     joint's actuator lag where `m` has one (`flexdyn.LaggedTorque`, exact between
     samples; a joint without a lag gets time constant 0, the identity)."""
     command = fd.SampledTorque(t, torque, hold=hold)
-    if not any(v is not None for v in m.actuator_lag):
-        return command
-    zero = jnp.zeros((), jnp.result_type(float))
-    lags = [zero if m.lag(j) is None else m.lag(j) for j in range(torque.shape[1])]
-    return fd.LaggedTorque(command, jnp.stack(lags))
+    lags = lag_vector(m, torque.shape[1])
+    return command if lags is None else fd.LaggedTorque(command, lags)

@@ -12,6 +12,16 @@ tolerances, or a constant step no longer than `step` that divides the period), i
 forward mode, so a fit's Jacobian goes through the loop. The commands `u_k` are an output
 of the model, compared with the log's command column.
 
+**Sensors and actuators in the loop.** The law reads each channel as the rig's sensor
+reports it (`identify.Measurement`): its delay `d` (the channel `d` before the sample,
+cubic Hermite between the samples of the last `LOOP_HISTORY` intervals, as
+`measurement.delayed` reads a recorded channel), its first-order high-pass
+(`measurement.highpass`'s exact recursion, one sample at a time), its gain and offset. A
+joint's actuator lag `T` turns the held command `u_k` into the applied input
+`u_a(t) = u_k + (u_a(t_k) - u_k) e^{-(t - t_k)/T}` over each period
+(`flexdyn.lagged_input.RelaxingHold`), so a diagnosis can try the same sensor and drive
+effects on a closed-loop log as on an open-loop one.
+
 **Quantised readings** (`Controller.quantise`). A reading rounded to its sensor's
 resolution `q` is `m + stop_gradient(q round(m / q) - m)`: the rig's value exactly,
 differentiated as if unrounded. The true derivative of the rounding is 0 almost everywhere, which would hide
@@ -27,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import flexdyn as fd
+from flexdyn.lagged_input import RelaxingHold
 from flexdyn.sampled_loop import HeldCommand
 
 from .._data import channels as ch, measurement as meas
@@ -93,10 +104,29 @@ def _quantised(m, resolution: tuple[float, ...]):
     return m + jax.lax.stop_gradient(rounded - m)
 
 
-def _reading(asm, law: FeedbackLaw, sensors, t, y):
-    """What the controller read at time `t` from state `y`: each channel's recorded value
-    (`Sensor.gain`, `.offset`), quantised."""
-    values = ch.evaluate(asm, law.channels, t, y, None)
+class ClosedLog(eqx.Module):
+    """`simulate_closed_log`'s result: the states at the samples `(T, 2n)`, the commands
+    `(T,)` (command units; the commanded joint's input from each sample on), the inputs
+    the actuators apply at each sample `(T, n_joints)` (the held inputs, through the
+    actuator lags), whether every period's solve succeeded, their accepted steps, and
+    whether a period's solve ran out of `max_steps`."""
+
+    ys: jax.Array
+    commands: jax.Array
+    applied: jax.Array
+    ok: jax.Array
+    steps: jax.Array
+    limited: jax.Array
+
+
+#: Samples of the law's channels kept for a sensor delay (`simulate_closed_log`): a
+#: reading delayed by more than this many sample intervals fails the solve.
+LOOP_HISTORY = 32
+
+
+def _sensed(law: FeedbackLaw, sensors, values):
+    """What the controller read from the channels' values `values` `(F,)` (at the time
+    its sensors report): each channel's `Sensor.gain` and `.offset`, quantised."""
     parts = []
     for k, c in enumerate(law.channels):
         v, s = values[k], sensors.sensors.get(c)
@@ -108,18 +138,68 @@ def _reading(asm, law: FeedbackLaw, sensors, t, y):
     return _quantised(jnp.stack(parts), law.resolution)
 
 
-class ClosedLog(eqx.Module):
-    """`simulate_closed_log`'s result: the states at the samples `(T, 2n)`, the commands
-    `(T,)` (command units; the commanded joint's input from each sample on), the inputs
-    `(T, n_joints)` held from each sample, whether every period's solve succeeded, and
-    their accepted steps, and whether a period's solve ran out of `max_steps`."""
+def _sensor_field(law: FeedbackLaw, sensors, field: str):
+    """`(F,)` each law channel's sensor `field` (`"delay"`, s, or `"highpass"`, Hz; 0 for
+    none), or None if no channel's sensor has one."""
+    found = [
+        sensors.sensors.get(c) is not None and getattr(sensors.sensors[c], field) is not None for c in law.channels
+    ]
+    if not any(found):
+        return None
+    zero = jnp.zeros((), jnp.result_type(float))
+    return jnp.stack([getattr(sensors.sensors[c], field) if f else zero for c, f in zip(law.channels, found)])
 
-    ys: jax.Array
-    commands: jax.Array
-    inputs: jax.Array
-    ok: jax.Array
-    steps: jax.Array
-    limited: jax.Array
+
+class _History(eqx.Module):
+    """The last `LOOP_HISTORY + 1` samples of the law's channels, before their sensors:
+    times `(H,)`, values and time derivatives `(H, F)`, oldest first. Before the log's
+    first sample it holds that sample (a reading from before the log is its first value,
+    as `identify.measurement.delayed` reads a recorded channel)."""
+
+    t: jax.Array
+    value: jax.Array
+    rate: jax.Array
+
+    @staticmethod
+    def start(t, value, rate) -> _History:
+        H = LOOP_HISTORY + 1
+        return _History(jnp.full(H, t), jnp.tile(value, (H, 1)), jnp.tile(rate, (H, 1)))
+
+    def push(self, t, value, rate) -> _History:
+        return _History(
+            jnp.concatenate([self.t[1:], t[None]]),
+            jnp.concatenate([self.value[1:], value[None]]),
+            jnp.concatenate([self.rate[1:], rate[None]]),
+        )
+
+    def delayed(self, delays):
+        """`(F,)` each channel at the newest time minus its delay (cubic Hermite between
+        samples, `identify.measurement.delayed`), and whether every delay is within the
+        history (or reaches before the log's first sample)."""
+        values = [
+            meas.delayed(self.t, self.value[:, f], self.rate[:, f], delays[f])[-1] for f in range(self.value.shape[1])
+        ]
+        first = self.t[0] == self.t[1]  # (the log's first sample is still held)
+        return jnp.stack(values), jnp.all(first | (self.t[-1] - delays >= self.t[0]))
+
+
+class _Loop(eqx.Module):
+    """The loop's state from one sample to the next: the chain's state, the command held
+    from the sample, the command computed for the next one (`delay`), the controller's last
+    reading and rate, the torque the actuators apply (equal to the command without a lag),
+    the law's channels' history (None without a delayed sensor), their delayed values at
+    the last sample and their high-pass filters' low-pass states (`measurement.highpass`).
+    """
+
+    y: jax.Array
+    u: jax.Array
+    pending: jax.Array
+    m_prev: jax.Array
+    rate_prev: jax.Array
+    applied: jax.Array
+    history: _History | None
+    late: jax.Array
+    low: jax.Array
 
 
 def simulate_closed_log(
@@ -130,30 +210,58 @@ def simulate_closed_log(
     they are), from `y0` at `ts[0]`. `logged`: the log's inputs `(T, n_joints)` (the
     other joints', and with `delay` the first command); `reference`: `(T, F)`.
 
+    `sensors` (`identify.Measurement`): the law reads each channel through its sensor's
+    delay (the channel's value that long before the sample, `_History`), gain and
+    offset; each joint's input reaches it through its actuator lag
+    (`flexdyn.lagged_input.RelaxingHold`, exact over each held period).
+
     `step` (s, may be traced): Tsit5 at the constant step `h / ceil(h / step)` in each
     period `h`; `dt`: RK4 likewise (`Problem.dt`); neither: adaptive Tsit5 at `rtol`,
     `atol`. `max_steps`: per period."""
     h = jnp.diff(ts)
     h_rate = h if law.period is None else jnp.where(h > 0, law.period, 0.0)
     zero_rate = jnp.zeros(len(law.channels), y0.dtype)
-
-    def command(k, y, m_prev, rate_prev):
-        """The law at sample `k >= 1` from the state `y` there and the previous reading
-        `m_prev` (a zero-length interval keeps the rate `rate_prev`: no new reading)."""
-        m = _reading(asm, law, sensors, ts[k], y)
-        hk = h_rate[k - 1]
-        rate = jnp.where(hk > 0, (m - m_prev) / jnp.where(hk > 0, hk, 1.0), rate_prev)
-        return law.command_of(m, rate, reference[k]), m, rate
+    delays = _sensor_field(law, sensors, "delay")
+    cutoffs = _sensor_field(law, sensors, "highpass")
+    lags = meas.lag_vector(sensors, logged.shape[1])
 
     def inputs(k, u):
         return logged[k].at[law.joint].set(u)
 
-    m0 = _reading(asm, law, sensors, ts[0], y0)
+    def drive(k, u, applied):
+        """The input over the period from sample `k`: the command held, through the lags."""
+        if lags is None:
+            return HeldCommand(inputs(k, u))
+        return RelaxingHold(inputs(k, u), applied, ts[k], lags)
+
+    def channels(t, y, applied):
+        """The law's channels at `(t, y)` and their time derivatives (under the applied
+        torque; only for a delayed sensor)."""
+        value = ch.evaluate(asm, law.channels, t, y, None)
+        if delays is None:
+            return value, value
+        ydot = fd.ChainVectorField(asm, HeldCommand(applied))(t, y, None)
+        return value, jax.jvp(lambda y_: ch.evaluate(asm, law.channels, t, y_, None), (y,), (ydot,))[1]
+
+    def reading(value, history, late_prev, low, hk):
+        """What the controller read after an interval `hk` (s): through the sensors'
+        delays (and whether they are within the history), high-passes (`late`, `low`: the
+        delayed values and the filters' states before and after), gains and offsets."""
+        late, within = (value, jnp.asarray(True)) if history is None else history.delayed(delays)
+        if cutoffs is not None:
+            low = meas.first_order_step(low, late_prev, late, hk, 2.0 * jnp.pi * cutoffs)
+        return _sensed(law, sensors, late - low), within, late, low
+
+    applied0 = inputs(0, logged[0, law.joint])  # (replaced below by the first command)
+    value0, rate0 = channels(ts[0], y0, applied0)
+    history0 = None if delays is None else _History.start(ts[0], value0, rate0)
+    low0 = jnp.zeros_like(value0)  # (the filters start at rest, `measurement.highpass`)
+    m0, _, late0, _ = reading(value0, history0, value0, low0, 0.0)
     law0 = law.command_of(m0, zero_rate, reference[0])
     first = logged[0, law.joint] if law.delay else law0
+    applied0 = inputs(0, first)
 
-    def period(carry, k):
-        y, u, pending, m_prev, rate_prev = carry
+    def period(loop: _Loop, k):
         t0, t1 = ts[k], ts[k + 1]
         moves = t1 > t0
         # (a period of zero length, past the solve's span or padding, gets a dummy span of
@@ -165,13 +273,14 @@ def simulate_closed_log(
             controller, dt0 = diffrax.ConstantStepSize(), (t1s - t0) / jnp.ceil((t1s - t0) / size - 1e-9)
         else:
             solver, controller, dt0 = diffrax.Tsit5(), diffrax.PIDController(rtol=rtol, atol=atol), None
+        torque = drive(k, loop.u, loop.applied)
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(fd.ChainVectorField(asm, HeldCommand(inputs(k, u)))),
+            diffrax.ODETerm(fd.ChainVectorField(asm, torque)),
             solver,
             t0=t0,
             t1=t1s,
             dt0=dt0,
-            y0=y,
+            y0=loop.y,
             saveat=diffrax.SaveAt(t1=True),
             stepsize_controller=controller,
             max_steps=max_steps,
@@ -179,23 +288,26 @@ def simulate_closed_log(
             throw=False,
         )
         ok = (sol.result == diffrax.RESULTS.successful) & jnp.all(jnp.isfinite(sol.ys[-1]))
-        y1 = jnp.where(moves & ok, sol.ys[-1], y)
-        law_k1, m1, rate1 = command(k + 1, y1, m_prev, rate_prev)
-        m1 = jnp.where(moves, m1, m_prev)
-        rate1 = jnp.where(moves, rate1, rate_prev)
+        y1 = jnp.where(ok, sol.ys[-1], loop.y)
+        applied1 = torque(t1s)
+        value1, rate1 = channels(t1, y1, applied1)
+        history1 = None if loop.history is None else loop.history.push(t1, value1, rate1)
+        m1, within, late1, low1 = reading(value1, history1, loop.late, loop.low, t1 - t0)
+        rate = (m1 - loop.m_prev) / jnp.where(h_rate[k] > 0, h_rate[k], 1.0)
+        law_k1 = law.command_of(m1, rate, reference[k + 1])
         # the command from t_{k+1}: the law there, or (delay) the one computed at t_k
-        u_next = jnp.where(moves, pending if law.delay else law_k1, u)
-        pending_next = jnp.where(moves, law_k1, pending)
+        moved = _Loop(y1, loop.pending if law.delay else law_k1, law_k1, m1, rate, applied1, history1, late1, low1)
+        after = jax.tree.map(lambda a, b: jnp.where(moves, a, b), moved, loop)
         steps = jnp.where(moves, sol.stats["num_accepted_steps"], 0)
         limited = moves & (sol.result == diffrax.RESULTS.max_steps_reached)
-        return (y1, u_next, pending_next, m1, rate1), (y1, u_next, ok | ~moves, steps, limited)
+        return after, (after.y, after.u, after.applied, (ok & within) | ~moves, steps, limited)
 
-    carry0 = (y0, first, law0, m0, zero_rate)
-    _, (ys, us, oks, steps, limited) = jax.lax.scan(period, carry0, jnp.arange(ts.shape[0] - 1))
+    loop0 = _Loop(y0, first, law0, m0, zero_rate, applied0, history0, late0, low0)
+    _, (ys, us, applied, oks, steps, limited) = jax.lax.scan(period, loop0, jnp.arange(ts.shape[0] - 1))
     ys = jnp.concatenate([y0[None], ys], axis=0)
     commands = jnp.concatenate([first[None], us], axis=0)
-    held = jax.vmap(inputs)(jnp.arange(ts.shape[0]), commands)
-    return ClosedLog(ys, commands, held, jnp.all(oks), jnp.sum(steps), jnp.any(limited))
+    applied = jnp.concatenate([applied0[None], applied], axis=0)
+    return ClosedLog(ys, commands, applied, jnp.all(oks), jnp.sum(steps), jnp.any(limited))
 
 
 def closed_log_outputs(problem, asm, sensors, ts, logged, reference, y0, step):
@@ -203,7 +315,6 @@ def closed_log_outputs(problem, asm, sensors, ts, logged, reference, y0, step):
     (the command channel: the model's commands), and its `ClosedLog`. `ts`: the sample
     times clipped to the solve's span."""
     law = problem.loop
-    _check_loop_measurement(sensors, law.channels)
     run = simulate_closed_log(
         asm,
         law,
@@ -221,14 +332,14 @@ def closed_log_outputs(problem, asm, sensors, ts, logged, reference, y0, step):
     ys = jnp.where(run.ok, run.ys, 0.0)
     physical = tuple(c for c in problem.channels if c != law.command)
     evaluate = lambda tk, yk, uk: ch.evaluate(asm, physical, tk, yk, HeldCommand(uk))  # noqa: E731
-    out = jax.vmap(evaluate)(ts, ys, run.inputs)
+    out = jax.vmap(evaluate)(ts, ys, run.applied)
     if meas.needs_rates(sensors, physical):
         # (delayed sensors: d out/dt = d out/dy . f(t, y), under the input held from each sample)
         def rate(tk, yk, uk):
             ydot = fd.ChainVectorField(asm, HeldCommand(uk))(tk, yk, None)
             return jax.jvp(lambda y_: evaluate(tk, y_, uk), (yk,), (ydot,))[1]
 
-        dout = jax.vmap(rate)(ts, ys, run.inputs)
+        dout = jax.vmap(rate)(ts, ys, run.applied)
     else:
         dout = out
     out = meas.apply_sensors(sensors, physical, ts, out, dout)
@@ -237,29 +348,9 @@ def closed_log_outputs(problem, asm, sensors, ts, logged, reference, y0, step):
     return jnp.stack([columns[c] for c in problem.channels], axis=1), run
 
 
-def _check_loop_measurement(measurement, channels) -> None:
-    """The sensor and drive effects a closed loop does not simulate, refused while
-    tracing (a measurement changed after `make_problem`, e.g. a diagnosis candidate)."""
-    for c in channels:
-        sensor = measurement.sensors.get(c)
-        for effect in ("delay", "highpass"):
-            if sensor is not None and getattr(sensor, effect) is not None:
-                raise ValueError(
-                    f"closed loop: the law reads {c}, whose sensor has a {effect}; a closed-loop simulation reads its "
-                    f"channels at the samples, without sensor dynamics: drop sensor.{c}.{effect}"
-                )
-    if any(v is not None for v in measurement.actuator_lag):
-        raise ValueError(
-            "closed loop: an actuator lag is not simulated in a closed loop (the command is held at each sample); "
-            "drop actuator<i>.lag"
-        )
-
-
 def check_closed_loop(chain, measurement, controller: Controller, logs) -> None:
     """Raise `ValueError` naming what a closed-loop problem cannot hold: a command of a
-    joint the rig lacks or that drives it differently, a channel the rig lacks, a sensor
-    with dynamics (a delay or a high-pass) on a channel the law reads (its reading would
-    need the past between samples), an actuator lag (not simulated in the loop), and logs
+    joint the rig lacks or that drives it differently, a channel the rig lacks, and logs
     without the command column, a reference column, or a per-log offset on a channel the
     law reads (the controller read the sensor as it was)."""
     if not isinstance(controller, Controller):
@@ -273,10 +364,6 @@ def check_closed_loop(chain, measurement, controller: Controller, logs) -> None:
             ch.check_channel(chain, c)
         except ValueError as e:
             raise ValueError(f"make_problem: controller: {e}") from None
-    try:
-        _check_loop_measurement(measurement, controller.channels)
-    except ValueError as e:
-        raise ValueError(f"make_problem: controller: {e}") from None
     for log in logs:
         where = f"log {log.name!r}"
         if log.torque is None or np.asarray(log.torque).reshape(len(log.t), -1).shape[1] < joint:
