@@ -144,12 +144,6 @@ def diagnose(experiment, *, progress=None, **options) -> Diagnosis:
             f"diagnose: expected an Experiment (identify.load_experiment(path)), got {type(experiment).__name__} "
             f"{experiment!r}"
         )
-    if experiment.controller is not None:
-        raise ValueError(
-            f"diagnose: {experiment.path} declares a [controller]; the diagnosis does not simulate closed-loop logs "
-            "yet (its candidates include sensor delays and actuator lags, which the loop does not model): use "
-            "identify fit"
-        )
     options["fit_options"] = {"extra_starts": experiment.starts, **(options.get("fit_options") or {})}
 
     n = experiment.chain.n_links
@@ -166,6 +160,7 @@ def diagnose(experiment, *, progress=None, **options) -> Diagnosis:
         held,
         noise,
         measurement=experiment.measurement,
+        controller=experiment.controller,
         split=desc,
         progress=progress,
         **options,

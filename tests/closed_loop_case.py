@@ -35,6 +35,7 @@ KP, KD, V_FF, LIMIT = 20.0, 0.3, 0.5, 6.0  # V/rad, V s/rad, V, V
 PERIOD = 1e-3  # s
 ENCODER = 2 * math.pi / 4096  # rad per count
 ENCODER_ZERO = 0.01  # rad
+COULOMB_VELOCITY = 0.01  # rad/s, the smoothing of dry friction (flexdyn.RigidJoint's default)
 
 
 def pendulum(values=None):
@@ -82,6 +83,7 @@ def reference_loop(
     lag=0.0,
     sensor_delay=0.0,
     highpass_hz=0.0,
+    coulomb=0.0,
 ):
     """The loop, independently (DOP853 restarted at every tick): `(theta, omega,
     commands, readings)` at the ticks `t`, the command of tick k the one held from it;
@@ -95,7 +97,8 @@ def reference_loop(
     with `l' = 2 pi highpass_hz (theta - l)`, `l(t_0) = 0` (an extra state; without a
     delay), the filter's input read linearly between the ticks' angles, as
     `identify.Measurement` defines a sampled channel's high-pass (its own DOP853 solve per
-    period)."""
+    period); `coulomb` (N m): the joint's dry friction, `coulomb tanh(omega / 0.01 rad/s)`
+    (the smoothed law of `flexdyn.RigidJoint`)."""
     assert not (highpass_hz and sensor_delay)
     wc = 2 * math.pi * highpass_hz
     noise = np.zeros(len(t)) if reading_noise is None else reading_noise
@@ -108,7 +111,8 @@ def reference_loop(
         applied = va if lag > 0 else volts
         current = (applied - KT * N * omega) / R
         dva = (volts - va) / lag if lag > 0 else 0.0
-        alpha = (N * KT * current - B * omega - M * G * (L / 2) * math.cos(theta)) / J
+        friction = coulomb * math.tanh(omega / COULOMB_VELOCITY)
+        alpha = (N * KT * current - B * omega - friction - M * G * (L / 2) * math.cos(theta)) / J
         return [omega, alpha, dva, 0.0]
 
     dense = []  # (t0, t1, the period's dense output)
@@ -174,4 +178,58 @@ def closed_loop_log(t, theta0, name, delay=False, reading_noise=None, resolution
         name=name,
         hold="zoh",
         reference={"theta1": ref},
+    )
+
+
+# --- noisy logs with a hidden effect, and their diagnosis (tests/identify/test_closed_loop_diagnose.py)
+
+ADC = 2 * np.pi / 65536  # rad: a potentiometer read by a 16-bit converter over one turn
+READING_NOISE = 3e-4  # rad, the potentiometer's analog noise, read by the controller too
+STARTS = ((-0.3, 0.0), (-0.5, 0.2), (-0.4, -0.1))  # (initial angle, reference shift), rad
+DIAGNOSE_PARAMETERS = (("motor1.resistance", 3.0), ("hub1.inertia", 1.5e-3))  # (name, guess)
+
+
+def noisy_logs(seed, samples=800, **hidden):
+    """Three logs of `samples` ticks from the oracle's loop (`reference_loop`'s `hidden`
+    effects: `lag`, `sensor_delay`, `highpass_hz`, `coulomb`), the controller reading a
+    noisy 16-bit angle (no saturation: the limit at 100 V); the last one to hold out."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(samples) * PERIOD
+    logs = []
+    for k, (theta0, shift) in enumerate(STARTS):
+        ref = reference(t) + shift
+        noise = READING_NOISE * rng.standard_normal(t.size)
+        _, _, volts, recorded = reference_loop(
+            t, theta0, ref, reading_noise=noise, resolution=ADC, limit=100.0, **hidden
+        )
+        logs.append(
+            identify.LogData(
+                t=t,
+                outputs={"theta1": recorded},
+                torque=volts[:, None],
+                initial={"theta1": theta0},
+                name=f"run{k}",
+                hold="zoh",
+                reference={"theta1": ref},
+            )
+        )
+    return logs
+
+
+def diagnose_closed(logs, **options):
+    """`identify.diagnose_logs` of `noisy_logs` on the baseline rig (no hidden effect; the
+    motor's resistance and the hub's inertia free), the last log held out."""
+    fit_logs, held, desc = identify.split_logs(logs[:-1], logs[-1:])
+    parameters = [identify.Parameter(n, g, g / 5, g * 5) for n, g in DIAGNOSE_PARAMETERS]
+    noise = {"theta1": float(np.hypot(READING_NOISE, ADC / np.sqrt(12)))}
+    return identify.diagnose_logs(
+        pendulum(dict(DIAGNOSE_PARAMETERS)),
+        parameters,
+        fit_logs,
+        held,
+        noise,
+        split=desc,
+        measurement=measurement(ADC),
+        controller=controller(quantise=False, limit=100.0),
+        **options,
     )

@@ -85,6 +85,12 @@ def input_problem(chain: fd.Chain, kind: str, i: int) -> str | None:
     )
 
 
+def is_output(name: str) -> bool:
+    """Whether `name` is a recorded output channel (a sensor's), not an input such as a
+    closed-loop log's command (`torque1`, `voltage1`)."""
+    return _CHANNEL.match(name) is not None
+
+
 def check_channel(chain: fd.Chain, name: str) -> None:
     """Raise `ValueError` if `name` is not an output channel this chain has."""
     why = channel_problem(chain, name)

@@ -62,7 +62,7 @@ import numpy as np
 import flexdyn as fd
 from flexdyn._checks import as_float_array
 
-from .._data import measurement as meas
+from .._data import channels as ch, measurement as meas
 from .stiffness import aim_joint_mode
 
 NAMES = (
@@ -368,7 +368,7 @@ def superset(chain: fd.Chain, measurement: meas.Measurement, channels, driven_jo
     for i, link in enumerate(chain.links):
         if link.drag is None:
             chain = set_field(chain, lambda c, i=i: c.links[i].drag, 0.0)
-    for c in channels:
+    for c in filter(ch.is_output, channels):  # (a closed loop's command has no sensor)
         s = measurement.sensors.get(c, meas.Sensor())
         for f in ("gain", "offset", "delay", "highpass"):
             if getattr(s, f) is None and f not in meas.lacks(s.kind):
@@ -425,7 +425,7 @@ def candidates(
             )
         )
     dt = max(sample_interval, 1e-4)
-    for c in channels:
+    for c in filter(ch.is_output, channels):
         out.extend(_sensor_candidates(c, dt, c in offsets_fitted, meas.lacks((sensor_kinds or {}).get(c))))
     for j in driven_joints:
         out.append(
@@ -504,7 +504,7 @@ def kind_left_out(channels, sensor_kinds: dict, offsets_fitted=frozenset()) -> d
     (`identify.measurement.KINDS`), in channel order. An entry still tried in part (an
     encoder's offset) says which part is tried."""
     out = {}
-    for c in channels:
+    for c in filter(ch.is_output, channels):
         lacks = meas.lacks(sensor_kinds.get(c))
         for name, fields in SENSOR_FIELDS.items():
             missing = [f for f in fields if f in lacks]

@@ -281,6 +281,7 @@ def held_out_set(superset: Superset, held_out_logs, channels, base, batch: int, 
         held_out_logs,
         dict(zip(channels, superset.sigma)),
         measurement=superset.measurement,
+        controller=superset.controller,
     )
     if problem.channels != channels:
         raise ValueError(f"diagnose: held-out logs record channels {problem.channels}, the fit logs {channels}")

@@ -341,6 +341,7 @@ class Superset:
     N: int
     sigma: np.ndarray
     sigma_j: jax.Array
+    controller: object = None  # the logs' `identify.Controller` (None: open loop)
 
     @property
     def problem(self) -> Problem:
@@ -363,11 +364,13 @@ class Superset:
         return _theta(self.joint, xb, v.xe, jnp.asarray(idx), jnp.asarray(logf))
 
 
-def superset_of(chain, measurement, channels, driven, candidates, parameters, fit_logs, sigma, nb: int) -> Superset:
+def superset_of(
+    chain, measurement, channels, driven, candidates, parameters, fit_logs, sigma, nb: int, *, controller=None
+) -> Superset:
     """The joint model of the continuous `candidates` on the baseline's `chain` and
     `measurement` (`catalogue.superset`), its free `parameters` (`nb` entries in the
     baseline's parameter vector) and every candidate parameter, fitted on `fit_logs` with
-    the channels' noise `sigma`."""
+    the channels' noise `sigma`; closed loop under `controller` (`identify.Controller`)."""
     sup_chain, sup_meas = cat.superset(chain, measurement, channels, driven)
     ext_names = []
     for c in candidates:
@@ -380,7 +383,12 @@ def superset_of(chain, measurement, channels, driven, candidates, parameters, fi
         for n in ext_names
     ]
     sup_problem = make_problem(
-        sup_chain, parameters + ext_params, fit_logs, dict(zip(channels, sigma)), measurement=sup_meas
+        sup_chain,
+        parameters + ext_params,
+        fit_logs,
+        dict(zip(channels, sigma)),
+        measurement=sup_meas,
+        controller=controller,
     )
     neutral = []
     for n in ext_names:
@@ -402,4 +410,5 @@ def superset_of(chain, measurement, channels, driven, candidates, parameters, fi
         int(used.sum()),
         sigma,
         jnp.asarray(sigma),
+        controller,
     )

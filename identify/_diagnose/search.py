@@ -49,6 +49,7 @@ def diagnose_logs(
     catalogue=cat.NAMES,
     exclude=(),
     measurement: meas.Measurement | None = None,
+    controller=None,
     max_effects: int = 3,
     pair_search: bool = True,
     bic_threshold: float = 10.0,
@@ -61,7 +62,9 @@ def diagnose_logs(
 ) -> Diagnosis:
     """Diagnose in-memory logs (`LogData`); see the module docstring. `parameters` are the
     baseline's free `Parameter`s; `noise` maps channels to known standard deviations;
-    `measurement` is the baseline's sensor and actuator model (default: ideal).
+    `measurement` is the baseline's sensor and actuator model (default: ideal);
+    `controller` (`identify.Controller`): the logs are closed-loop, run under this law
+    (every candidate's model simulates the loop: `make_problem`'s `controller`).
     `catalogue` names the entries to try; `exclude` lists candidate labels not to try
     (`name:where`, e.g. `coulomb_friction:joint1`).
 
@@ -81,7 +84,7 @@ def diagnose_logs(
     fit_options = {"restart_poor_fit": False, "grid_error": None, **(fit_options or {})}
     say("baseline fit ...")
     measurement = meas.Measurement() if measurement is None else measurement
-    base = _baseline_fit(chain, parameters, fit_logs, noise, measurement, rtol, fit_options, progress)
+    base = _baseline_fit(chain, parameters, fit_logs, noise, measurement, controller, rtol, fit_options, progress)
     channels = base.problem.channels
     sigma = np.asarray([base.sigma[c] for c in channels])
     notes = _baseline_notes(base.names, base.std_errors, base.values)  # `Diagnosis.notes`
@@ -95,7 +98,16 @@ def diagnose_logs(
     )
     cands, not_tried = _candidates(base, parameters, signals, catalogue, exclude)
     superset = superset_of(
-        chain, measurement, channels, signals.driven, cands, parameters, fit_logs, sigma, len(base.problem.names)
+        chain,
+        measurement,
+        channels,
+        signals.driven,
+        cands,
+        parameters,
+        fit_logs,
+        sigma,
+        len(base.problem.names),
+        controller=controller,
     )
     # held-out batches are padded to one size, so that every round reuses the compiled program
     held = held_out_set(superset, held_out_logs, channels, base, (n_fit or len(cands)) + 1, max_steps)
@@ -124,6 +136,7 @@ def diagnose_logs(
             held_out_logs,
             dict(zip(channels, sigma)),
             options,
+            controller=controller,
             split=split,
             catalogue=catalogue,
             exclude=exclude,
@@ -180,10 +193,21 @@ def _check_arguments(catalogue, exclude, held_out_logs) -> None:
         raise ValueError("diagnose: no held-out data (give validation logs, or at least one log to split)")
 
 
-def _baseline_fit(chain, parameters, fit_logs, noise, measurement, rtol, fit_options, progress) -> FitResult:
+def _baseline_fit(
+    chain, parameters, fit_logs, noise, measurement, controller, rtol, fit_options, progress
+) -> FitResult:
     """The baseline model fitted to the fit logs, the noise of the channels without a known
     one (`noise`) estimated from its residuals."""
-    problem = make_problem(chain, parameters, fit_logs, noise, rtol=rtol, atol=1e-2 * rtol, measurement=measurement)
+    problem = make_problem(
+        chain,
+        parameters,
+        fit_logs,
+        noise,
+        rtol=rtol,
+        atol=1e-2 * rtol,
+        measurement=measurement,
+        controller=controller,
+    )
     estimate = [c for c in problem.channels if noise.get(c) is None]
     return fit(problem, parameters, estimate_noise=estimate or False, progress=progress, **fit_options)
 
@@ -304,6 +328,7 @@ def _structural_setting(
         base,
         parameters,
         superset.measurement,
+        superset.controller,
         list(fit_logs),
         list(held_out_logs),
         base.problem.channels,
@@ -443,6 +468,7 @@ def _search_on(
     noise: dict,
     options: SearchOptions,
     *,
+    controller,
     split,
     catalogue,
     exclude,
@@ -472,6 +498,7 @@ def _search_on(
         _with_extra_state(held_out_logs, struct_chain),
         noise,
         measurement=model.measurement,
+        controller=controller,
         split=split,
         catalogue=catalogue,
         exclude=sorted(skip),

@@ -24,6 +24,7 @@ def split_logs(fit_logs, validation_logs, fraction: float = 0.7):
         t=t[:k],
         outputs={c: np.asarray(v)[:k] for c, v in log.outputs.items()},
         torque=None if log.torque is None else np.asarray(log.torque)[:k],
+        reference={c: np.asarray(v)[:k] for c, v in log.reference.items()},
         name=f"{log.name}[:{k}]",
     )
     rest_initial = _segment_initial(t[k:], {c: np.asarray(v)[k:] for c, v in log.outputs.items()})
@@ -35,6 +36,7 @@ def split_logs(fit_logs, validation_logs, fraction: float = 0.7):
         t=t[k:],
         outputs={c: np.asarray(v)[k:] for c, v in log.outputs.items()},
         torque=None if log.torque is None else np.asarray(log.torque)[k:],
+        reference={c: np.asarray(v)[k:] for c, v in log.reference.items()},
         initial=rest_initial,
         fit_initial=rest_fit,
         name=f"{log.name}[{k}:]",

@@ -40,6 +40,7 @@ class _StructuralFits:
     base: object  # the baseline's `FitResult`
     parameters: list
     measurement: meas.Measurement
+    controller: object  # the logs' `identify.Controller` (None: open loop)
     fit_logs: list
     held_out_logs: list
     channels: tuple
@@ -149,6 +150,7 @@ def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cu
             _with_extra_state(fit_logs, struct_chain),
             noise,
             measurement=m,
+            controller=setting.controller,
             rtol=rtol,
             atol=1e-2 * rtol,
         )
@@ -190,6 +192,7 @@ def _structural_score(setting: _StructuralFits, c, current: CurrentModel, rms_cu
             _with_extra_state(held_out_logs, struct_chain),
             noise,
             measurement=m,
+            controller=setting.controller,
             rtol=rtol,
             atol=1e-2 * rtol,
         )
