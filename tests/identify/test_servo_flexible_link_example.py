@@ -1,0 +1,54 @@
+"""The shipped example `identify/examples/servo_flexible_link` (issue 60, item 6): a
+servo-driven flexible link under its digital controller, fitted closed loop.
+
+The logs were written by the example's `make_logs.py` (a tick-by-tick loop over
+`flexdyn.simulate`, independent of `identify`'s closed-loop model) from the truth below.
+`identify fit` must hold the truth inside every 95 % interval; `identify diagnose` on the
+experiment without the gear friction must name it. Slow (minutes each on 2 cores)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+import identify
+
+EXAMPLE = Path(identify.__file__).resolve().parent / "examples" / "servo_flexible_link"
+
+
+def _truth() -> dict:
+    spec = importlib.util.spec_from_file_location("servo_make_logs", EXAMPLE / "make_logs.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.TRUTH
+
+
+def test_the_example_loads_and_declares_its_controller():
+    """The experiment file reads: three closed-loop logs, the gauge's sign reversed, the
+    controller's law as the README writes it."""
+    exp = identify.load_experiment(EXAMPLE / "experiment.toml")
+    assert exp.controller is not None and exp.controller.command == "voltage1"
+    assert exp.controller.gains == {"theta1": 10.0, "tip1": -40.0}
+    assert [s.name for s in exp.fit_logs] == ["step_a", "step_b"]
+    assert [s.name for s in exp.validation_logs] == ["step_c"]
+    for spec in exp.fit_logs + exp.validation_logs:
+        assert spec.log.references and set(spec.log.outputs) == {"theta1", "tip1"}
+
+
+@pytest.mark.slow
+def test_the_fit_holds_the_truth_in_its_intervals():
+    result = identify.fit_experiment(identify.load_experiment(EXAMPLE / "experiment.toml"))
+    assert result.converged
+    for k, name in enumerate(result.names):
+        truth = _truth()[name]
+        assert result.ci_low[k] <= truth <= result.ci_high[k], (name, result.value[name], result.std_errors[k])
+
+
+@pytest.mark.slow
+def test_diagnose_names_the_gear_friction_left_out_of_the_model():
+    diagnosis = identify.diagnose(identify.load_experiment(EXAMPLE / "experiment_no_friction.toml"))
+    assert diagnosis.named == ["coulomb_friction"], diagnosis.summary()
+    lo, hi = diagnosis.causes[0].parameters["joint1.coulomb"]["ci95"]
+    assert lo <= _truth()["joint1.coulomb"] <= hi, diagnosis.causes[0].parameters
