@@ -110,7 +110,8 @@ def evaluate_held_out(result: FitResult, exp: Experiment, logs=None, *, progress
 
 def residual_report(result: FitResult, max_lag: int = 25) -> dict:
     """Per log and channel: residual RMS, whiteness test, and cross-correlation with each
-    joint torque the log applies (MATLAB `resid`)."""
+    joint input the log applies, by its channel (`torque1`, `voltage1`, ...; MATLAB
+    `resid`)."""
     report = {}
     outputs = fitted_outputs(result)
     problem = result.problem
@@ -123,7 +124,7 @@ def residual_report(result: FitResult, max_lag: int = 25) -> dict:
             item = {"rms": float(np.sqrt(np.mean(r**2))), "uniform_sampling": bool(uniform)}
             item["whiteness"] = diagnostics.whiteness(r, max_lag)
             item["input_correlation"] = {
-                f"torque{j + 1}": diagnostics.input_correlation(r, torque[:, j], max_lag)
+                ch.input_name(problem.chain, j): diagnostics.input_correlation(r, torque[:, j], max_lag)
                 for j in range(torque.shape[1])
                 if np.any(torque[:, j] != 0)
             }

@@ -85,6 +85,13 @@ def input_problem(chain: fd.Chain, kind: str, i: int) -> str | None:
     )
 
 
+def input_name(chain: fd.Chain, j: int) -> str:
+    """The input channel of joint `j` (0-based): `torque<j+1>`, or its motor's drive
+    (`voltage<j+1>`, `current<j+1>`)."""
+    motor = chain.motors[j]
+    return f"{'torque' if motor is None else motor.drive}{j + 1}"
+
+
 def is_output(name: str) -> bool:
     """Whether `name` is a recorded output channel (a sensor's), not an input such as a
     closed-loop log's command (`torque1`, `voltage1`)."""

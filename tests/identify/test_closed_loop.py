@@ -560,3 +560,14 @@ def test_new_gains_or_limits_do_not_compile_the_simulation_again():
         problem = identify.make_problem(pendulum(), [], [log], {"theta1": 1e-3}, controller=law)
         outputs.append(np.asarray(run(problem)[0]))
     assert not np.allclose(outputs[0][0, :, 1], outputs[1][0, :, 1])  # (the commands differ)
+
+
+def test_each_joints_input_is_named_by_its_drive():
+    """The residual report's input-correlation column names a voltage-driven motor's
+    input `voltage1`, a torque-driven joint's `torque1`."""
+    from identify._data import channels as ch
+
+    assert ch.input_name(pendulum(), 0) == "voltage1"
+    import flexdyn as fd
+
+    assert ch.input_name(fd.rigs.rigid_pendulum(), 0) == "torque1"
