@@ -162,6 +162,9 @@ def fit(
         raise ValueError(f"fit: shooting expected 'single' or 'multiple', got {shooting!r}")
     if shooting == "single" and segment is not None:
         raise ValueError("fit: segment is multiple shooting's segment length: pass shooting='multiple' with it")
+    horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
+    if shooting == "multiple":
+        segment = check_segment(problem, horizons[0] if segment is None else segment)
     parameters = problem.parameters if parameters is None else parameters
     check_same_parameters(problem, parameters, "fit")
     extra = _extra_starts(problem, parameters, extra_starts)
@@ -172,9 +175,6 @@ def fit(
     if frequency_init:
         x0 = _frequency_initialise(problem, x0, say, grid_safety)
     z = initial_variables(problem, x0)
-    horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
-    if shooting == "multiple":
-        segment = check_segment(problem, horizons[0] if segment is None else segment)
     _say_onsets(problem, horizons, say)
     estimate_noise = _noise_to_estimate(problem, estimate_noise)
     schedule = _Schedule(

@@ -25,7 +25,7 @@ guess ends far from its log, and single shooting's cost then has many local mini
 wrong frequency matched a whole period off). A segment is short, starts near the measured
 state, and its cost is close to quadratic in the parameters (Bock 1984; Voss, Timmer &
 Kurths 2004). Initial start states come from the measurements where a channel is a state:
-a joint angle `theta<j>` from its encoder column (a local quadratic fit over a few
+a joint angle `theta<j>` from its encoder column (a local cubic fit over a few
 samples), its rate from that fit's slope; other entries (elastic coordinates, rates not
 measured) start at 0.
 
@@ -83,7 +83,11 @@ CONTINUITY = (1.0, 10.0, 100.0)
 #: a segment spans at least this many sample intervals
 MIN_SEGMENT_SAMPLES = 4
 
-#: the local quadratic fit that reads a start angle and rate from the encoder column spans
+#: the degree of the local polynomial through the encoder samples around a segment's start
+#: (a quadratic's slope is biased by the third derivative: 1.5 % of a swinging pendulum's rate)
+START_FIT_DEGREE = 3
+
+#: the local polynomial fit that reads a start angle and rate from the encoder column spans
 #: this many samples either side of the segment's start (fewer at a log's ends)
 START_FIT_HALF_WIDTH = 5
 
@@ -149,7 +153,7 @@ def segment_logs(problem: Problem, segment: float) -> Segments:
 
 def measured_starts(problem: Problem, segments: Segments) -> np.ndarray:
     """Start states `(S, 2n)` read from the measurements: a joint angle (`theta<j>`, when
-    its log records that channel) and its rate from a quadratic fitted to the
+    its log records that channel) and its rate from a cubic fitted to the
     `START_FIT_HALF_WIDTH` samples either side of the segment's start; every other entry 0."""
     names = ch.state_names(problem.chain)
     t, measured, present, valid = (np.asarray(a) for a in (problem.t, problem.measured, problem.present, problem.valid))
@@ -159,7 +163,7 @@ def measured_starts(problem: Problem, segments: Segments) -> np.ndarray:
         window = slice(max(a - START_FIT_HALF_WIDTH, 0), min(a + START_FIT_HALF_WIDTH + 1, n))
         for c, channel in enumerate(problem.channels):
             if channel in names and present[l, c] and f"{channel}_rate" in names:
-                rate, value = np.polyfit(t[l, window] - t[l, a], measured[l, window, c], 2)[1:]
+                rate, value = np.polyfit(t[l, window] - t[l, a], measured[l, window, c], START_FIT_DEGREE)[-2:]
                 starts[i, names.index(channel)] = value
                 starts[i, names.index(f"{channel}_rate")] = rate
     return starts
