@@ -337,6 +337,7 @@ def test_library_defaults_match_the_command_line():
     assert (not args.no_restart_poor_fit) == defaults["restart_poor_fit"].default
     assert (not args.no_frequency_init) == defaults["frequency_init"].default
     assert args.stages == defaults["n_stages"].default
+    assert args.segment == defaults["segment"].default and defaults["shooting"].default == "single"
 
 
 def test_negative_max_restarts_is_a_usage_error(capsys):
