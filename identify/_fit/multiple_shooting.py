@@ -39,7 +39,10 @@ does not, this gives it a start inside the basin.
 **Approximations inside a segment** (gone in the final single-shooting fit): a sensor's
 high-pass filter and delay restart at each segment's start (an actuator lag does not: the
 input is built over the whole log). Closed-loop problems are refused: a segment of a
-closed-loop log needs the controller's internal state too.
+closed-loop log needs the controller's internal state too. The segments integrate at one
+constant step, chosen as a growing-horizon stage's is but over whole logs at the starting
+values (`fit`): a guess whose whole-log simulation fails stops the fit there, as it stops
+single shooting's last stage.
 
 Each segment's Jacobian is taken w.r.t. its own inputs only (the physical parameters, its
 start state, its log's offsets: `P + 2n + C` tangents per solve, `vmap` over segments) and
