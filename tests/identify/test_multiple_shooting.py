@@ -145,6 +145,7 @@ def test_both_converge_to_the_same_optimum_on_a_short_log(short):
     multiple = quiet_fit(problem, shooting="multiple", segment=0.25)
     assert single.converged and multiple.converged
     assert [s.segments for s in multiple.stages[:3]] == [8, 8, 8] and multiple.stages[3].segments is None
+    assert multiple.stages[0].to_dict()["segments"] == 8 and "segments" not in multiple.stages[3].to_dict()
     se = np.asarray(single.std_errors)
     for i, n in enumerate(single.names):
         assert abs(multiple.value[n] - single.value[n]) < 0.01 * se[i], (n, multiple.value[n], single.value[n])
