@@ -22,6 +22,7 @@ from .._model.problem import Problem, check_same_parameters, guesses_of
 from .._model.variables import Variables
 from .jacobian import _covariance_at
 from .levenberg_marquardt import _check_budgets, _check_damping, _solve
+from .multiple_shooting import check_segment, multiple_shooting
 from .quality import (
     NOISE_AGREEMENT,
     NOISE_ROUNDS,
@@ -69,6 +70,8 @@ def fit(
     first_damping: float = 1e-3,
     extra_starts: Sequence[dict] = (),
     stop_when_stiff: bool = False,
+    shooting: str = "single",
+    segment: float | None = None,
     progress=None,
 ) -> FitResult:
     """Fit the free parameters (and per-log nuisances) of `problem`.
@@ -141,10 +144,27 @@ def fit(
       on solves that end on the step limit and raise. Before any stage has finished it
       raises `TooStiff` (a `SimulationFailed`, its `estimate` the `StepEstimate`) at once. For a fit that
       may walk into a stiff model (`identify diagnose`'s structural candidates).
+    - `shooting`: `"single"` (the default: the growing horizon above) or `"multiple"`: for
+      long, drifting or lightly damped logs that cannot be simulated open loop over their
+      whole length from the guess. Each log is cut into segments of at most `segment` s
+      (default: the growing horizon's first, `horizons[0]`), each with its own estimated
+      start state, continuity enforced by a growing penalty
+      (`identify/_fit/multiple_shooting.py`); from its optimum the ordinary fit over whole
+      logs (one stage) gives the result, so the optimum, noise estimate and intervals are
+      single shooting's. It replaces the multi-start and the growing horizon (`n_starts`,
+      `start_spread`, `extra_starts`, `horizons`, `max_restarts` are not used). Open-loop
+      problems only.
     - `progress`: callable taking a message string (e.g. `print`), or None.
     """
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps, early_max_steps=early_max_steps)
+    if shooting not in ("single", "multiple"):
+        raise ValueError(f"fit: shooting expected 'single' or 'multiple', got {shooting!r}")
+    if shooting == "single" and segment is not None:
+        raise ValueError("fit: segment is multiple shooting's segment length: pass shooting='multiple' with it")
+    horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
+    if shooting == "multiple":
+        segment = check_segment(problem, horizons[0] if segment is None else segment)
     parameters = problem.parameters if parameters is None else parameters
     check_same_parameters(problem, parameters, "fit")
     extra = _extra_starts(problem, parameters, extra_starts)
@@ -155,7 +175,6 @@ def fit(
     if frequency_init:
         x0 = _frequency_initialise(problem, x0, say, grid_safety)
     z = initial_variables(problem, x0)
-    horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
     _say_onsets(problem, horizons, say)
     estimate_noise = _noise_to_estimate(problem, estimate_noise)
     schedule = _Schedule(
@@ -174,8 +193,12 @@ def fit(
         if estimate is not None:
             raise TooStiff(estimate, where="at its starting values", horizon_s=None, values=values_at(problem, z))
     stages, candidates = [], [z]
-    several = n_starts > 1 or len(extra)
-    if several and problem.names:
+    several = shooting == "single" and (n_starts > 1 or len(extra))
+    if shooting == "multiple":  # into the basin segment by segment, then one stage over whole logs
+        z, ms_stages = _multiple_shooting(problem, z, segment, horizons[-1], schedule, say)
+        stages.extend(ms_stages)
+        candidates, horizons = [z], horizons[-1:]
+    elif several and problem.names:
         candidates, stage = multi_start(
             problem,
             z,
@@ -199,7 +222,7 @@ def fit(
         candidates,
         horizons,
         schedule,
-        tau_first=0.0 if n_starts > 1 and problem.names else first_damping,
+        tau_first=0.0 if (n_starts > 1 or shooting == "multiple") and problem.names else first_damping,
         restart_poor_fit=restart_poor_fit,
         no_other_start=not several,
         max_restarts=max_restarts,
@@ -219,6 +242,16 @@ def fit(
         stopped=stopped,
         converged=result.converged and not stopped,
     )
+
+
+def _multiple_shooting(problem, z, segment: float, horizon: float, schedule, say):
+    """`fit`'s multiple-shooting stages (`multiple_shooting`) from `z`, integrated at the
+    constant step of a stage over whole logs at `z`; returns its optimum and stages."""
+    step = _stage_step(problem, z, horizon, schedule.grid, problem.sigma)
+    outcome = multiple_shooting(
+        problem, z, segment, step, max_steps=schedule.cap, rtol=schedule.rtol, atol=schedule.atol, say=say
+    )
+    return outcome.z, outcome.stages
 
 
 class _Schedule(NamedTuple):

@@ -19,7 +19,10 @@ class Stage:
     - `cost`: its final cost, `0.5 sum r^2` of the noise-weighted residuals;
     - `result`: optimistix's outcome (`optx.RESULTS`), kept as such; `outcome` names it;
     - `starts`, `start_costs`: for the multi-start stage, how many starts were solved and
-      each one's final cost (`None` otherwise)."""
+      each one's final cost (`None` otherwise);
+    - `segments`: for a multiple-shooting solve (`fit(..., shooting="multiple")`), the
+      number of segments the logs were cut into, its `cost` that of the output residuals
+      alone (`None` otherwise)."""
 
     horizon_s: float
     iterations: int
@@ -27,6 +30,7 @@ class Stage:
     result: optx.RESULTS
     starts: int | None = None
     start_costs: tuple[float, ...] | None = None
+    segments: int | None = None
 
     @property
     def outcome(self) -> str:
@@ -39,4 +43,6 @@ class Stage:
         if self.starts is not None:
             out["starts"] = self.starts
             out["start_costs"] = list(self.start_costs)
+        if self.segments is not None:
+            out["segments"] = self.segments
         return out

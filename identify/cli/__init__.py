@@ -1,6 +1,6 @@
 """The `identify` command line (also `python -m identify`).
 
-    identify fit EXPERIMENT.toml [--out DIR] [--stages N] [--no-frequency-init] [--max-restarts N]
+    identify fit EXPERIMENT.toml [--out DIR] [--stages N] [--segment SECONDS] [--no-frequency-init] [--max-restarts N]
                  [--no-restart-poor-fit] [--quiet] [--force] [--any-rate]
     identify diagnose EXPERIMENT.toml [--out DIR] [--only NAME,...] [--max-effects N] [--quiet] [--force]
                       [--any-rate]
@@ -94,6 +94,16 @@ def _parser() -> argparse.ArgumentParser:
         metavar="N",
         help="horizon stages of the fit: the horizon (from each log's onset, where its input or motion starts) "
         "doubles N-1 times up to the logs' length (default 4; 1 is plain single shooting)",
+    )
+    fit.add_argument(
+        "--segment",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="multiple shooting (for long, drifting logs that cannot be simulated open loop over their whole "
+        "length): cut each log into segments of at most SECONDS, each with its own estimated start state, "
+        "continuity enforced; the result is then the ordinary fit over whole logs from its optimum "
+        "(default: single shooting with the growing horizon of --stages)",
     )
     fit.add_argument(
         "--no-frequency-init",

@@ -51,6 +51,8 @@ def run_fit(args) -> int:
         return error(f"--stages expects an integer >= 1, got {args.stages}")
     if args.max_restarts < 0:
         return error(f"--max-restarts expects an integer >= 0, got {args.max_restarts}")
+    if args.segment is not None and args.independent:
+        return error("--segment (multiple shooting) is an option of the joint fit, not of --independent")
     try:
         exp, inputs, out = _experiment_and_folder(args, "fit")
         folder = OutputFolder.claim(out, inputs, args.force)
@@ -77,6 +79,8 @@ def _fit_into(args, exp, folder: OutputFolder, start: float, say) -> int:
             frequency_init=not args.no_frequency_init,
             max_restarts=args.max_restarts,
             restart_poor_fit=not args.no_restart_poor_fit,
+            shooting="single" if args.segment is None else "multiple",
+            segment=args.segment,
             progress=progress,
         )
     except (RuntimeError, ValueError) as e:
@@ -196,7 +200,7 @@ def _write_fit(report, folder: OutputFolder, args, interrupted: bool) -> tuple[l
 
     result, exp = report.result, report.experiment
     stage = folder.staging()
-    doc = report.to_dict(options={"stages": args.stages}, command=["identify", "fit", *map(str, _argv_tail(args))])
+    doc = report.to_dict(options=_options(args), command=["identify", "fit", *map(str, _argv_tail(args))])
     _write_json(stage / RESULT_FILE, doc)  # first: whatever happens next, the fit is on disk
     outputs = {**report.outputs, **report.validation_outputs}
     tasks = []
@@ -255,7 +259,7 @@ def _rescue(report, args, out: Path, error: OSError) -> Path:
     """`result.json` written to the system's temporary folder when `out` cannot take it."""
     import tempfile
 
-    doc = report.to_dict(options={"stages": args.stages}, command=["identify", "fit", *map(str, _argv_tail(args))])
+    doc = report.to_dict(options=_options(args), command=["identify", "fit", *map(str, _argv_tail(args))])
     doc["problems"] = [*doc["problems"], f"not written into {out}: {error}"]
     fd, name = tempfile.mkstemp(prefix=f"identify-{Path(report.experiment.path).stem}-", suffix=".json")
     os.close(fd)
@@ -370,11 +374,19 @@ def _write_independent(args, exp, folder: OutputFolder, results):
     return _commit_json(folder, doc, more, interrupted), between, interrupted
 
 
+def _options(args) -> dict:
+    """The fit's options as `result.json` records them."""
+    segment = getattr(args, "segment", None)
+    return {"stages": args.stages} if segment is None else {"stages": args.stages, "segment": segment}
+
+
 def _argv_tail(args) -> list:
     tail = [args.experiment]
     if args.out is not None:
         tail += ["--out", args.out]
     tail += ["--stages", args.stages]
+    if getattr(args, "segment", None) is not None:
+        tail += ["--segment", args.segment]
     if args.quiet:
         tail.append("--quiet")
     if args.force:

@@ -337,6 +337,7 @@ def test_library_defaults_match_the_command_line():
     assert (not args.no_restart_poor_fit) == defaults["restart_poor_fit"].default
     assert (not args.no_frequency_init) == defaults["frequency_init"].default
     assert args.stages == defaults["n_stages"].default
+    assert args.segment == defaults["segment"].default and defaults["shooting"].default == "single"
 
 
 def test_negative_max_restarts_is_a_usage_error(capsys):
@@ -918,3 +919,16 @@ def test_a_second_experiment_of_the_same_rig_compiles_no_program(tmp_path, monke
     assert counts[0] > 10 and counts[1] == 0, counts
     a, b = (json.loads((tmp_path / "out" / f"{n}-experiment-fit" / "result.json").read_text()) for n in "ab")
     assert a["parameters"] == b["parameters"]
+
+
+def test_a_bad_segment_fails_naming_the_option(tmp_path, capsys):
+    """`--segment` (multiple shooting): a non-positive length is refused by the fit (exit 1,
+    nothing written) naming `segment`; with `--independent` it is a usage error (exit 2)."""
+    exp = _copy_example(tmp_path / "example")
+    assert main(["fit", str(exp), "--out", str(tmp_path / "out"), "--segment", "0", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "segment expected a length in seconds > 0" in err and "Traceback" not in err
+    assert not (tmp_path / "out" / "result.json").exists()
+    args = ["fit", str(exp), "--out", str(tmp_path / "out2"), "--segment", "0.1", "--independent", "--quiet"]
+    assert main(args) == 2
+    assert "--segment (multiple shooting) is an option of the joint fit" in capsys.readouterr().err
