@@ -216,9 +216,19 @@ def noisy_logs(seed, samples=800, **hidden):
     return logs
 
 
+#: Left out of the closed-loop grid: the structural joint-elasticity candidate, whose own
+#: fit (eight starts, a joint mode aimed at the 500 Hz Nyquist frequency, every 1 ms period
+#: solved in tens of fixed steps) ran over 40 minutes per diagnosis on 2 loaded cores
+#: (measured 2026-12-07) before being stopped; the grid is about the continuous candidates
+#: in the loop.
+SLOW_STRUCTURAL = ("joint_elasticity:joint1",)
+
+
 def diagnose_closed(logs, **options):
     """`identify.diagnose_logs` of `noisy_logs` on the baseline rig (no hidden effect; the
-    motor's resistance and the hub's inertia free), the last log held out."""
+    motor's resistance and the hub's inertia free), the last log held out, without
+    `SLOW_STRUCTURAL`."""
+    options.setdefault("exclude", SLOW_STRUCTURAL)
     fit_logs, held, desc = identify.split_logs(logs[:-1], logs[-1:])
     parameters = [identify.Parameter(n, g, g / 5, g * 5) for n, g in DIAGNOSE_PARAMETERS]
     noise = {"theta1": float(np.hypot(READING_NOISE, ADC / np.sqrt(12)))}

@@ -6,7 +6,9 @@ channel through the candidate's sensor delay, and the amplifier applies the comm
 through the candidate's lag.
 
 Each must be named, alone, with the truth inside its 95 % interval; the same logs without
-a hidden effect name nothing. Slow: a few minutes per diagnosis on 2 cores."""
+a hidden effect name nothing. The structural joint-elasticity candidate is left out
+(`closed_loop_case.SLOW_STRUCTURAL` says why). Slow: a few minutes per diagnosis on 2
+cores."""
 
 from __future__ import annotations
 
