@@ -3,16 +3,17 @@
 The failure it guards against (issue 61, the flexible servo rig): a baseline stuck short of its
 optimum hands its own gain to the first candidate fitted from it, which is then named at a
 neutral value (an actuator lag of 1.6e-35 s there). Reproduced on the pendulum of
-`test_diagnose.py` with no hidden effect, its baseline fit stopped after two
-Levenberg-Marquardt steps (cost 5.2e4 where the data's noise gives ~1.6e3): without the guard
-`sensor_gain_offset:theta1` is named with a gain of 1.0001 (dBIC -5655, held-out gain 5.9x,
-measured 2026-12-07).
+`test_diagnose.py` (4 s logs here, to save time) with no hidden effect, its baseline fit stopped
+after two Levenberg-Marquardt steps (cost 8410 where the data's noise gives ~800): without the
+guard `sensor_gain_offset:theta1` is named at a gain of ~1 (measured 2026-12-07; on the 8 s logs
+1.0001, dBIC -5655, held-out gain 5.9x). About 100 s of CPU, most of it compiling.
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 from diagnose_cases import PENDULUM_NOISE, PENDULUM_PARAMS, pendulum, pendulum_logs  # tests/ is on sys.path
 
 import flexdyn as fd
@@ -25,7 +26,7 @@ STOPPED_SHORT = {"max_steps": 2, "n_stages": 1, "n_starts": 1, "max_restarts": 0
 
 
 def test_a_baseline_stuck_short_of_its_optimum_gives_no_cause_its_gain():
-    logs = pendulum_logs(pendulum(), 14)  # no hidden effect
+    logs = pendulum_logs(pendulum(), 14, t=np.arange(401) / 100.0)  # no hidden effect
     fit_logs, held, desc = split_logs(logs[:2], logs[2:])
     diag = diagnose_logs(
         fd.rigs.rigid_pendulum(),
@@ -43,7 +44,7 @@ def test_a_baseline_stuck_short_of_its_optimum_gives_no_cause_its_gain():
     assert len(guard) == 1 and guard[0]["round"] == 1, diag.notes
     # the causes' baseline is the refitted one: at the noise (cost ~ N), far below the stopped fit
     n = diag.costs["n_fit"]
-    assert diag.baseline.cost > 10 * n, diag.baseline.cost
+    assert diag.baseline.cost > 5 * n, diag.baseline.cost  # (8410 for 802 residuals)
     assert diag.costs["fit"]["baseline"] < 1.2 * n, diag.costs
     ratio = diag.held_out["baseline"]["theta1"] / diag.held_out["noise_floor"]["theta1"]
     assert 0.8 < ratio < 1.2, ratio
