@@ -53,13 +53,14 @@ def pendulum(coulomb=None, drag=None, damping=0.8e-3):
     )
 
 
-def pendulum_logs(truth, seed, measurement=None):
+def pendulum_logs(truth, seed, measurement=None, t=PENDULUM_T):
+    """The three releases of `truth` (sample times `t`, s), noise and offsets drawn from `seed`."""
     rng = np.random.default_rng(seed)
     offsets = rng.normal(0.0, math.radians(0.2), 3)
     return [
         simulate_log(
             truth,
-            PENDULUM_T,
+            t,
             initial={"theta1": math.radians(a)},
             channels=("theta1",),
             noise={"theta1": PENDULUM_NOISE},

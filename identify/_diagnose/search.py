@@ -20,7 +20,7 @@ from .._fit.fit import fit
 from .._fit.result import FitResult, fitted_outputs
 from .._model.parameters import Parameter
 from .._model.problem import make_problem
-from . import catalogue as cat, evidence as ev
+from . import catalogue as cat, evidence as ev, own_gain
 from .continuous import pair_search, reconverge, score_continuous
 from .diagnosis import Diagnosis, _stacked, _with_totals, assemble
 from .held_out import HeldOutSet, _with_extra_state, held_out_set
@@ -115,6 +115,8 @@ def diagnose_logs(
     state = SearchState(current=baseline, step=base.step, notes=notes)
     structural = _structural_setting(base, parameters, superset, fit_logs, held_out_logs, signals, rtol, options)
     interrupted = _rounds(superset, held, options, structural, state, cands, signals)
+    # a baseline refitted in the rounds (`own_gain`) is the baseline the causes are scored against
+    baseline = state.refitted_baseline or baseline
     diag = _assembled(
         interrupted,
         split=split,
@@ -360,7 +362,7 @@ def _round(
     remaining = [c for c in cands if c.label not in done and not c.structural]
     if not remaining:
         return False
-    scores, fits = score_continuous(superset, held, options, state, remaining, state.current.v)
+    scores, fits = _continuous_round(superset, held, options, state, remaining)
     fit_structural_round(structural, state, cands, scores, fits, held.problem)
     pairs, pair_fits = [], None
     if options.pair_search:
@@ -384,6 +386,26 @@ def _round(
     else:
         candidate = next(x for x in cands if x.label == winner.label)
     return _accept(superset, held, options, structural, state, winner, candidate, fits)
+
+
+def _continuous_round(superset: Superset, held: HeldOutSet, options: SearchOptions, state: SearchState, remaining):
+    """The round's continuous candidates `remaining` scored (`score_continuous`) against a
+    current model that does not hand them its own gain: when the round's leading candidate's
+    gain is the current model's (`own_gain.refitted_if_not_own`), that model is refitted and
+    they are scored again (at most `own_gain.MAX_REFITS` times). The notes of a superseded
+    scoring are dropped, but for a change of integration step (which stands)."""
+    for _ in range(own_gain.MAX_REFITS):
+        n_notes = len(state.notes)
+        scores, fits = score_continuous(superset, held, options, state, remaining, state.current.v)
+        refit = own_gain.refitted_if_not_own(superset, held, options, state, scores, fits)
+        if refit is None:
+            return scores, fits
+        guard_note = state.notes[-1]
+        state.notes[n_notes:] = [n for n in state.notes[n_notes:-1] if "integration step" in n["text"]] + [guard_note]
+        state.current = refit
+        if not state.accepted:
+            state.refitted_baseline = refit
+    return score_continuous(superset, held, options, state, remaining, state.current.v)
 
 
 def _rank(s) -> tuple:

@@ -153,6 +153,8 @@ class SearchState:
     struct_drop: dict = dataclasses.field(default_factory=dict)
     struct_models: dict[str, StructuralModel] = dataclasses.field(default_factory=dict)
     stack_on: StackOn | None = None  # a structural winner: the search goes on from its model
+    # the baseline refitted from a candidate's optimum before any cause was accepted (`own_gain`)
+    refitted_baseline: CurrentModel | None = None
 
     @property
     def done(self) -> set[str]:

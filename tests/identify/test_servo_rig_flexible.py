@@ -13,9 +13,20 @@ held out. The baseline model (hub inertia, joint damping and EI free) has no fri
 
 The claim: dry friction is named with its true sliding value inside its 95 % interval,
 and no unphysical cause is named. Measured (2026-12-07, on 2 cores shared with other
-jobs, load 8-10): this module 46 min (2 passed, 1 xfailed), the same diagnosis run as a
-script 54 min; friction named in round 2, 0.07502 N m, HAC interval [0.05894,
-0.09549]; but an actuator lag of 1.6e-35 s named in round 1 (the xfail below says why).
+jobs, load 7-10), this module 58 min: 1 passed, 2 xfailed. The frictionless baseline ends
+on its bounds (hub1.inertia 1.0 kg m^2, joint1.damping 1e-5 N m s/rad, link1.EI
+10 N m^2, cost 1.092e12). Round 1's leader, actuator_lag:joint1, does not own its gain
+(`identify/_diagnose/own_gain.py`): at its optimum with the lag at 0 s the baseline costs
+6.005e11 (dBIC -5981 without a new parameter); the baseline is refitted from there (cost
+6.058e10) and the round scored again, and nothing is named. Dry friction is not named:
+the screening predicts it dBIC -3186 but ranks it 4th (n_fit=3; sensor_delay:theta1,
+actuator_lag:joint1 and quadratic_damping:link1 fitted instead, dBIC -1923, -980, +9,
+held-out gains 1.01x or less), and its pair with sensor_delay:theta1 (dBIC -5095)
+predicts the held-out log worse (0.868x). Before the guard (46 min): an actuator lag of
+1.6e-35 s named in round 1 (dBIC -5972, held-out gain 1.33x), then friction in round 2,
+0.07502 N m, HAC interval [0.05894, 0.09549], in a wrong basin (EI 7.25 N m^2 against
+0.388, cost 4.97e9), while baseline + friction fitted from the experiment's guesses
+reaches cost 5.8e7 (EI 0.3875, friction 0.0866 N m).
 """
 
 import pytest
@@ -25,7 +36,7 @@ import identify
 
 TRUTH = FlexibleServoRig()
 
-pytestmark = pytest.mark.slow  # 46-54 min on 2 loaded cores (the module docstring)
+pytestmark = pytest.mark.slow  # 46-58 min on 2 loaded cores (the module docstring)
 
 
 @pytest.fixture(scope="module")
@@ -34,6 +45,14 @@ def diagnosis(tmp_path_factory):
     return identify.diagnose(identify.load_experiment(path))
 
 
+_NOT_NAMED = (
+    "measured 2026-12-07: after round 1's actuator lag was found not to own its gain and the baseline refitted "
+    "(cost 1.092e12 -> 6.058e10), dry friction is screened out (predicted dBIC -3186, ranked 4th with n_fit=3) "
+    "and its pair with sensor_delay:theta1 predicts the held-out log worse (0.868x): nothing is named"
+)
+
+
+@pytest.mark.xfail(strict=True, reason=_NOT_NAMED)
 def test_dry_friction_is_named_without_warnings(diagnosis):
     """Friction is named; no named cause carries a warning; a high-pass on the encoder is
     not even tried (`kind = "encoder"`)."""
@@ -43,18 +62,6 @@ def test_dry_friction_is_named_without_warnings(diagnosis):
     assert "sensor_highpass:theta1" in diagnosis.not_tried, diagnosis.not_tried
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "measured 2026-12-07: the frictionless baseline runs onto its bounds (hub1.inertia 1.0 kg m^2, "
-        "joint1.damping 1e-5 N m s/rad, link1.EI 10 N m^2); round 1's candidates start there (pulled back only to "
-        "|z| = 6 of the bound transform) and actuator_lag:joint1 is named with a lag of 1.6e-35 s (dBIC -5972, "
-        "held-out gain 1.33x): its gain is the baseline's parameters leaving their bounds, credited to the first "
-        "candidate. The final model stays in a wrong basin (EI 7.25 N m^2 against 0.388, cost 4.97e9), while "
-        "baseline + friction fitted from the experiment's guesses reaches cost 5.8e7 (EI 0.3875, friction "
-        "0.0866 N m)"
-    ),
-)
 def test_no_unphysical_cause_is_named(diagnosis):
     """No sensor delay or actuator lag standing in for the held command, no high-pass on the
     gauge, no tilt of the horizontal rig."""
@@ -62,6 +69,7 @@ def test_no_unphysical_cause_is_named(diagnosis):
     assert not {"sensor_delay", "sensor_highpass", "actuator_lag", "base_tilt"} & set(diagnosis.named), labels
 
 
+@pytest.mark.xfail(strict=True, reason=_NOT_NAMED)
 def test_dry_friction_interval_contains_the_truth(diagnosis):
     """The sliding friction's 95 % interval holds the simulation's 0.085 N m."""
     (cause,) = [c for c in diagnosis.causes if c.name == "coulomb_friction"]
