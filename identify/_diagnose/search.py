@@ -392,7 +392,10 @@ def _continuous_round(superset: Superset, held: HeldOutSet, options: SearchOptio
     """The round's continuous candidates `remaining` scored (`score_continuous`) against a
     current model that does not hand them its own gain: when the round's leading candidate's
     gain is the current model's (`own_gain.refitted_if_not_own`), that model is refitted and
-    they are scored again (at most `own_gain.MAX_REFITS` times). The notes of a superseded
+    they are scored again (at most `own_gain.MAX_REFITS` times), then with every candidate
+    the screening finds promising fitted (no `n_fit` cut): the screening's one-step
+    predictions come from a model just found stuck, and on the flexible servo rig they
+    ranked the true cause (dry friction) fourth of three fitted. The notes of a superseded
     scoring are dropped, but for a change of integration step (which stands)."""
     for _ in range(own_gain.MAX_REFITS):
         n_notes = len(state.notes)
@@ -405,6 +408,7 @@ def _continuous_round(superset: Superset, held: HeldOutSet, options: SearchOptio
         state.current = refit
         if not state.accepted:
             state.refitted_baseline = refit
+        options = dataclasses.replace(options, n_fit=None)
     return score_continuous(superset, held, options, state, remaining, state.current.v)
 
 
