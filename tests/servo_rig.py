@@ -192,31 +192,38 @@ def write_log(rig: ServoRig, log: ServoLog, path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+def write_logs(folder: Path, rig, names: dict, duration_s: float, closed_loop, write_log, entry: str, hold: str):
+    """Simulate and write each log of `names` (`name -> (seed, role)`) into `folder`:
+    `closed_loop(rig, duration_s, rng)` runs one, `write_log(rig, log, path)` writes its
+    CSV. Returns the logs by name and their `[[logs]]` entries: `entry` formatted with each
+    log's `name`, `role`, `hold` and the rig's `gear_ratio`. (Shared with
+    `servo_rig_flexible.py`.)"""
+    folder.mkdir(parents=True, exist_ok=True)
+    logs, entries = {}, []
+    for name, (seed, role) in names.items():
+        logs[name] = closed_loop(rig, duration_s, np.random.default_rng(seed))
+        write_log(rig, logs[name], folder / f"{name}.csv")
+        entries.append(entry.format(name=name, role=role, hold=hold, gear_ratio=rig.gear_ratio))
+    return logs, entries
+
+
 def write_servo_experiment(folder: Path, rig: ServoRig = ServoRig(), hold: str = "zoh") -> tuple[Path, dict]:
     """Write the logs and `experiment.toml` into `folder`; returns its path and the logs
     (`name -> ServoLog`). The baseline: a rigid arm (its length and mass known) with the hub
     inertia and the viscous damping free, no friction; the encoder's noise is its
     quantisation, `q / sqrt(12)`."""
-    folder.mkdir(parents=True, exist_ok=True)
-    logs = {}
-    entries = []
-    for name, (seed, role) in LOGS.items():
-        log = closed_loop(rig, DURATION_S, np.random.default_rng(seed))
-        write_log(rig, log, folder / f"{name}.csv")
-        logs[name] = log
-        entries.append(
-            f"""
+    entry = """
 [[logs]]
 name = "{name}"
 file = "{name}.csv"
 columns = {{ time = "time [s]", theta1 = "motor [deg]", torque1 = "torque [N m]" }}
-calibration = {{ theta1 = {{ gear_ratio = {rig.gear_ratio!r} }}, torque1 = {{ gear_ratio = {rig.gear_ratio!r} }} }}
+calibration = {{ theta1 = {{ gear_ratio = {gear_ratio!r} }}, torque1 = {{ gear_ratio = {gear_ratio!r} }} }}
 initial = {{ theta1 = "measured" }}
 fit_initial = ["theta1"]
 hold = "{hold}"
 role = "{role}"
 """
-        )
+    logs, entries = write_logs(folder, rig, LOGS, DURATION_S, closed_loop, write_log, entry, hold)
     q = rig.count_rad
     text = f"""# synthetic servo rig with stick-slip friction (tests/servo_rig.py)
 [experiment]

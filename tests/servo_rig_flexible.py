@@ -65,7 +65,7 @@ from pathlib import Path
 import numpy as np
 import scipy.integrate
 import scipy.optimize
-from servo_rig import min_jerk  # tests/ is on sys.path
+from servo_rig import min_jerk, write_logs  # tests/ is on sys.path
 
 ALUMINIUM_E_PA = 69e9
 ALUMINIUM_DENSITY_KG_M3 = 2700.0
@@ -409,15 +409,7 @@ def write_flexible_servo_experiment(
     length, tip mass and modal damping known (weighed, measured, a ring-down), the hub
     inertia, the joint's viscous damping and `EI` free, no friction; each channel's noise is
     its quantisation, `q / sqrt(12)`."""
-    folder.mkdir(parents=True, exist_ok=True)
-    logs = {}
-    entries = []
-    for name, (seed, role) in LOGS.items():
-        log = closed_loop(rig, DURATION_S, np.random.default_rng(seed))
-        write_log(rig, log, folder / f"{name}.csv")
-        logs[name] = log
-        entries.append(
-            f"""
+    entry = """
 [[logs]]
 name = "{name}"
 file = "{name}.csv"
@@ -428,11 +420,11 @@ hold = "{hold}"
 role = "{role}"
 
 [logs.calibration]
-theta1 = {{ gear_ratio = {rig.gear_ratio!r} }}
-torque1 = {{ gear_ratio = {rig.gear_ratio!r} }}
+theta1 = {{ gear_ratio = {gear_ratio!r} }}
+torque1 = {{ gear_ratio = {gear_ratio!r} }}
 tip1 = {{ sign = -1 }}
 """
-        )
+    logs, entries = write_logs(folder, rig, LOGS, DURATION_S, closed_loop, write_log, entry, hold)
     q, g = rig.count_rad, rig.gauge_resolution_m
     text = f"""# synthetic flexible-link servo rig with stick-slip friction (tests/servo_rig_flexible.py)
 [experiment]

@@ -75,6 +75,7 @@ from .._model.residuals import (
     _measurement,
     _strictly_increasing,
     chain_at,
+    open_loop_outputs,
 )
 from .._model.variables import Variables
 from .stage import Stage
@@ -272,14 +273,7 @@ def _segment(shooting: Shooting, i, u, sigma, step):
     )
     ok = admissible & (sol.result == diffrax.RESULTS.successful) & jnp.all(jnp.isfinite(sol.ys))
     ys = jnp.where(ok, sol.ys, 0.0)
-    evaluate = lambda tk, yk: ch.evaluate(asm, problem.channels, tk, yk, torque)  # noqa: E731
-    out = jax.vmap(evaluate)(ts, ys)
-    if meas.needs_rates(sensors, problem.channels):
-        ydot = jax.vmap(lambda tk, yk: field(tk, yk, None))(ts, ys)
-        dout = jax.vmap(lambda tk, yk, vk: jax.jvp(lambda y_: evaluate(tk, y_), (yk,), (vk,))[1])(ts, ys, ydot)
-    else:
-        dout = out
-    out = meas.apply_sensors(sensors, problem.channels, ts, out, dout)
+    out = open_loop_outputs(asm, problem.channels, sensors, field, ts, ys)
     r = (out + u[P + n2 :] - problem.measured[l][k]) / sigma
     # a segment's last sample is the next one's first: it counts there (but in a log's last)
     counted = (a + jnp.arange(shooting.width) < b) | ((a + jnp.arange(shooting.width) == b) & shooting.closes[i])

@@ -42,6 +42,7 @@ from flexdyn.sampled_loop import HeldCommand
 
 from .._data import channels as ch, measurement as meas
 from .._data.controller import Controller, check_period, reference_channel
+from .sensed import recorded_outputs
 
 
 class FeedbackLaw(eqx.Module):
@@ -331,18 +332,10 @@ def closed_log_outputs(problem, asm, sensors, ts, logged, reference, y0, step):
     )
     ys = jnp.where(run.ok, run.ys, 0.0)
     physical = tuple(c for c in problem.channels if c != law.command)
+    # (each sample's input: the command applied from it, held)
     evaluate = lambda tk, yk, uk: ch.evaluate(asm, physical, tk, yk, HeldCommand(uk))  # noqa: E731
-    out = jax.vmap(evaluate)(ts, ys, run.applied)
-    if meas.needs_rates(sensors, physical):
-        # (delayed sensors: d out/dt = d out/dy . f(t, y), under the input held from each sample)
-        def rate(tk, yk, uk):
-            ydot = fd.ChainVectorField(asm, HeldCommand(uk))(tk, yk, None)
-            return jax.jvp(lambda y_: evaluate(tk, y_, uk), (yk,), (ydot,))[1]
-
-        dout = jax.vmap(rate)(ts, ys, run.applied)
-    else:
-        dout = out
-    out = meas.apply_sensors(sensors, physical, ts, out, dout)
+    rate = lambda tk, yk, uk: fd.ChainVectorField(asm, HeldCommand(uk))(tk, yk, None)  # noqa: E731
+    out = recorded_outputs(sensors, physical, ts, ys, evaluate, rate, run.applied)
     columns = {c: out[:, k] for k, c in enumerate(physical)}
     columns[law.command] = jnp.where(run.ok, run.commands, 0.0)
     return jnp.stack([columns[c] for c in problem.channels], axis=1), run

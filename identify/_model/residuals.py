@@ -39,6 +39,7 @@ from flexdyn.simulation import adaptive_controller as _adaptive_controller
 
 from .._data import channels as ch, measurement as meas
 from .closed_loop import closed_log_outputs
+from .sensed import recorded_outputs
 
 
 def _values(problem, theta, log_values=None, log_index=None) -> dict:
@@ -179,18 +180,17 @@ def _simulate_log(problem, theta, t, torque_v, y0, onset, horizon, step, stats: 
     )
     ok = admissible & (sol.result == diffrax.RESULTS.successful) & jnp.all(jnp.isfinite(sol.ys))
     ys = jnp.where(ok, sol.ys, 0.0)
-    evaluate = lambda tk, yk: ch.evaluate(asm, problem.channels, tk, yk, torque)  # noqa: E731
-    out = jax.vmap(evaluate)(ts, ys)
-    if meas.needs_rates(sensors, problem.channels):
-        # time derivatives of the outputs (for delayed sensors): d out/dt = d out/dy . f(t, y)
-        ydot = jax.vmap(lambda tk, yk: field(tk, yk, None))(ts, ys)
-        dout = jax.vmap(lambda tk, yk, vk: jax.jvp(lambda y_: evaluate(tk, y_), (yk,), (vk,))[1])(ts, ys, ydot)
-    else:
-        dout = out
-    out = meas.apply_sensors(sensors, problem.channels, ts, out, dout)
+    out = open_loop_outputs(asm, problem.channels, sensors, field, ts, ys)
     if stats == "limit":  # (identify.fit._simulation_failure: why a solve failed)
         return out, ok, sol.result == diffrax.RESULTS.max_steps_reached
     return (out, ok, sol.stats["num_accepted_steps"]) if stats else (out, ok)
+
+
+def open_loop_outputs(asm, channels, sensors, field: fd.ChainVectorField, ts, ys):
+    """The recorded outputs `(T, C)` of an open-loop solve `ys` `(T, 2n)` at `ts` under
+    `field` (its input a function of time)."""
+    evaluate = lambda tk, yk: ch.evaluate(asm, channels, tk, yk, field.torque)  # noqa: E731
+    return recorded_outputs(sensors, channels, ts, ys, evaluate, lambda tk, yk: field(tk, yk, None))
 
 
 def predict(problem, theta, y0s, horizon=None, step=None, *, stats: bool = False):

@@ -54,19 +54,25 @@ def test_the_closed_loop_prediction_matches_an_independent_discrete_time_loop(de
     np.testing.assert_allclose(np.asarray(pred[0, :, 1]), volts, rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize("lag, sensor_delay", [(4e-3, 0.0), (0.0, 2.5e-3), (3e-3, 0.7e-3)])
-def test_the_loop_through_an_actuator_lag_and_a_sensor_delay_matches_the_independent_loop(lag, sensor_delay):
-    """The amplifier's first-order lag (an extra state in the oracle's ODE) and the
-    encoder's delay (the oracle reads its own dense output that long before each tick;
-    2.5 ms spans two and a half periods): the model's recorded angle (the delayed one)
-    and its commands agree with the oracle's to 1e-6 (rad, V), and both effects change the
-    response by far more than that."""
+@pytest.mark.parametrize(
+    "lag, sensor_delay, highpass_hz",
+    [(4e-3, 0.0, 0.0), (0.0, 2.5e-3, 0.0), (3e-3, 0.7e-3, 0.0), (0.0, 0.0, 0.5)],
+    ids=["lag", "delay", "lag-and-delay", "highpass"],
+)
+def test_the_loop_through_a_lag_a_delay_or_a_high_pass_matches_the_independent_loop(lag, sensor_delay, highpass_hz):
+    """The amplifier's first-order lag (an extra state in the oracle's ODE), the encoder's
+    delay (the oracle reads its own dense output that long before each tick; 2.5 ms spans
+    two and a half periods) and a first-order 0.5 Hz high-pass on the angle the
+    controller reads (an AC-coupled sensor; the oracle integrates the filter of the angle
+    read linearly between ticks): the model's recorded angle and its commands agree with
+    the oracle's to 1e-6 (rad, V), and each effect moves them by far more than that."""
     t = np.arange(601) * PERIOD
     ref = reference(t)
-    _, _, volts, readings = reference_loop(t, -0.3, ref, resolution=None, lag=lag, sensor_delay=sensor_delay)
-    _, _, plain_volts, _ = reference_loop(t, -0.3, ref, resolution=None)
-    assert np.max(np.abs(volts - plain_volts)) > 0.1
-    sensors = identify.Sensor(offset=ENCODER_ZERO, delay=sensor_delay or None)
+    effects = {"lag": lag, "sensor_delay": sensor_delay, "highpass_hz": highpass_hz}
+    _, _, volts, readings = reference_loop(t, -0.3, ref, resolution=None, **effects)
+    _, _, plain_volts, plain_readings = reference_loop(t, -0.3, ref, resolution=None)
+    assert max(np.max(np.abs(volts - plain_volts)), np.max(np.abs(readings - plain_readings))) > 0.01
+    sensor = identify.Sensor(offset=ENCODER_ZERO, delay=sensor_delay or None, highpass=highpass_hz or None)
     log = identify.LogData(
         t=t,
         outputs={"theta1": readings},
@@ -81,40 +87,7 @@ def test_the_loop_through_an_actuator_lag_and_a_sensor_delay_matches_the_indepen
         [],
         [log],
         {"theta1": 1e-3, "voltage1": 1e-2},
-        measurement=identify.Measurement({"theta1": sensors}, actuator_lag=(lag or None,)),
-        controller=controller(quantise=False),
-    )
-    pred, ok = identify.predict(problem, jnp.zeros(0), problem.y0_known)
-    assert bool(ok[0])
-    np.testing.assert_allclose(np.asarray(pred[0, :, 0]), readings, rtol=0, atol=1e-6)
-    np.testing.assert_allclose(np.asarray(pred[0, :, 1]), volts, rtol=0, atol=1e-6)
-
-
-def test_the_loop_through_a_high_pass_sensor_matches_the_independent_loop():
-    """A first-order high-pass (0.5 Hz) on the angle the controller reads (an AC-coupled
-    sensor; the oracle integrates the filter of the angle read linearly between ticks):
-    the recorded, filtered angle and the commands agree with the oracle's to 1e-6 (rad, V), the filter
-    itself moving the reading by more than 0.01 rad."""
-    t = np.arange(601) * PERIOD
-    ref = reference(t)
-    theta, _, volts, readings = reference_loop(t, -0.3, ref, resolution=None, highpass_hz=0.5)
-    assert np.max(np.abs(readings - (theta + ENCODER_ZERO))) > 0.01
-    log = identify.LogData(
-        t=t,
-        outputs={"theta1": readings},
-        torque=volts[:, None],
-        initial={"theta1": -0.3},
-        name="step",
-        hold="zoh",
-        reference={"theta1": ref},
-    )
-    sensor = identify.Sensor(offset=ENCODER_ZERO, highpass=0.5)
-    problem = identify.make_problem(
-        pendulum(),
-        [],
-        [log],
-        {"theta1": 1e-3, "voltage1": 1e-2},
-        measurement=identify.Measurement({"theta1": sensor}),
+        measurement=identify.Measurement({"theta1": sensor}, actuator_lag=(lag or None,)),
         controller=controller(quantise=False),
     )
     pred, ok = identify.predict(problem, jnp.zeros(0), problem.y0_known)
