@@ -158,13 +158,7 @@ def fit(
     """
     _check_damping(first_damping)
     _check_budgets(max_steps=max_steps, early_max_steps=early_max_steps)
-    if shooting not in ("single", "multiple"):
-        raise ValueError(f"fit: shooting expected 'single' or 'multiple', got {shooting!r}")
-    if shooting == "single" and segment is not None:
-        raise ValueError("fit: segment is multiple shooting's segment length: pass shooting='multiple' with it")
-    horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
-    if shooting == "multiple":
-        segment = check_segment(problem, horizons[0] if segment is None else segment)
+    horizons, segment = _check_shooting(problem, shooting, segment, horizons, n_stages)
     parameters = problem.parameters if parameters is None else parameters
     check_same_parameters(problem, parameters, "fit")
     extra = _extra_starts(problem, parameters, extra_starts)
@@ -192,31 +186,15 @@ def fit(
         estimate = stiff_at(problem, z, None, grid_safety)
         if estimate is not None:
             raise TooStiff(estimate, where="at its starting values", horizon_s=None, values=values_at(problem, z))
-    stages, candidates = [], [z]
     several = shooting == "single" and (n_starts > 1 or len(extra))
     if shooting == "multiple":  # into the basin segment by segment, then one stage over whole logs
-        z, ms_stages = _multiple_shooting(problem, z, segment, horizons[-1], schedule, say)
-        stages.extend(ms_stages)
+        z, stages = _multiple_shooting(problem, z, segment, horizons[-1], schedule, say)
         candidates, horizons = [z], horizons[-1:]
     elif several and problem.names:
-        candidates, stage = multi_start(
-            problem,
-            z,
-            x0,
-            extra,
-            horizons[0],
-            schedule.grid,
-            problem.sigma,
-            n_starts=n_starts,
-            spread=start_spread,
-            max_steps=early_max_steps,
-            cap=schedule.cap,
-            rtol=rtol,
-            atol=atol,
-            keep=max_restarts + 1,
-            say=say,
-        )
-        stages.append(stage)
+        starts = _Starts(x0, extra, n_starts, start_spread, keep=max_restarts + 1)
+        candidates, stages = _multi_start(problem, z, starts, horizons[0], schedule, say)
+    else:
+        candidates, stages = [z], []
     attempts, failed, stopped = _attempts(
         problem,
         candidates,
@@ -244,6 +222,52 @@ def fit(
     )
 
 
+def _check_shooting(problem, shooting: str, segment, horizons, n_stages: int):
+    """The stages' horizons (s) and, under multiple shooting, the checked segment (s)."""
+    if shooting not in ("single", "multiple"):
+        raise ValueError(f"fit: shooting expected 'single' or 'multiple', got {shooting!r}")
+    if shooting == "single" and segment is not None:
+        raise ValueError("fit: segment is multiple shooting's segment length: pass shooting='multiple' with it")
+    horizons = list(horizons) if horizons is not None else _default_horizons(problem, n_stages)
+    if shooting == "multiple":
+        segment = check_segment(problem, horizons[0] if segment is None else segment)
+    return horizons, segment
+
+
+class _Starts(NamedTuple):
+    """The multi-start stage's points: the design's `n` within a factor `spread` of the
+    guess `x0`, the caller's `extra` ones; the best `keep` distinct optima continue."""
+
+    x0: object
+    extra: object
+    n: int
+    spread: float
+    keep: int
+
+
+def _multi_start(problem, z, starts: _Starts, horizon: float, schedule, say):
+    """The first (shortest) stage from every start: the candidates to continue from, best
+    first, and the stage's record (as a list of stages)."""
+    candidates, stage = multi_start(
+        problem,
+        z,
+        starts.x0,
+        starts.extra,
+        horizon,
+        schedule.grid,
+        problem.sigma,
+        n_starts=starts.n,
+        spread=starts.spread,
+        max_steps=schedule.early_max_steps,
+        cap=schedule.cap,
+        rtol=schedule.rtol,
+        atol=schedule.atol,
+        keep=starts.keep,
+        say=say,
+    )
+    return candidates, [stage]
+
+
 def _multiple_shooting(problem, z, segment: float, horizon: float, schedule, say):
     """`fit`'s multiple-shooting stages (`multiple_shooting`) from `z`, integrated at the
     constant step of a stage over whole logs at `z`; returns its optimum and stages."""
@@ -251,7 +275,7 @@ def _multiple_shooting(problem, z, segment: float, horizon: float, schedule, say
     outcome = multiple_shooting(
         problem, z, segment, step, max_steps=schedule.cap, rtol=schedule.rtol, atol=schedule.atol, say=say
     )
-    return outcome.z, outcome.stages
+    return outcome.z, list(outcome.stages)
 
 
 class _Schedule(NamedTuple):

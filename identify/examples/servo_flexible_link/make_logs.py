@@ -72,20 +72,56 @@ def rig(values: dict | None = None) -> fd.Chain:
     )
 
 
+class SensorNoise:
+    """Where the sensors' counts fall, and what they add before rounding, for seeded
+    variants of the logs.
+
+    The shipped logs have the rounding as their only noise, its pattern fixed by the
+    trajectory. With a seed, each sensor's count edges sit at a random fraction of a count
+    from its zero (`encoder_offset`, `gauge_offset`, uniform over one count; homing the
+    encoder and nulling the gauge's bridge at rest make the first readings 0), which draws
+    a new rounding pattern; and the gauge's bridge amplifier may add white Gaussian noise
+    of `gauge_sigma_m` (m of tip deflection) to each reading, which the controller then
+    feeds back."""
+
+    def __init__(self, seed: int | list[int] | None = None, gauge_sigma_m: float = 0.0):
+        self._rng = np.random.default_rng(seed)
+        self.gauge_sigma_m = gauge_sigma_m
+        drawn = seed is not None
+        self.encoder_offset = float(self._rng.uniform(-0.5, 0.5)) * ENCODER if drawn else 0.0
+        self.gauge_offset = float(self._rng.uniform(-0.5, 0.5)) * GAUGE if drawn else 0.0
+        self.encoder_home_count = round(self.encoder_offset / ENCODER)
+        self.gauge_home_count = round(self.gauge_offset / GAUGE)
+
+    def gauge_sample(self) -> float:
+        return float(self._rng.normal(0.0, self.gauge_sigma_m)) if self.gauge_sigma_m > 0 else 0.0
+
+    def tip_noise_m(self) -> float:
+        """The gauge channel's noise standard deviation (m): the amplifier's and the
+        rounding's, `sqrt(sigma^2 + q^2 / 12)`."""
+        return math.sqrt(self.gauge_sigma_m**2 + GAUGE**2 / 12)
+
+
 def reference(t, steps) -> np.ndarray:
     """The hub angle's reference (rad): 0, then `steps[0]` from 0.2 s, `steps[1]` from 1.6 s."""
     return np.where(t < 0.2, 0.0, np.where(t < 1.6, steps[0], steps[1]))
 
 
-def run_loop(chain: fd.Chain, t, ref):
+def run_loop(chain: fd.Chain, t, ref, noise: SensorNoise | None = None):
     """The loop over the ticks `t`: `(readings of theta1 (rad), of tip1 (m), commands (V))`,
-    the command of tick k the one held from it."""
+    the command of tick k the one held from it. With `noise`, the controller reads (and the
+    log records) the sensors through it."""
     asm = fd.assemble(chain)
     y = np.zeros(2 * asm.layout.n_dof)  # at rest, the link straight
     tip_of = jax.jit(lambda y_: fd.tip_deflections(asm, y_[: asm.layout.n_dof])[0])
+    noise = noise or SensorNoise()
 
     def read(y_):
-        return ENCODER * round(float(y_[0]) / ENCODER), GAUGE * round(float(tip_of(y_)) / GAUGE)
+        theta_counts = round((float(y_[0]) + noise.encoder_offset) / ENCODER) - noise.encoder_home_count
+        tip_counts = (
+            round((float(tip_of(y_)) + noise.gauge_offset + noise.gauge_sample()) / GAUGE) - noise.gauge_home_count
+        )
+        return ENCODER * theta_counts, GAUGE * tip_counts
 
     theta, tip = read(y)
     theta_prev = theta
@@ -114,16 +150,25 @@ def write_log(path: Path, t, theta, tip, ref, volts) -> None:
     path.write_text("\n".join(rows) + "\n")
 
 
-def main() -> None:
-    (HERE / "logs").mkdir(exist_ok=True)
+def write_logs(folder: Path, seed: int | None = None, gauge_sigma_m: float = 0.0, quiet: bool = False) -> None:
+    """Write `folder/<name>.csv` for each of `STEPS`. Without a seed, the shipped logs;
+    with one, each log's sensors get their own `SensorNoise(seed, gauge_sigma_m)` draw
+    (log k draws from seed `[seed, k]`)."""
+    folder.mkdir(parents=True, exist_ok=True)
     t = np.arange(round(DURATION / PERIOD) + 1) * PERIOD
     chain = rig()
-    for name, steps in STEPS.items():
+    for k, (name, steps) in enumerate(STEPS.items()):
         ref = reference(t, steps)
-        theta, tip, volts = run_loop(chain, t, ref)
-        write_log(HERE / "logs" / f"{name}.csv", t, theta, tip, ref, volts)
-        saturated = np.mean(np.abs(volts) >= LIMIT)
-        print(f"{name}: {len(t)} ticks, command saturated {100 * saturated:.1f} % of them")
+        noise = None if seed is None else SensorNoise([seed, k], gauge_sigma_m)
+        theta, tip, volts = run_loop(chain, t, ref, noise)
+        write_log(folder / f"{name}.csv", t, theta, tip, ref, volts)
+        if not quiet:
+            saturated = np.mean(np.abs(volts) >= LIMIT)
+            print(f"{name}: {len(t)} ticks, command saturated {100 * saturated:.1f} % of them")
+
+
+def main() -> None:
+    write_logs(HERE / "logs")
     print("truth:", TRUTH)
 
 
