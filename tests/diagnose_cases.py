@@ -21,6 +21,7 @@ entry and returns the logs, the truth and the parameter to check.
 from __future__ import annotations
 
 import math
+import types
 
 import numpy as np
 
@@ -201,3 +202,17 @@ def hidden(name: str, seed: int):
     if name == "null_arm":
         return (lambda: diagnose_arm(arm_logs(arm(), seed))), None, None
     raise KeyError(name)
+
+
+def residual_traces(r):
+    """A problem-like holder of residual traces `r` `(L, T, C)` on a 200 Hz grid (what
+    `held_out.held_out_headroom` reads)."""
+    L, T, C = r.shape
+    return types.SimpleNamespace(
+        measured=r,
+        t=np.tile(np.arange(T) / 200.0, (L, 1)),
+        valid=np.ones((L, T), bool),
+        present=np.ones((L, C), bool),
+        measurement=meas.Measurement(),  # (no declared resolution)
+        channels=[f"c{k}" for k in range(C)],
+    )

@@ -12,7 +12,7 @@ import numpy as np
 
 import flexdyn as fd
 
-from .._data import measurement as meas, noise_floor as nf
+from .._data import channels as ch, measurement as meas, noise_floor as nf
 from .._data.units import display_unit
 from .._fit import covariance, hac
 from .._fit.result import FitResult
@@ -23,11 +23,12 @@ from .._model.residuals import (
     sensor_offsets,
 )
 from . import catalogue as cat, evidence as ev
-from .held_out import HeldOutSet, _floor_per_channel, _held_out_summary, limits_at_end
+from .held_out import HeldOutSet, _floor_per_channel, _held_out_summary, held_out_headroom, limits_at_end
 from .joint_model import Superset, _bounds, _jacobian, _pad_used, _predict
 from .notes import note_text
 from .scores import Cause, _limit_text, _rms_per_channel, not_fitted_of, round_verdicts
 from .state import CurrentModel, SearchOptions, SearchState
+from .verdict import Excitation, Verdict, verdict_of
 
 #: what `Diagnosis.detection_limits` are, as the summary and the report say it
 DETECTION_LIMITS_MEANING = (
@@ -93,6 +94,9 @@ class Diagnosis:
     # where an interrupted search stopped (`diagnose_logs`: Ctrl-C during its rounds); None
     # when it finished. The causes are then those accepted before it.
     interrupted: str | None = None
+    # named, none or inconclusive, with the competing candidates and what would decide
+    # (`verdict.verdict_of`)
+    verdict: Verdict | None = None
 
     def marginal_text(self, c) -> str:
         """What a cause's marginal held-out gain (`Cause.marginal`) means."""
@@ -197,6 +201,8 @@ class Diagnosis:
         lines = [f"held-out data: {self.split}", ""]
         if self.interrupted:
             lines[:0] = [f"INTERRUPTED: {self.interrupted}: what follows is what was accepted before it", ""]
+        if self.verdict is not None:
+            lines += self.verdict.lines() + [""]
         if self.causes:
             lines.append("accepted causes:")
             for c in self.causes:
@@ -217,6 +223,8 @@ class Diagnosis:
                     lines.append(f"    IMPLAUSIBLE: {w}")
                 if c.marginal(self.min_gain):
                     lines.append(f"    MARGINAL: {self.marginal_text(c)}")
+        elif self.verdict is not None and self.verdict.kind == "inconclusive":
+            lines.append("no cause named: inconclusive (the verdict above)")
         else:
             lines.append("no catalogue entry explains the residual significantly (see the evidence and the scores)")
         if self.implausible:
@@ -291,6 +299,7 @@ class Diagnosis:
         return {
             "split": self.split,
             "interrupted": self.interrupted,
+            "verdict": None if self.verdict is None else self.verdict.to_dict(),
             "baseline": self.baseline.to_dict(),
             "evidence": self.evidence,
             "rounds": [[dataclasses.asdict(s) for s in scores] for scores in self.rounds],
@@ -629,7 +638,18 @@ def assemble(
         limits = limits_at_end(
             superset, held, current, unknowns, candidates, step, options.bic_threshold, options.min_gain
         )
+    inputs = tuple(ch.input_name(base.chain, j) for j in range(len(base.chain.joints)))
+    verdict = verdict_of(
+        causes,
+        state.rounds,
+        bic_threshold=options.bic_threshold,
+        min_gain=options.min_gain,
+        headroom=held_out_headroom(held.problem, baseline.ho),
+        fit=Excitation.of(problem, inputs),
+        held_out=Excitation.of(held.problem, inputs),
+    )
     return Diagnosis(
+        verdict=verdict,
         min_gain=options.min_gain,
         split=split,
         baseline=base,

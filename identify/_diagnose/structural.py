@@ -22,7 +22,7 @@ from .._fit.stiff_start import TooStiff
 from .._model.parameters import Parameter
 from .._model.problem import make_problem
 from . import catalogue as cat
-from .held_out import _held_out_batch, _held_out_start, _Own, _own_starts, _with_extra_state
+from .held_out import _held_out_batch, _held_out_start, _no_headroom, _Own, _own_starts, _with_extra_state
 from .joint_model import _used
 from .notes import _after_continuous_at_noise, _stuck_above_nested
 from .scores import Score, _promising, _rms_per_channel, _with_headroom, gain_standard_error
@@ -263,6 +263,29 @@ def _value_of(result: FitResult, name: str) -> float:
     return float(result.value[name])
 
 
+def _first_round_structural(setting: _StructuralFits, labels: set, scores: list, state: SearchState, held_problem):
+    """The structural candidates to fit in round 1: all of them, unless the baseline's
+    held-out residual is at its noise floor (`_with_headroom`) and the fit logs show no
+    significant systematic residual either (no continuous candidate of the round, fitted or
+    screened, below `-bic_threshold`). Held-out logs at the noise cannot confirm a gain, but
+    a significant fit-log residual is still an effect to explain: skipping the structural
+    fits then reported an elastic joint as "nothing explains the residual"."""
+    significant = [s for s in scores if s.delta_bic < -setting.bic_threshold]
+    if not significant or not labels:
+        return _with_headroom(labels, held_problem, state.current.ho, setting.min_gain, 1, state.notes, setting.say)
+    full, why = _no_headroom(held_problem, state.current.ho, setting.min_gain)
+    if full:
+        best = min(significant, key=lambda s: s.delta_bic)
+        text = (
+            f"{', '.join(sorted(labels))} fitted although the baseline is at the noise on the held-out logs ({why}): "
+            f"the fit logs show a significant systematic residual ({best.label}: dBIC {best.delta_bic:.1f}); held-out "
+            "gains cannot confirm a candidate there"
+        )
+        setting.say(f"  round 1: {text}")
+        state.notes.append({"round": 1, "text": text})
+    return labels
+
+
 def fit_structural_round(
     setting: _StructuralFits, state: SearchState, cands, scores: list, fits: CandidateFits | None, held_problem
 ) -> None:
@@ -274,14 +297,8 @@ def fit_structural_round(
     candidate of the round reaches the noise. Each is a model of its own to compile and fit."""
     rnd, done, notes, say = state.round, state.done, state.notes, setting.say
     if rnd == 0:
-        state.struct_promising = _with_headroom(
-            {x.label for x in cands if x.structural and x.label not in done},
-            held_problem,
-            state.current.ho,
-            setting.min_gain,
-            1,
-            notes,
-            say,
+        state.struct_promising = _first_round_structural(
+            setting, {x.label for x in cands if x.structural and x.label not in done}, scores, state, held_problem
         )
     # an accepted continuous candidate at the noise leaves a structural one at best a tie
     pending = {x.label for x in cands if x.structural and x.label not in done} & state.struct_promising

@@ -171,6 +171,9 @@ def markdown(diag, title: str = "") -> str:
         lines += [f"**Interrupted:** {diag.interrupted}. The causes below are those accepted before it.", ""]
     lines.append(f"**Held-out data:** {diag.split}.")
     lines.append("")
+    verdict = getattr(diag, "verdict", None)
+    if verdict is not None:
+        lines += [f"**Verdict: {verdict.kind}.** {verdict.reason}.", ""]
     for section in (_causes, _held_out_gain, _extended_model, _evidence, _candidates, _closing):
         lines.extend(section(diag))
     return "\n".join(lines)
@@ -203,6 +206,8 @@ def _causes(diag) -> list[str]:
                 lines.append(f"  - **Implausible:** {w}")
             if c.marginal(diag.min_gain):
                 lines.append(f"  - **Marginal:** {diag.marginal_text(c)}")
+    elif diag.verdict is not None and diag.verdict.kind == "inconclusive":
+        lines += _inconclusive(diag.verdict)
     else:
         lines.append("## No cause named")
         lines.append("")
@@ -218,6 +223,19 @@ def _causes(diag) -> list[str]:
             "notes): such a value usually stands in for an effect the catalogue lacks."
         )
     lines.append("")
+    return lines
+
+
+def _inconclusive(verdict) -> list[str]:
+    """An inconclusive verdict: the competing candidates and what data would decide."""
+    lines = ["## Inconclusive: no cause confirmed", ""]
+    lines += ["| candidate | dBIC (fit logs) | held-out gain | why not named |", "| --- | --- | --- | --- |"]
+    for c in verdict.competing:
+        se = c["held_out_gain_se"]
+        gain = f"{c['held_out_gain']:.3f}x" + (f" (SE {se:.2g})" if math.isfinite(se) else "")
+        lines.append(f"| `{c['label']}` | {c['delta_bic']:.1f} | {gain} | {c['why']} |")
+    lines += ["", "What would decide:", ""]
+    lines += [f"- {t}" for t in verdict.to_decide]
     return lines
 
 

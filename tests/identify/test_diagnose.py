@@ -32,6 +32,7 @@ from diagnose_cases import (  # tests/ is on sys.path
     diagnose_pendulum,
     pendulum,
     pendulum_logs,
+    residual_traces,
 )
 
 import flexdyn as fd
@@ -374,6 +375,10 @@ def test_no_effect_names_no_cause(monkeypatch):
     diag = run(logs_of(pendulum(), 14))
     assert diag.named == [], diag.summary()
     assert "no catalogue entry explains" in diag.summary()
+    # the verdict (identify/_diagnose/verdict.py): none, in every output
+    assert diag.verdict.kind == "none", diag.verdict
+    assert "verdict: NONE" in diag.summary() and "**Verdict: none.**" in diagnosis_report.markdown(diag)
+    assert diag.to_dict()["verdict"]["kind"] == "none"
     # nothing to explain: the baseline's held-out residual is at the data's own noise floor
     ratio = diag.held_out["baseline"]["theta1"] / diag.held_out["noise_floor"]["theta1"]
     assert 0.8 < ratio < 1.2 and diag.left_unexplained == [], ratio
@@ -612,20 +617,7 @@ def test_a_structural_candidate_is_refitted_when_its_cost_drop_would_pass_the_bi
             assert (scores_module._promising({"x": (drop, k)}, cost, n, thr) == {"x"}) == expect
 
 
-def _traces(r):
-    """A problem-like holder of residual traces `r` `(L, T, C)` on a 200 Hz grid (what
-    `held_out_headroom` reads)."""
-    import types
-
-    L, T, C = r.shape
-    return types.SimpleNamespace(
-        measured=r,
-        t=np.tile(np.arange(T) / 200.0, (L, 1)),
-        valid=np.ones((L, T), bool),
-        present=np.ones((L, C), bool),
-        measurement=meas.Measurement(),  # (no declared resolution)
-        channels=[f"c{k}" for k in range(C)],
-    )
+_traces = residual_traces
 
 
 def test_held_out_headroom_of_white_noise_and_its_standard_error():

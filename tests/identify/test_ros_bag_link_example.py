@@ -6,12 +6,12 @@ interpolated onto the joint states' stamps), and `make_logs.py` reproduces the s
 bags: the same topics and message counts, the same numbers read through the experiment's
 mapping. Slow: `identify fit` recovers the truth, with the numbers the README states."""
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from example_scripts import make_logs_module  # tests/ is on sys.path
 
 from identify import load_experiment, load_log
 from identify.cli import main
@@ -23,10 +23,7 @@ MAX_BYTES = 300_000
 
 
 def _make_logs_module():
-    spec = importlib.util.spec_from_file_location("ros_bag_link_make_logs", EXAMPLE / "make_logs.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return make_logs_module("ros_bag_link")
 
 
 def test_the_experiment_loads_as_identify_check_does(capsys):

@@ -8,10 +8,10 @@ experiment without the gear friction must name it. Slow (minutes each on 2 cores
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
+from example_scripts import make_logs_module  # tests/ is on sys.path
 
 import identify
 
@@ -19,10 +19,7 @@ EXAMPLE = Path(identify.__file__).resolve().parent / "examples" / "servo_flexibl
 
 
 def _truth() -> dict:
-    spec = importlib.util.spec_from_file_location("servo_make_logs", EXAMPLE / "make_logs.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.TRUTH
+    return make_logs_module("servo_flexible_link").TRUTH
 
 
 def test_the_example_loads_and_declares_its_controller():

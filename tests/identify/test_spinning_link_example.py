@@ -6,13 +6,13 @@ only in the option, and the model check flags the linear model on these logs. Sl
 `identify fit` runs, with the numbers the example's README states, and `identify diagnose`
 on the linear model, which must name geometric stiffening (the truth) and nothing else."""
 
-import importlib.util
 import json
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+from example_scripts import make_logs_module  # tests/ is on sys.path
 
 import flexdyn as fd
 from identify import load_experiment
@@ -23,10 +23,7 @@ EXAMPLE = Path(__file__).resolve().parents[2] / "identify" / "examples" / "spinn
 
 
 def _make_logs_module():
-    spec = importlib.util.spec_from_file_location("spinning_link_make_logs", EXAMPLE / "make_logs.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return make_logs_module("spinning_link")
 
 
 def test_make_logs_reproduces_the_shipped_logs(tmp_path):
