@@ -84,7 +84,7 @@ class SensorNoise:
     of `gauge_sigma_m` (m of tip deflection) to each reading, which the controller then
     feeds back."""
 
-    def __init__(self, seed: int | list[int] | None = None, gauge_sigma_m: float = 0.0):
+    def __init__(self, seed: int | None = None, gauge_sigma_m: float = 0.0):
         self._rng = np.random.default_rng(seed)
         self.gauge_sigma_m = gauge_sigma_m
         drawn = seed is not None
@@ -152,14 +152,14 @@ def write_log(path: Path, t, theta, tip, ref, volts) -> None:
 
 def write_logs(folder: Path, seed: int | None = None, gauge_sigma_m: float = 0.0, quiet: bool = False) -> None:
     """Write `folder/<name>.csv` for each of `STEPS`. Without a seed, the shipped logs;
-    with one, each log's sensors get their own `SensorNoise(seed, gauge_sigma_m)` draw
-    (log k draws from seed `[seed, k]`)."""
+    with one, the sensors read through `SensorNoise(seed, gauge_sigma_m)`: one session on
+    the rig, homed and nulled once, its count phases the same in every log."""
     folder.mkdir(parents=True, exist_ok=True)
     t = np.arange(round(DURATION / PERIOD) + 1) * PERIOD
     chain = rig()
-    for k, (name, steps) in enumerate(STEPS.items()):
+    noise = None if seed is None else SensorNoise(seed, gauge_sigma_m)
+    for name, steps in STEPS.items():
         ref = reference(t, steps)
-        noise = None if seed is None else SensorNoise([seed, k], gauge_sigma_m)
         theta, tip, volts = run_loop(chain, t, ref, noise)
         write_log(folder / f"{name}.csv", t, theta, tip, ref, volts)
         if not quiet:
