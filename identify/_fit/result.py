@@ -146,7 +146,7 @@ class FitResult:
         changes the command and all the motion after it. Measured on the servo example over
         seeded sensor count phases (`tests/identify/test_servo_flexible_link_coverage.py`);
         not on the frictionless servo pendulum of `tests/identify/test_closed_loop.py`."""
-        if self.problem.loop is None:
+        if self.problem is None or self.problem.loop is None:
             return ""
         return (
             "closed-loop logs: the intervals treat the residual as sensor noise about the model's loop, not the "
