@@ -17,6 +17,7 @@ from ._diagnose import evidence, residual_tests as diagnostics
 from ._diagnose.diagnosis import Diagnosis
 from ._diagnose.search import diagnose_logs
 from ._diagnose.split import split_logs
+from ._fit.direct import direct_fit
 from ._fit.fit import fit
 from ._fit.fit_independent import fit_independent
 from ._fit.result import FitResult, fitted_outputs
@@ -26,8 +27,9 @@ from ._model.problem import LogData, Problem, make_problem, parameter_unit
 from ._report.json import package_versions
 
 
-def log_data(spec: LogSpec, n_joints: int) -> LogData:
-    """The `LogData` of one experiment log (times start at the log's first sample)."""
+def log_data(spec: LogSpec, n_joints: int, *, replay: bool = False) -> LogData:
+    """The `LogData` of one experiment log (times start at the log's first sample);
+    `replay`: without its references (its logged command an input only)."""
     return LogData.from_log(
         spec.log,
         n_joints,
@@ -37,6 +39,7 @@ def log_data(spec: LogSpec, n_joints: int) -> LogData:
         name=spec.name,
         set=dict(spec.set),
         hold=spec.hold,
+        **({"reference": {}} if replay else {}),
     )
 
 
@@ -45,11 +48,15 @@ def parameters(exp: Experiment, per_log: bool = True) -> list[Parameter]:
     return [Parameter(p.name, p.guess, p.lower, p.upper, per_log=p.per_log and per_log) for p in exp.free]
 
 
-def problem_from_experiment(exp: Experiment, logs=None, *, per_log: bool = True, **solver) -> Problem:
+def problem_from_experiment(
+    exp: Experiment, logs=None, *, per_log: bool = True, replay: bool = False, **solver
+) -> Problem:
     """A `Problem` over the experiment's fit logs (or `logs`, a list of `LogSpec`);
-    `per_log=False`: its per-log parameters shared like the others."""
+    `per_log=False`: its per-log parameters shared like the others; `replay`: open loop
+    even where the experiment declares a controller (its logged command the input, the
+    references dropped: the direct method, `identify/_fit/direct.py`)."""
     specs = exp.fit_logs if logs is None else logs
-    data = [log_data(s, exp.chain.n_links) for s in specs]
+    data = [log_data(s, exp.chain.n_links, replay=replay) for s in specs]
     noise = {c: v for c, v in exp.noise.items() if v is not None}
     return make_problem(
         exp.chain,
@@ -57,18 +64,42 @@ def problem_from_experiment(exp: Experiment, logs=None, *, per_log: bool = True,
         data,
         noise,
         measurement=exp.measurement,
-        controller=exp.controller,
+        controller=None if replay else exp.controller,
         **solver,
     )
 
 
-def fit_experiment(exp: Experiment, *, progress=None, **options) -> FitResult:
+def fit_experiment(exp: Experiment, *, progress=None, direct: bool = True, **options) -> FitResult:
     """Fit the experiment's free parameters to its fit logs. `options` go to `identify.fit`;
-    its `extra_starts` default to the experiment's `[[starts]]`."""
+    its `extra_starts` default to the experiment's `[[starts]]`.
+
+    With a `[controller]`, the logs are fitted closed loop, then (`direct=True`) by the
+    direct method from that optimum: the logged command replayed open loop, whose
+    intervals hold where the loop fit's are too narrow (`identify/_fit/direct.py`; kept
+    only if it does not drift, `FitResult.direct_note` says which)."""
     problem = problem_from_experiment(exp)
     estimate = [c for c in problem.channels if exp.noise.get(c) is None]
     options.setdefault("extra_starts", exp.starts)
-    return fit(problem, parameters(exp), estimate_noise=estimate or False, progress=progress, **options)
+    result = fit(problem, parameters(exp), estimate_noise=estimate or False, progress=progress, **options)
+    if exp.controller is None or not direct:
+        return result
+    return refit_direct(exp, result, progress=progress, **options)
+
+
+def refit_direct(exp: Experiment, loop_fit: FitResult, *, progress=None, **options) -> FitResult:
+    """The direct-method fit of a closed-loop experiment from its loop fit
+    (`identify/_fit/direct.py:direct_fit`): the logged command replayed open loop. `options`
+    as `fit_experiment`'s (its starts and stages are not used: one of each, from the loop
+    fit's optimum)."""
+    try:
+        replay = problem_from_experiment(exp, replay=True)
+    except ValueError as e:
+        why = f"the logs cannot be replayed open loop: {e}"
+        return dataclasses.replace(loop_fit, direct_note=f"no direct fit (logged command replayed): {why}")
+    estimate = [c for c in replay.channels if exp.noise.get(c) is None]
+    skip = ("extra_starts", "n_starts", "n_stages", "horizons")
+    kept = {k: v for k, v in options.items() if k not in skip}
+    return direct_fit(loop_fit, replay, estimate_noise=estimate or False, progress=progress, **kept)
 
 
 def fit_experiment_independent(exp: Experiment, *, progress=None, **options) -> list[FitResult]:
@@ -100,12 +131,19 @@ def evaluate_held_out(result: FitResult, exp: Experiment, logs=None, *, progress
         if p.per_log
     ]
     problem = make_problem(
-        chain, own, data, dict(result.sigma), measurement=result.measurement, controller=exp.controller
+        chain, own, data, _noise_of(result), measurement=result.measurement, controller=exp.controller
     )
     # (nuisances only: one stage; a per-log parameter: the fit's growing horizon and starts,
     # as for the fit logs, from the fit logs' median)
     options = {} if own else {"n_stages": 1}
     return fit(problem, own, estimate_noise=False, progress=progress, **options)
+
+
+def _noise_of(result: FitResult) -> dict:
+    """The noise levels a fit used, by channel; a direct-method fit's (no command channel)
+    completed by the loop fit it started from."""
+    loop = {} if result.loop_fit is None else result.loop_fit.sigma
+    return {**loop, **result.sigma}
 
 
 def residual_report(result: FitResult, max_lag: int = 25) -> dict:

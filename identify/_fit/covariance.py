@@ -70,6 +70,9 @@ class Covariance:
     correlation: np.ndarray
     singular_values: np.ndarray
     identifiability: list
+    # how the shared parameters' standard errors were computed: "white" (`s^2 (J^T J)^+`)
+    # or "rounding" (the sensors' quantisation propagated, `identify/_fit/rounding.py`)
+    method: str = "white"
 
 
 # A variable whose unit vector has more than this fraction of its length in the null space

@@ -13,7 +13,7 @@ from .._model.residuals import (
     log_jacobian,
     used_mask,
 )
-from . import covariance
+from . import covariance, rounding
 from .block_lm import Layout
 from .covariance import Covariance
 from .levenberg_marquardt import _blocked
@@ -47,8 +47,10 @@ def _dense_covariance(problem: Problem, r, J) -> Covariance:
 def _covariance_at(problem: Problem, x, z, sigma, step, lin=None, horizon=None) -> tuple[Covariance, tuple]:
     """The covariance at the optimum: block by block (`identify.covariance.blocked`, no
     dense Jacobian) when the Levenberg-Marquardt steps were (`BLOCK_SOLVE_MIN_LOGS` logs
-    with nuisances), else from the dense Jacobian; and the blocks it came from
-    (`jacobian_blocks_at`, kept on the `FitResult` for `identify.clustered_uncertainty`).
+    with nuisances), else from the dense Jacobian, the shared parameters' from the
+    sensors' rounding where a channel is quantised (`identify/_fit/rounding.py`); and the
+    blocks it came from (`jacobian_blocks_at`, kept on the `FitResult` for
+    `identify.clustered_uncertainty`).
 
     `lin`, `horizon`: the linearisation the last Levenberg-Marquardt solve ended with at
     `z` (`_solve`) and that solve's horizon; used when it covers every sample, else (or
@@ -58,8 +60,13 @@ def _covariance_at(problem: Problem, x, z, sigma, step, lin=None, horizon=None) 
         blocks = jacobian_blocks_at(problem, x, z, sigma, step)
     if not _blocked(problem):
         r, S, U, slots, used = blocks
-        return _dense_covariance(problem, r.reshape(-1), _dense_jacobian(problem, S, U, slots)), blocks
-    return covariance.blocked(problem.names, problem.log_scale, *blocks), blocks
+        cov = _dense_covariance(problem, r.reshape(-1), _dense_jacobian(problem, S, U, slots))
+    else:
+        cov = covariance.blocked(problem.names, problem.log_scale, *blocks)
+    model = rounding.model_of(problem, sigma)
+    if model is not None:  # quantised channels: their rounding's own covariance (`rounding.py`)
+        cov = rounding.rounding_covariance(model, problem, blocks, cov)
+    return cov, blocks
 
 
 def _natural_blocks(problem: Problem, z, lin, horizon):

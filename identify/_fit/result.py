@@ -86,6 +86,15 @@ class FitResult:
     # stage's, its cost over that stage's horizon only (not comparable with a whole fit's),
     # and not converged.
     stopped: str = ""
+    # closed-loop logs (`identify/_fit/direct.py`): which fit this is, the direct method's
+    # (the logged command replayed) or the loop's, and why ("" for an open-loop problem);
+    # the loop fit a direct result started from, and a direct fit that was not kept
+    direct_note: str = ""
+    # how the parameters' standard errors were computed: "white" (`s^2 (J^T J)^+`) or
+    # "rounding" (quantised channels: their rounding propagated, `identify/_fit/rounding.py`)
+    interval_method: str = "white"
+    loop_fit: FitResult | None = dataclasses.field(repr=False, default=None)
+    direct_rejected: FitResult | None = dataclasses.field(repr=False, default=None)
 
     @property
     def value(self) -> dict:
@@ -300,6 +309,13 @@ class FitResult:
             lines.append(f"note: {text}; the result is the best attempt that finished")
         if self.stopped:
             lines.append(f"note: the fit {self.stopped}; the result is that stage's, over its horizon only")
+        if self.interval_method == "rounding":
+            lines.append(
+                "note: intervals from the quantised channels' rounding propagated through the fit (its phase "
+                "unknown, the same in every log unless the channel's offset is fitted per log), not the white formula"
+            )
+        if self.direct_note:
+            lines.append(f"note: {self.direct_note}")
         if self.closed_loop_caveat:
             lines.append(f"warning: {self.closed_loop_caveat}")
         for w in self.identifiability:
@@ -357,6 +373,12 @@ class FitResult:
             "failed_restarts": list(self.failed_restarts),
             "stopped": self.stopped,
             "closed_loop_caveat": self.closed_loop_caveat,
+            "direct_note": self.direct_note,
+            "interval_method": self.interval_method,
+            # the closed-loop fit a direct-method result started from (None otherwise)
+            "loop_fit": None
+            if self.loop_fit is None
+            else {"value": self.loop_fit.value, "cost": self.loop_fit.cost, "fit_quality": self.loop_fit.fit_quality},
             # the SI unit of every per-channel value here (noise_sigma, fit_quality's
             # residual_rms and noise_floor; `identify fit` adds residual RMS in the same units)
             "channel_units": {c: ch.channel_unit(c) for c in self.sigma},
@@ -453,6 +475,7 @@ def _finish(
         z=z,
         step=step,
         jacobian_blocks=blocks,
+        interval_method=cov.method,
     )
 
 

@@ -1,7 +1,7 @@
 """The `identify` command line (also `python -m identify`).
 
     identify fit EXPERIMENT.toml [--out DIR] [--stages N] [--segment SECONDS] [--no-frequency-init] [--max-restarts N]
-                 [--no-restart-poor-fit] [--quiet] [--force] [--any-rate]
+                 [--no-restart-poor-fit] [--closed-loop-only] [--quiet] [--force] [--any-rate]
     identify diagnose EXPERIMENT.toml [--out DIR] [--only NAME,...] [--max-effects N] [--quiet] [--force]
                       [--any-rate]
     identify check EXPERIMENT.toml [--any-rate]
@@ -125,6 +125,13 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="restart only when a parameter ends on a bound, not on a poor fit (a model that misses an effect "
         "is poor from every start: the restart costs one more fit and the fit reports the misfit either way)",
+    )
+    fit.add_argument(
+        "--closed-loop-only",
+        action="store_true",
+        help="with a [controller]: report the closed-loop fit (default: refit from its optimum by the direct "
+        "method, the logged command replayed open loop, whose intervals hold where the closed loop's are too "
+        "narrow; kept only if it does not drift: docs/identification.md)",
     )
     fit.add_argument(
         "--independent",

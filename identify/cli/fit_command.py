@@ -66,23 +66,23 @@ def run_fit(args) -> int:
 
 def _fit_into(args, exp, folder: OutputFolder, start: float, say) -> int:
     """`run_fit` once its output `folder` is claimed."""
-    from .._workflow import fit_experiment
+    from .._workflow import FitReport, fit_experiment
 
     _say_set_up(exp, args, say)
     progress = _progress(start, say)
     if args.independent:
         return _independent_fits(args, exp, folder, start, say, progress)
+    options = dict(
+        n_stages=args.stages,
+        frequency_init=not args.no_frequency_init,
+        max_restarts=args.max_restarts,
+        restart_poor_fit=not args.no_restart_poor_fit,
+        shooting="single" if args.segment is None else "multiple",
+        segment=args.segment,
+        progress=progress,
+    )
     try:
-        result = fit_experiment(
-            exp,
-            n_stages=args.stages,
-            frequency_init=not args.no_frequency_init,
-            max_restarts=args.max_restarts,
-            restart_poor_fit=not args.no_restart_poor_fit,
-            shooting="single" if args.segment is None else "multiple",
-            segment=args.segment,
-            progress=progress,
-        )
+        result = fit_experiment(exp, direct=False, **options)
     except (RuntimeError, ValueError) as e:
         folder.abandon("failed: the fit failed, nothing written")
         print(f"identify fit: the fit failed: {_failure_text(e)}", file=sys.stderr, flush=True)
@@ -92,8 +92,12 @@ def _fit_into(args, exp, folder: OutputFolder, start: float, say) -> int:
         print("identify fit: interrupted during the fit; nothing was written", file=sys.stderr, flush=True)
         return INTERRUPTED
     say(f"[{time.perf_counter() - start:6.1f} s] fit done ({result.wall_time:.1f} s incl. compilation and covariance)")
+    result, interrupted = (result, False) if args.closed_loop_only else _direct_step(exp, result, options, say)
     t0 = time.perf_counter()
-    report, interrupted = _follow_ups(exp, result, progress, say)
+    if interrupted:
+        report = FitReport.of_fit(exp, result, "interrupted (Ctrl-C) during the direct fit: the closed-loop fit")
+    else:
+        report, interrupted = _follow_ups(exp, result, progress, say)
     t_post = time.perf_counter() - t0
     t0 = time.perf_counter()
     try:
@@ -151,6 +155,21 @@ def _say_written(out: Path, written: list[Path]) -> None:
     print(f"Results written to {out}/:")
     for p in written:
         print(f"  {p}")
+
+
+def _direct_step(exp, result, options: dict, say):
+    """`(result, interrupted)`: a closed-loop experiment's direct-method fit from the
+    loop fit `result` (`identify/_fit/direct.py`); after Ctrl-C, the loop fit."""
+    if exp.controller is None:
+        return result, False
+    from .._workflow import refit_direct
+
+    say("direct fit: the logged command replayed open loop from the closed-loop optimum ...")
+    try:
+        return refit_direct(exp, result, **options), False
+    except KeyboardInterrupt:
+        print("identify fit: interrupted in the direct fit; writing the closed-loop fit", file=sys.stderr, flush=True)
+        return result, True
 
 
 def _exit_status(result, report, interrupted: bool) -> int:

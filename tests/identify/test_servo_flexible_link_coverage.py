@@ -43,7 +43,7 @@ noise for such a study.
 Run as a script for the table the docs quote (seeds FIRST..LAST-1, JSON written as it
 goes):
 
-    python tests/identify/test_servo_flexible_link_coverage.py FIRST LAST [OUT.json]
+    PYTHONPATH=tests python tests/identify/test_servo_flexible_link_coverage.py FIRST LAST [OUT.json]
 """
 
 from __future__ import annotations
