@@ -27,9 +27,15 @@ from ._model.problem import LogData, Problem, make_problem, parameter_unit
 from ._report.json import package_versions
 
 
-def log_data(spec: LogSpec, n_joints: int, *, replay: bool = False) -> LogData:
+def log_data(spec: LogSpec, n_joints: int, *, replay: int | None = None) -> LogData:
     """The `LogData` of one experiment log (times start at the log's first sample);
-    `replay`: without its references (its logged command an input only)."""
+    `replay`: the joint (1-based) of a closed-loop log's command, replayed as an input:
+    the references dropped, the command held over each sample as the controller held it."""
+    hold = spec.hold
+    if replay is not None:
+        holds = [hold] * n_joints if isinstance(hold, str) else list(hold)
+        holds[replay - 1] = "zoh"
+        hold = holds[0] if len(set(holds)) == 1 else tuple(holds)
     return LogData.from_log(
         spec.log,
         n_joints,
@@ -38,8 +44,8 @@ def log_data(spec: LogSpec, n_joints: int, *, replay: bool = False) -> LogData:
         offsets=tuple(spec.offsets),
         name=spec.name,
         set=dict(spec.set),
-        hold=spec.hold,
-        **({"reference": {}} if replay else {}),
+        hold=hold,
+        **({"reference": {}} if replay is not None else {}),
     )
 
 
@@ -53,10 +59,12 @@ def problem_from_experiment(
 ) -> Problem:
     """A `Problem` over the experiment's fit logs (or `logs`, a list of `LogSpec`);
     `per_log=False`: its per-log parameters shared like the others; `replay`: open loop
-    even where the experiment declares a controller (its logged command the input, the
-    references dropped: the direct method, `identify/_fit/direct.py`)."""
+    even where the experiment declares a controller (its logged command the input, held
+    over each sample, the references dropped: the direct method,
+    `identify/_fit/direct.py`)."""
     specs = exp.fit_logs if logs is None else logs
-    data = [log_data(s, exp.chain.n_links, replay=replay) for s in specs]
+    joint = exp.controller.joint if replay and exp.controller is not None else None
+    data = [log_data(s, exp.chain.n_links, replay=joint) for s in specs]
     noise = {c: v for c, v in exp.noise.items() if v is not None}
     return make_problem(
         exp.chain,

@@ -148,22 +148,24 @@ class FitResult:
 
     @property
     def closed_loop_caveat(self) -> str:
-        """For closed-loop logs (`Problem.loop`), why the intervals are too narrow (empty
-        otherwise). They treat the residual as sensor noise about the model's loop, but the
-        rig's controller fed back its own readings, noise and rounding included, which moves
-        the trajectory: a count that flips at another instant in the model than on the rig
+        """For a fit simulated closed loop (`Problem.loop`), why its intervals may be too
+        narrow (empty otherwise, and for a direct-method fit, `identify/_fit/direct.py`,
+        whose problem is open loop). They treat the residual as sensor noise about the
+        model's loop, but the rig's controller fed back its own readings, noise and rounding
+        included: a count that flips at another instant in the model than on the rig
         changes the command and all the motion after it. Measured on the servo example over
         seeded sensor count phases (`tests/identify/test_servo_flexible_link_coverage.py`);
         not on the frictionless servo pendulum of `tests/identify/test_closed_loop.py`."""
         if self.problem is None or self.problem.loop is None:
             return ""
         return (
-            "closed-loop logs: the intervals treat the residual as sensor noise about the model's loop, not the "
+            "closed-loop fit: the intervals treat the residual as sensor noise about the model's loop, not the "
             "rig's controller feeding back its own noise and rounding, which can move the trajectory; where it "
             "does they are too narrow: on the servo example (geared friction that holds the hub, quantised "
             "readings) 56 % of 95 % intervals held the truth over seeded sensor count phases, the damping and "
             "dry friction up to 7 standard errors off (on a frictionless servo pendulum with a noisy reading "
-            "they held)"
+            "they held). The direct method (the logged command replayed from this optimum; identify.fit_experiment's "
+            "default) does not have this problem"
         )
 
     @property

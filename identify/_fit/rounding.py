@@ -51,7 +51,7 @@ from .covariance import Covariance, _correlation, _Svd
 ROUNDING_DRAWS = 1000
 #: the draws' seed: the intervals are reproducible
 ROUNDING_SEED = 20261208
-_CHUNK = 100  # draws per batch (memory: CHUNK x residuals)
+_CHUNK_VALUES = 10_000_000  # residuals x draws per batch (memory: ~3 arrays of this many doubles)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,8 +131,9 @@ def rounding_covariance(model: RoundingModel, problem, blocks, cov: Covariance, 
     fitted = np.where(used.reshape(L, T, C), measured + np.asarray(r).reshape(L, T, C) * model.sigma, 0.0)
     rng = np.random.default_rng(ROUNDING_SEED)
     done = 0
+    chunk = max(1, min(draws, _CHUNK_VALUES // max(L * n, 1)))
     while done < draws:
-        k = min(_CHUNK, draws - done)
+        k = min(chunk, draws - done)
         e = model.errors(fitted, rng, k).reshape(k, L, n) * used[None]
         g = np.einsum("klm,lmp->kp", e, St)  # (k, P)
         meat += g.T @ g / draws

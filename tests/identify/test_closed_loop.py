@@ -392,7 +392,7 @@ def test_a_fit_of_closed_loop_logs_recovers_the_motor_and_hub():
     assert closed.converged
     assert np.all(np.abs(z_closed) < 1.96), z_closed
     # (the caveat every closed-loop fit carries, measured where it bites: FitResult.closed_loop_caveat)
-    assert "warning: closed-loop logs: the intervals" in closed.summary() and not opened.closed_loop_caveat
+    assert "warning: closed-loop fit: the intervals" in closed.summary() and not opened.closed_loop_caveat
     assert closed.to_dict()["closed_loop_caveat"] == closed.closed_loop_caveat
     assert closed.fit_quality["theta1"]["ratio"] < 1.2, closed.fit_quality
     assert opened.converged and opened.fit_quality["theta1"]["ratio"] < 1.2, opened.fit_quality

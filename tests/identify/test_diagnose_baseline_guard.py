@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from diagnose_cases import PENDULUM_NOISE, PENDULUM_PARAMS, pendulum, pendulum_logs  # tests/ is on sys.path
 
 import flexdyn as fd
@@ -25,6 +26,7 @@ from identify._diagnose.split import split_logs
 STOPPED_SHORT = {"max_steps": 2, "n_stages": 1, "n_starts": 1, "max_restarts": 0}
 
 
+@pytest.mark.slow  # (87 s in CI's run of 2026-12-07, the slowest of the suite)
 def test_a_baseline_stuck_short_of_its_optimum_gives_no_cause_its_gain():
     logs = pendulum_logs(pendulum(), 14, t=np.arange(401) / 100.0)  # no hidden effect
     fit_logs, held, desc = split_logs(logs[:2], logs[2:])

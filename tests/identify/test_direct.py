@@ -142,3 +142,18 @@ def test_direct_false_returns_the_loop_fit(tmp_path, monkeypatch):
     monkeypatch.setattr(_workflow, "fit", lambda *a, **kw: loop_fit)
     monkeypatch.setattr(_workflow, "direct_fit", lambda *a, **kw: pytest.fail("direct fit with direct=False"))
     assert _workflow.fit_experiment(exp, direct=False) is loop_fit
+
+
+def test_the_replay_holds_the_command_and_drops_the_references(tmp_path):
+    """A closed-loop log read with `hold = "linear"` is still replayed held: the command
+    was held over each controller period whatever the file says of its inputs."""
+    rows = [f"{k / 1000},{3.0 * k},{1.0},{0.1 * k}" for k in range(20)]
+    (tmp_path / "run.csv").write_text("\n".join(["time [s],enc [deg],ref [deg],u [V]", *rows]) + "\n")
+    (tmp_path / "exp.toml").write_text(_EXPERIMENT.replace('hold = "zoh"', 'hold = "linear"'))
+    exp = identify.load_experiment(tmp_path / "exp.toml")
+    loop = identify.problem_from_experiment(exp)
+    replay = identify.problem_from_experiment(exp, replay=True)
+    assert loop.loop is not None and loop.channels == ("theta1", "voltage1") and loop.hold == "linear"
+    assert replay.loop is None and replay.reference is None and replay.channels == ("theta1",)
+    assert replay.hold == "zoh"
+    np.testing.assert_array_equal(np.asarray(replay.torque_v[0, :20, 0]), 0.1 * np.arange(20))
