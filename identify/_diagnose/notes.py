@@ -99,6 +99,15 @@ def _stuck_above_nested(c, cost: float, cost_current: float, bic_threshold: floa
 POORLY_DETERMINED = 0.5
 
 
+#: `Diagnosis.notes` of a closed-loop search: its fits run in the model's loop
+CLOSED_LOOP_NOTE = (
+    "closed-loop logs: every fit here runs the model's loop, whose intervals can be too narrow where the rig's "
+    "controller fed back its own rounding and noise (on the servo example 56 % of 95 % intervals held); for the "
+    "named model's values and intervals, add the cause to the experiment file and run identify fit, which refits "
+    "by the direct method (the logged command replayed: 98 % held there)"
+)
+
+
 def _baseline_notes(names, std_errors, values=None) -> list:
     """`Diagnosis.notes` of the baseline fit (round 0): the parameters its fit logs do not
     determine (no interval: `identify.covariance`; their degeneracy is every candidate's,

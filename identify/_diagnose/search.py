@@ -25,7 +25,7 @@ from .continuous import pair_search, reconverge, score_continuous
 from .diagnosis import Diagnosis, _stacked, _with_totals, assemble
 from .held_out import HeldOutSet, _with_extra_state, held_out_set
 from .joint_model import SLOTS, JointVariables, Superset, superset_of
-from .notes import _baseline_notes, _convergence_notes, _fits_but_does_not_predict, _not_tried
+from .notes import CLOSED_LOOP_NOTE, _baseline_notes, _convergence_notes, _fits_but_does_not_predict, _not_tried
 from .scores import round_verdicts
 from .state import Accepted, CurrentModel, SearchOptions, SearchState, Signals
 from .structural import _StructuralFits, fit_structural_round, promising_next, record_drops, stack_on_structural
@@ -89,6 +89,8 @@ def diagnose_logs(
     sigma = np.asarray([base.sigma[c] for c in channels])
     notes = _baseline_notes(base.names, base.std_errors, base.values)  # `Diagnosis.notes`
     notes += _convergence_notes(base.stages[-1].outcome, base.at_bounds)
+    if controller is not None:
+        notes.append({"round": 0, "text": CLOSED_LOOP_NOTE})
     for n in notes:
         say(f"  warning: {n['text']}")
     modal = _modal_frequencies(base.chain)

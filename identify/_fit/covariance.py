@@ -287,6 +287,22 @@ def blocked(
     return Covariance(rss, n_res, s2, se, corr, Sn, ident)
 
 
+def projected_shared(S: np.ndarray, U: np.ndarray, slots: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """`S~_l = (I - P_l) S_l` for each log (arguments as for `blocked`): its shared
+    columns with what its own nuisances can reproduce projected out, zero where unused."""
+    mask = used.astype(float)
+    S, U = S * mask[:, :, None], U * mask[:, :, None]
+    out = np.empty_like(S)
+    for l in range(S.shape[0]):
+        Ul = U[l][:, slots[l] >= 0]
+        if Ul.shape[1]:
+            W = _Svd.of(Ul).range_basis
+            out[l] = S[l] - W @ (W.T @ S[l])
+        else:
+            out[l] = S[l]
+    return out
+
+
 def clustered(
     r: np.ndarray, S: np.ndarray, U: np.ndarray, slots: np.ndarray, used: np.ndarray, *, null_space: bool = False
 ):
@@ -299,18 +315,9 @@ def clustered(
     L, n, P = S.shape
     if L < 2:
         raise ValueError(f"clustered: the cluster-robust covariance needs at least 2 logs, got {L}")
-    mask = used.astype(float)
-    r, S, U = r * mask, S * mask[:, :, None], U * mask[:, :, None]
-    projected = np.empty_like(S)
-    scores = np.empty((L, P))
-    for l in range(L):
-        Ul = U[l][:, slots[l] >= 0]
-        if Ul.shape[1]:
-            W = _Svd.of(Ul).range_basis
-            projected[l] = S[l] - W @ (W.T @ S[l])
-        else:
-            projected[l] = S[l]
-        scores[l] = projected[l].T @ r[l]
+    r, S = r * used, S * used[:, :, None]
+    projected = projected_shared(S, U, slots, used)
+    scores = np.einsum("lnp,ln->lp", projected, r)
     svd = _Svd.of(projected.reshape(L * n, P), np.sqrt(np.sum(S**2, axis=(0, 1))))
     bread = svd.normal_pinv()
     cov = L / (L - 1) * bread @ (scores.T @ scores) @ bread

@@ -45,7 +45,7 @@ import dataclasses
 import numpy as np
 
 from .._data import measurement as meas
-from .covariance import Covariance, _correlation, _Svd
+from .covariance import Covariance, _correlation, _Svd, projected_shared
 
 #: Monte Carlo draws of the sensors' phases (and analog noise)
 ROUNDING_DRAWS = 1000
@@ -94,21 +94,6 @@ def model_of(problem, sigma) -> RoundingModel | None:
     return RoundingModel(q, np.asarray(sigma, float), per_log)
 
 
-def _projected(S, U, slots, used):
-    """Each log's shared columns with its nuisances projected out, zero where unused."""
-    mask = used.astype(float)
-    S, U = S * mask[:, :, None], U * mask[:, :, None]
-    out = np.empty_like(S)
-    for l in range(S.shape[0]):
-        Ul = U[l][:, slots[l] >= 0]
-        if Ul.shape[1]:
-            W = _Svd.of(Ul).range_basis
-            out[l] = S[l] - W @ (W.T @ S[l])
-        else:
-            out[l] = S[l]
-    return out
-
-
 def rounding_covariance(model: RoundingModel, problem, blocks, cov: Covariance, *, draws: int = ROUNDING_DRAWS):
     """`cov` with its shared parameters' standard errors and correlation from the
     sensors' rounding (module docstring); `blocks` = `(r, S, U, slots, used)` at the
@@ -121,7 +106,7 @@ def rounding_covariance(model: RoundingModel, problem, blocks, cov: Covariance, 
     if P == 0:
         return cov
     used = np.asarray(used, bool)
-    St = _projected(np.asarray(S), np.asarray(U), np.asarray(slots), used)  # (L, n, P)
+    St = projected_shared(np.asarray(S), np.asarray(U), np.asarray(slots), used)  # (L, n, P)
     svd = _Svd.of(St.reshape(L * n, P), np.sqrt(np.sum(np.asarray(S) ** 2, axis=(0, 1))))
     bread = svd.normal_pinv()
     white = np.tile(~model.quantised, T)[None, :] & used  # (L, n): residuals of unquantised channels

@@ -15,6 +15,8 @@ from __future__ import annotations
 import pytest
 from closed_loop_case import diagnose_closed, noisy_logs  # tests/ is on sys.path
 
+from identify._diagnose.notes import CLOSED_LOOP_NOTE
+
 pytestmark = pytest.mark.slow
 
 CASES = {
@@ -35,5 +37,7 @@ def test_a_hidden_effect_is_named_in_closed_loop(name):
 
 
 def test_closed_loop_logs_without_an_effect_name_nothing():
+    """... and say that their intervals are the loop's (`identify fit` refits by the direct method)."""
     diagnosis = diagnose_closed(noisy_logs(1))
     assert diagnosis.named == [], diagnosis.summary()
+    assert {"round": 0, "text": CLOSED_LOOP_NOTE} in diagnosis.notes, diagnosis.notes
