@@ -38,6 +38,48 @@ ENCODER_ZERO = 0.01  # rad
 COULOMB_VELOCITY = 0.01  # rad/s, the smoothing of dry friction (flexdyn.RigidJoint's default)
 
 
+#: the servo pendulum as an experiment file's [rig] and [sensors] (`{resolution}`: rad)
+RIG_TOML = """
+[rig]
+gravity = [0.0, -9.81]
+
+[[rig.links]]
+type = "rigid"
+length = 0.3
+mass = 0.2
+
+[[rig.joints]]
+type = "rigid"
+damping = 2e-3
+rotor_inertia = 1e-5
+gear_ratio = 15.0
+
+[[rig.hubs]]
+inertia = 1e-3
+
+[rig.motors.joint1]
+resistance = 2.4
+torque_constant = 0.045
+
+[sensors.theta1]
+offset = 0.01
+resolution = {resolution}
+"""
+
+#: its [controller] (`{kp}`, `{kd}`, `{ff}`, `{limit}`)
+CONTROLLER_TOML = """
+[controller]
+command = "voltage1"
+gains = {{ theta1 = {kp} }}
+rate_gains = {{ theta1 = {kd} }}
+references = ["theta1"]
+feedforward = "{ff} V"
+limit = "{limit} V"
+period = "1 ms"
+quantise = true
+"""
+
+
 def pendulum(values=None):
     """The rig at `values` (the truth by default)."""
     v = {**TRUTH, **(values or {})}

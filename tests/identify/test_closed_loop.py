@@ -12,10 +12,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from closed_loop_case import (
+    CONTROLLER_TOML,
     ENCODER,
     ENCODER_ZERO,
     LIMIT,
     PERIOD,
+    RIG_TOML,
     TRUTH,
     closed_loop_log,
     controller,
@@ -115,44 +117,7 @@ def test_a_sensor_delay_beyond_the_loops_history_fails_the_solve():
 # The experiment file's [controller]
 # ---------------------------------------------------------------------------
 
-_RIG = """
-[rig]
-gravity = [0.0, -9.81]
-
-[[rig.links]]
-type = "rigid"
-length = 0.3
-mass = 0.2
-
-[[rig.joints]]
-type = "rigid"
-damping = 2e-3
-rotor_inertia = 1e-5
-gear_ratio = 15.0
-
-[[rig.hubs]]
-inertia = 1e-3
-
-[rig.motors.joint1]
-resistance = 2.4
-torque_constant = 0.045
-
-[sensors.theta1]
-offset = 0.01
-resolution = {resolution}
-"""
-
-_CONTROLLER = """
-[controller]
-command = "voltage1"
-gains = {{ theta1 = {kp} }}
-rate_gains = {{ theta1 = {kd} }}
-references = ["theta1"]
-feedforward = "{ff} V"
-limit = "{limit} V"
-period = "1 ms"
-quantise = true
-"""
+_CONTROLLER = CONTROLLER_TOML
 
 
 def _write_case(tmp_path, controller=None, columns=None, extra="", samples=300):
@@ -172,7 +137,7 @@ def _write_case(tmp_path, controller=None, columns=None, extra="", samples=300):
     if columns is None:
         columns = 'time = "time [s]", theta1 = "enc [deg]", theta1_ref = "ref [deg]", voltage1 = "u [V]"'
     text = (
-        _RIG.format(resolution=ENCODER)
+        RIG_TOML.format(resolution=ENCODER)
         + controller
         + extra
         + f'\n[[logs]]\nfile = "run.csv"\ncolumns = {{ {columns} }}\nhold = "zoh"\ninitial = {{ theta1 = -0.3 }}\n'

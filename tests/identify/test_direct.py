@@ -12,7 +12,19 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from closed_loop_case import ENCODER, KD, KP, LIMIT, PERIOD, TRUTH, V_FF, reference, reference_loop
+from closed_loop_case import (
+    CONTROLLER_TOML,
+    ENCODER,
+    KD,
+    KP,
+    LIMIT,
+    PERIOD,
+    RIG_TOML,
+    TRUTH,
+    V_FF,
+    reference,
+    reference_loop,
+)
 
 import identify
 from identify._fit.direct import DRIFT_TOLERANCE, drift_reason, start_parameters
@@ -56,51 +68,14 @@ def test_the_direct_fit_starts_at_the_loop_fits_values_within_the_bounds():
     ]
 
 
-_EXPERIMENT = f"""
-[rig]
-gravity = [0.0, -9.81]
-
-[[rig.links]]
-type = "rigid"
-length = 0.3
-mass = 0.2
-
-[[rig.joints]]
-type = "rigid"
-damping = 2e-3
-rotor_inertia = 1e-5
-gear_ratio = 15.0
-
-[[rig.hubs]]
-inertia = 1.5e-3
-
-[rig.motors.joint1]
-resistance = 2.4
-torque_constant = 0.045
-
-[sensors.theta1]
-offset = 0.01
-resolution = {ENCODER}
-
-[parameters]
-"hub1.inertia" = {{ guess = 1.5e-3, lower = 1e-4, upper = 1e-2 }}
-
-[controller]
-command = "voltage1"
-gains = {{ theta1 = {KP} }}
-rate_gains = {{ theta1 = {KD} }}
-references = ["theta1"]
-feedforward = "{V_FF} V"
-limit = "{LIMIT} V"
-period = "1 ms"
-quantise = true
-
-[[logs]]
-file = "run.csv"
-columns = {{ time = "time [s]", theta1 = "enc [deg]", theta1_ref = "ref [deg]", voltage1 = "u [V]" }}
-hold = "zoh"
-initial = {{ theta1 = -0.3 }}
-"""
+_EXPERIMENT = (
+    RIG_TOML.format(resolution=ENCODER).replace("inertia = 1e-3", "inertia = 1.5e-3")
+    + '\n[parameters]\n"hub1.inertia" = { guess = 1.5e-3, lower = 1e-4, upper = 1e-2 }\n'
+    + CONTROLLER_TOML.format(kp=KP, kd=KD, ff=V_FF, limit=LIMIT)
+    + '\n[[logs]]\nfile = "run.csv"\n'
+    + 'columns = { time = "time [s]", theta1 = "enc [deg]", theta1_ref = "ref [deg]", voltage1 = "u [V]" }\n'
+    + 'hold = "zoh"\ninitial = { theta1 = -0.3 }\n'
+)
 
 
 def test_an_experiment_with_a_controller_is_fitted_closed_loop_then_by_the_direct_method(tmp_path):
